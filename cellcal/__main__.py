@@ -1,0 +1,3 @@
+from cellcal.cli import main
+
+main()

@@ -1,0 +1,743 @@
+"""Rigid (and similarity) registration of two frames from common points.
+
+``fit_rigid(src, dst)`` returns ``T_dst_src``: ``dst ≈ T_dst_src @ src``. Every method of
+the paper's Sec. 3.1/4.3 is here, plus weighted, robust and batched forms. Computation
+is in float64 on centred coordinates, so float32 input and coordinates far from the
+origin (a tracker 10 km from its datum) lose nothing.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from functools import cached_property
+from typing import Literal
+
+import numpy as np
+from numpy.typing import NDArray
+
+from cellcal.calib import rigid_solvers as rs
+from cellcal.calib.characteristic_line import CoincidenceStep, auto_lines, characteristic_line
+from cellcal.calib.geometry import Array, homogeneous, skew, so3_exp
+from cellcal.errors import (
+    ConvergenceError,
+    DegenerateGeometryError,
+    InputError,
+    MirroredCorrespondenceError,
+)
+
+Method = Literal[
+    "svd", "quaternion", "three-point", "rodrigues", "rodrigues-linear", "small-angle", "line"
+]
+METHODS: tuple[str, ...] = (
+    "svd",
+    "quaternion",
+    "three-point",
+    "rodrigues",
+    "rodrigues-linear",
+    "small-angle",
+    "line",
+)
+#: Methods that minimise Σ wᵢ|rᵢ|² (and so take weights, covariances, scale, robust loss).
+LEAST_SQUARES_METHODS = frozenset({"svd", "quaternion", "rodrigues", "small-angle"})
+Robust = Literal["huber", "tukey", "ransac"]
+ROBUST = ("huber", "tukey", "ransac")
+
+#: Relative width (√ of the scatter ratio) under which points count as collinear.
+COLLINEAR_TOL = 1e-7
+#: ... and under which a warning says the roll about the line is poorly determined.
+NEAR_COLLINEAR_WARN = 1e-3
+#: Median of the norm of a 3-D standard normal vector (χ with 3 degrees of freedom).
+CHI3_MEDIAN = 1.5381722
+HUBER_K = 2.8  # ≈ 95 % quantile of χ₃: points beyond it are down-weighted
+TUKEY_C = 4.7  # points beyond it get weight zero
+RANSAC_SIGMAS = 4.0  # default inlier threshold, in robust σ of the best sample
+
+
+@dataclass(frozen=True)
+class RigidFit:
+    """The result of :func:`fit_rigid`. ``T`` maps src coordinates into dst (mm).
+
+    ``residuals`` are ``dst − T(src)`` per point (n×3, mm), ``residual_norms`` their lengths.
+    ``rms`` and ``max`` are over the points used in the fit (``inliers``; all points
+    unless a robust option rejected some). ``sigma0`` is √(Σ wᵢ|rᵢ|²/dof): mm with unit
+    weights, dimensionless (ideally ≈ 1) with weights 1/σ². ``covariance`` is the
+    a-posteriori 6×6 covariance of (rotation vector [rad], translation [mm]) of
+    ``T = [Exp(ω) R | t]``, first order; it is None for methods that are not least
+    squares (three-point, line), whose own uncertainty is larger than that of least squares.
+    ``condition`` is the condition number of the rotation block of the normal matrix
+    (∞ for collinear points). ``support_points`` lists the point indices a
+    point-selecting method used (three-point: one triple; line: lines A and B).
+    """
+
+    method: str
+    T: Array
+    R: Array
+    t: Array
+    scale: float
+    residuals: Array
+    residual_norms: Array
+    rms: float
+    max: float
+    sigma0: float
+    dof: int
+    inliers: NDArray[np.bool_]
+    iterations: int
+    warnings: tuple[str, ...]
+    scale_estimated: bool = False
+    support_points: tuple[tuple[int, ...], ...] = ()
+    line_steps: tuple[CoincidenceStep, ...] = ()
+    # What the lazily computed statistics need (centred source, weights); not part of equality.
+    _Pc: Array = field(default_factory=lambda: np.zeros((0, 3)), repr=False, compare=False)
+    _pbar: Array = field(default_factory=lambda: np.zeros(3), repr=False, compare=False)
+    _W: Array = field(default_factory=lambda: np.zeros((0, 3, 3)), repr=False, compare=False)
+
+    @property
+    def n(self) -> int:
+        return int(self.residual_norms.shape[0])
+
+    @cached_property
+    def _normal(self) -> Array:
+        """Normal matrix of (ω, centroid shift[, scale]) at the solution (centred)."""
+        Rp = self.scale * (self._Pc @ self.R.T)
+        m = len(Rp)
+        k = 7 if self.scale_estimated else 6
+        J = np.zeros((m, 3, k))
+        J[:, 0, 1], J[:, 0, 2] = -Rp[:, 2], Rp[:, 1]
+        J[:, 1, 0], J[:, 1, 2] = Rp[:, 2], -Rp[:, 0]
+        J[:, 2, 0], J[:, 2, 1] = -Rp[:, 1], Rp[:, 0]
+        J[:, :, 3:6] = -np.eye(3)
+        if k == 7:
+            J[:, :, 6] = -Rp / self.scale
+        N: Array = np.einsum("nia,nij,njb->ab", J, self._W, J)
+        return N
+
+    @cached_property
+    def _cov_full(self) -> Array | None:
+        if self.method not in LEAST_SQUARES_METHODS or self.dof <= 0:
+            return None
+        try:
+            inv = np.asarray(np.linalg.inv(self._normal), dtype=np.float64)
+        except np.linalg.LinAlgError:
+            return None
+        C: Array = np.asarray(self.sigma0**2 * inv, dtype=np.float64)
+        # From (ω, centroid shift) to (ω, t at the dst origin): t = c − Exp(ω) s R p̄.
+        G = np.eye(C.shape[0])
+        G[3:6, 0:3] = skew(self.scale * (self.R @ self._pbar))
+        out: Array = G @ C @ G.T
+        return out
+
+    @cached_property
+    def covariance(self) -> Array | None:
+        """6×6 covariance of (rotation vector [rad], translation [mm]); None if not LS."""
+        C = self._cov_full
+        return None if C is None else C[:6, :6]
+
+    @cached_property
+    def scale_std(self) -> float:
+        """Standard uncertainty of the scale (0 when scale is not estimated)."""
+        C = self._cov_full
+        if C is None or C.shape[0] < 7:
+            return 0.0
+        return float(np.sqrt(C[6, 6]))
+
+    @cached_property
+    def condition(self) -> float:
+        """Condition number of the rotation block of the normal matrix (geometry only)."""
+        ev = np.linalg.eigvalsh(self._normal[:3, :3])
+        return float("inf") if ev[0] <= ev[2] * 1e-15 else float(ev[2] / ev[0])
+
+
+@dataclass(frozen=True)
+class LeaveOneOut:
+    """Prediction error of each point by a fit to all the others (mm).
+
+    ``errors`` is n×3 (NaN where the method could not fit without that point, e.g. a
+    point that defines a characteristic line); ``rms`` is over the finite ones.
+    """
+
+    errors: Array
+    norms: Array
+    rms: float
+    skipped: int
+
+
+@dataclass(frozen=True)
+class RigidFitBatch:
+    """Many least-squares fits at once (SVD): ``R`` (B×3×3), ``t`` (B×3), ``scale`` (B,),
+    ``rms`` and ``max`` (B,), and ``degenerate`` (B,) for problems whose points were
+    collinear or coincident (their R, t are not meaningful)."""
+
+    R: Array
+    t: Array
+    scale: Array
+    rms: Array
+    max: Array
+    degenerate: NDArray[np.bool_]
+
+    @property
+    def T(self) -> Array:
+        B = len(self.R)
+        out = np.zeros((B, 4, 4))
+        out[:, :3, :3] = self.R * self.scale[:, None, None]
+        out[:, :3, 3] = self.t
+        out[:, 3, 3] = 1.0
+        return out
+
+
+# --------------------------------------------------------------------------- input checks
+
+
+def as_points(x: object, name: str) -> Array:
+    """An (n, 3) float64 array, or an :class:`InputError` that says what is wrong."""
+    try:
+        a = np.asarray(x, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"{name}: not an array of numbers ({exc})") from None
+    if a.ndim != 2 or a.shape[1] != 3:
+        raise InputError(f"{name}: expected an (n, 3) array of points, got shape {a.shape}")
+    if not np.isfinite(a).all():
+        bad = int(np.flatnonzero(~np.isfinite(a).all(axis=1))[0])
+        raise InputError(f"{name}: point {bad} is not finite (NaN or inf)")
+    return a
+
+
+def _check_weights(weights: object, n: int) -> Array:
+    w = np.asarray(weights, dtype=np.float64)
+    if w.shape != (n,):
+        raise InputError(f"weights: expected {n} values, got shape {w.shape}")
+    if not np.isfinite(w).all() or (w < 0).any():
+        raise InputError("weights: must be finite and non-negative")
+    if np.count_nonzero(w) < 3:
+        raise DegenerateGeometryError("weights: fewer than 3 points have a positive weight")
+    return w
+
+
+def _check_cov(cov: object, n: int, name: str) -> Array:
+    C = np.asarray(cov, dtype=np.float64)
+    if C.shape == (n, 3):  # per-axis standard deviations
+        C = np.einsum("ni,ij->nij", C**2, np.eye(3))
+    if C.shape != (n, 3, 3):
+        raise InputError(f"{name}: expected (n, 3, 3) covariances or (n, 3) σ, got {C.shape}")
+    if not np.isfinite(C).all():
+        raise InputError(f"{name}: covariances must be finite")
+    if not np.allclose(C, np.swapaxes(C, 1, 2), rtol=1e-9, atol=1e-15):
+        raise InputError(f"{name}: covariances must be symmetric")
+    if (np.linalg.eigvalsh(C)[:, 0] < 0).any():
+        raise InputError(f"{name}: covariances must be positive semi-definite")
+    return C
+
+
+def _diagnose_geometry(P: Array, Q: Array, w: Array) -> list[str]:
+    """Raise for coincident or collinear clouds; return warnings for nearly collinear ones."""
+    warnings: list[str] = []
+    use = w > 0
+    for name, X in (("src", P[use]), ("dst", Q[use])):
+        Xc = X - X.mean(axis=0)
+        ev = np.linalg.eigvalsh(Xc.T @ Xc)
+        span = float(np.sqrt(max(ev[2], 0.0)))
+        scale = max(float(np.max(np.abs(X))), 1.0)
+        distinct = len(np.unique(np.round(X / (1e-9 * scale)), axis=0))
+        if span <= 1e-12 * scale:
+            raise DegenerateGeometryError(
+                f"{name}: all {len(X)} points coincide ({distinct} distinct); "
+                "the transformation is undetermined"
+            )
+        ratio = float(np.sqrt(max(ev[1], 0.0) / ev[2]))
+        if ratio < COLLINEAR_TOL:
+            raise DegenerateGeometryError(
+                f"{name}: the {len(X)} points are collinear ({distinct} distinct); "
+                "the rotation about their line is undetermined — add a point off the line"
+            )
+        if ratio < NEAR_COLLINEAR_WARN:
+            warnings.append(
+                f"{name}: points are nearly collinear (width/length {ratio:.2g}); "
+                "the rotation about their line is poorly determined"
+            )
+    return warnings
+
+
+def _mirror_check(H: Array, Pc: Array, Qc: Array, w: Array) -> None:
+    """Refuse a correspondence that a reflection fits far better than any rotation."""
+    U, S, Vt = np.linalg.svd(H)
+    if np.linalg.det(U) * np.linalg.det(Vt) >= 0 or S[2] <= 1e-9 * S[0]:
+        return
+    pp = float(np.sum(w[:, None] * Pc * Pc))
+    qq = float(np.sum(w[:, None] * Qc * Qc))
+    # Best residual with free scale, proper rotation vs reflection (Umeyama).
+    e_rot = max(qq - (S[0] + S[1] - S[2]) ** 2 / pp, 0.0)
+    e_ref = max(qq - (S[0] + S[1] + S[2]) ** 2 / pp, 0.0)
+    if e_ref < 0.25 * e_rot:
+        sw = float(w.sum())
+        raise MirroredCorrespondenceError(
+            "the correspondence is mirrored: a reflection fits it (RMS "
+            f"{np.sqrt(e_ref / sw):.4g} mm) far better than any rotation (RMS "
+            f"{np.sqrt(e_rot / sw):.4g} mm); one frame is left-handed or an axis is inverted"
+        )
+
+
+# --------------------------------------------------------------------------- solvers
+
+
+@dataclass(frozen=True)
+class _Solution:
+    R: Array
+    t: Array
+    scale: float
+    iterations: int = 0
+    support: tuple[tuple[int, ...], ...] = ()
+    steps: tuple[CoincidenceStep, ...] = ()
+    warnings: tuple[str, ...] = ()
+
+
+def _solve_ls(P: Array, Q: Array, w: Array, method: str, scale: bool) -> _Solution:
+    sw = float(w.sum())
+    pc = (w @ P) / sw
+    qc = (w @ Q) / sw
+    Pc = P - pc
+    Qc = Q - qc
+    H = rs.cross_covariance(Pc, Qc, w)
+    if np.linalg.det(H) < 0:
+        _mirror_check(H, Pc, Qc, w)
+    it = 0
+    if method == "svd":
+        R = rs.svd_rotation(H)
+    elif method == "quaternion":
+        R = rs.quaternion_rotation(H)
+    elif method == "rodrigues":
+        R, it = rs.rodrigues_iterated(Pc, Qc, w)
+    elif method == "rodrigues-linear":
+        R = rs.rodrigues_linear(Pc, Qc, w)
+    else:
+        R, it = rs.small_angle_iterated(Pc, Qc, w)
+    s = 1.0
+    if scale:
+        s = float(np.trace(R @ H)) / float(np.sum(w[:, None] * Pc * Pc))
+        if s <= 0:
+            raise DegenerateGeometryError("scale: the best-fit scale is not positive")
+    return _Solution(R, qc - s * (R @ pc), s, it)
+
+
+def pick_three(P: Array) -> tuple[int, int, int]:
+    """A well-spread triple: farthest from the centroid, farthest from it, farthest from
+    their line. O(n)."""
+    c = P.mean(axis=0)
+    i = int(np.argmax(np.sum((P - c) ** 2, axis=1)))
+    j = int(np.argmax(np.sum((P - P[i]) ** 2, axis=1)))
+    d = (P[j] - P[i]) / np.linalg.norm(P[j] - P[i])
+    k = int(np.argmax(np.sum(np.cross(P - P[i], d) ** 2, axis=1)))
+    return i, j, k
+
+
+def _solve_three_point(P: Array, Q: Array, idx: Sequence[int] | None) -> _Solution:
+    n = len(P)
+    if idx is None:
+        i, j, k = pick_three(P)
+    else:
+        if len(idx) != 3 or len(set(idx)) != 3 or any(x < 0 or x >= n for x in idx):
+            raise InputError(f"three-point: need 3 distinct point indices in 0..{n - 1}")
+        i, j, k = (int(x) for x in idx)
+    for X, name in ((P, "src"), (Q, "dst")):
+        a, b = X[j] - X[i], X[k] - X[i]
+        area = float(np.linalg.norm(np.cross(a, b)))
+        if area <= 1e-12 * max(float(a @ a), float(b @ b), 1e-300):
+            raise DegenerateGeometryError(
+                f"three-point: points {i}, {j}, {k} are collinear in {name}; choose others"
+            )
+    Fp = rs.triad_frame(P[j] - P[i], P[k] - P[i])
+    Fq = rs.triad_frame(Q[j] - Q[i], Q[k] - Q[i])
+    R = Fq @ Fp.T
+    sel = [i, j, k]
+    t = Q[sel].mean(axis=0) - R @ P[sel].mean(axis=0)
+    return _Solution(R, t, 1.0, 0, ((i, j, k),))
+
+
+def _solve_line(P: Array, Q: Array, lines: tuple[Sequence[int], Sequence[int]] | None) -> _Solution:
+    if lines is None:
+        la, lb = auto_lines(P)
+    else:
+        if len(lines) != 2:
+            raise InputError("line: give two characteristic lines, A and B")
+        la, lb = list(lines[0]), list(lines[1])
+    lf = characteristic_line(P, Q, la, lb)
+    return _Solution(
+        lf.T[:3, :3], lf.T[:3, 3], 1.0, 0, (tuple(la), tuple(lb)), lf.steps, lf.warnings
+    )
+
+
+def _refine_full_covariance(
+    P: Array, Q: Array, sol: _Solution, C_src: Array, C_dst: Array, scale: bool
+) -> tuple[_Solution, Array]:
+    """Gauss–Newton on (ω, t[, s]) minimising Σ rᵢᵀ Σᵢ⁻¹ rᵢ, Σᵢ = C_dst + s² R C_src Rᵀ."""
+    R, t, s = sol.R, sol.t, sol.scale
+    k = 7 if scale else 6
+    for it in range(1, rs.MAX_ITER + 1):
+        Sig = C_dst + s * s * np.einsum("ij,njk,lk->nil", R, C_src, R)
+        W = np.linalg.inv(Sig)
+        Rp = s * (P @ R.T)
+        r = Q - Rp - t
+        J = np.zeros((len(P), 3, k))
+        J[:, 0, 1], J[:, 0, 2] = -Rp[:, 2], Rp[:, 1]
+        J[:, 1, 0], J[:, 1, 2] = Rp[:, 2], -Rp[:, 0]
+        J[:, 2, 0], J[:, 2, 1] = -Rp[:, 1], Rp[:, 0]
+        J[:, :, 3:6] = -np.eye(3)
+        if scale:
+            J[:, :, 6] = -Rp / s
+        N = np.einsum("nia,nij,njb->ab", J, W, J)
+        g = np.einsum("nia,nij,nj->a", J, W, r)
+        dx = -np.linalg.solve(N, g)
+        dR = so3_exp(dx[:3])
+        # Left perturbation of R about the origin; translation moves with it.
+        R, t = dR @ R, t + dx[3:6]
+        if scale:
+            s *= 1.0 + dx[6] / s
+        if float(dx[:3] @ dx[:3]) < rs.ANGLE_TOL**2 and float(dx[3:6] @ dx[3:6]) < 1e-24:
+            Sig = C_dst + s * s * np.einsum("ij,njk,lk->nil", R, C_src, R)
+            return _Solution(R, t, s, sol.iterations + it), np.linalg.inv(Sig)
+    raise ConvergenceError("covariance-weighted fit: no convergence")
+
+
+# --------------------------------------------------------------------------- robust wrappers
+
+
+def _robust_weights(u: Array, kind: str) -> Array:
+    if kind == "huber":
+        out: Array = np.minimum(1.0, HUBER_K / np.maximum(u, 1e-300))
+        return out
+    out = np.where(u < TUKEY_C, (1.0 - (u / TUKEY_C) ** 2) ** 2, 0.0)
+    return out
+
+
+def _irls(
+    P: Array, Q: Array, w0: Array, method: str, scale: bool, kind: str
+) -> tuple[_Solution, Array, NDArray[np.bool_]]:
+    w = w0.copy()
+    sol = _solve_ls(P, Q, w, method, scale)
+    kinds = ["huber"] if kind == "huber" else ["huber", "tukey"]
+    u = np.zeros(len(P))
+    total = 0
+    for k in kinds:
+        for _ in range(rs.MAX_ITER):
+            total += 1
+            r = np.linalg.norm(Q - sol.scale * (P @ sol.R.T) - sol.t, axis=1)
+            sigma = float(np.median(r[w0 > 0])) / CHI3_MEDIAN
+            if sigma <= 1e-12 * max(1.0, float(np.max(np.abs(Q)))):
+                break  # an exact fit: nothing to down-weight
+            u = r / sigma
+            w_new = w0 * _robust_weights(u, k)
+            if np.count_nonzero(w_new) < 3:
+                raise DegenerateGeometryError(
+                    f"robust ({kind}): fewer than 3 points left with a positive weight"
+                )
+            _diagnose_geometry(P, Q, w_new)
+            change = float(np.max(np.abs(w_new - w)))
+            w = w_new
+            sol = _solve_ls(P, Q, w, method, scale)
+            if change < 1e-10:
+                break
+    cut = HUBER_K if kind == "huber" else TUKEY_C
+    inl = u <= cut if kind == "huber" else w > 0
+    sol = _Solution(sol.R, sol.t, sol.scale, total)
+    return sol, w, np.asarray(inl & (w0 > 0))
+
+
+def _ransac(
+    P: Array,
+    Q: Array,
+    w0: Array,
+    method: str,
+    scale: bool,
+    threshold: float | None,
+    seed: int,
+    max_samples: int = 2000,
+) -> tuple[_Solution, Array, NDArray[np.bool_]]:
+    n = len(P)
+    rng = np.random.default_rng(seed)
+    cand = np.flatnonzero(w0 > 0)
+    m = len(cand)
+    if m * (m - 1) * (m - 2) // 6 <= max_samples:
+        from itertools import combinations
+
+        samples = np.array(list(combinations(cand, 3)))
+    else:
+        samples = np.array([rng.choice(cand, 3, replace=False) for _ in range(max_samples)])
+    bs = fit_rigid_batch(P[samples], Q[samples], scale=scale)
+    ok = ~bs.degenerate
+    if not ok.any():
+        raise DegenerateGeometryError("ransac: every 3-point sample is collinear")
+    R, t, s = bs.R[ok], bs.t[ok], bs.scale[ok]
+    pred = np.einsum("bij,nj->bni", R, P) * s[:, None, None] + t[:, None, :]
+    r = np.linalg.norm(Q[None] - pred, axis=2)[:, cand]  # (samples, m)
+    if threshold is None:
+        med = np.median(r, axis=1)
+        best = int(np.argmin(med))
+        sigma = float(med[best]) / CHI3_MEDIAN * (1.0 + 5.0 / max(m - 3, 1))
+        threshold = max(RANSAC_SIGMAS * sigma, 1e-9 * max(1.0, float(np.max(np.abs(Q)))))
+    elif not np.isfinite(threshold) or threshold <= 0:
+        raise InputError("ransac threshold must be a positive number of mm")
+    counts = (r <= threshold).sum(axis=1)
+    score = np.where(r <= threshold, r**2, threshold**2).sum(axis=1)  # MSAC
+    best = int(np.lexsort((score, -counts))[0])
+    inl = np.zeros(n, dtype=bool)
+    inl[cand[r[best] <= threshold]] = True
+    sol = _Solution(R[best], t[best], float(s[best]))
+    for _ in range(10):
+        if inl.sum() < 3:
+            raise DegenerateGeometryError("ransac: fewer than 3 inliers")
+        w = np.where(inl, w0, 0.0)
+        _diagnose_geometry(P, Q, w)
+        sol = _solve_ls(P, Q, w, method, scale)
+        res = np.linalg.norm(Q - sol.scale * (P @ sol.R.T) - sol.t, axis=1)
+        new = (res <= threshold) & (w0 > 0)
+        if np.array_equal(new, inl):
+            break
+        inl = new
+    return sol, np.where(inl, w0, 0.0), inl
+
+
+# --------------------------------------------------------------------------- public API
+
+
+def fit_rigid(
+    src: object,
+    dst: object,
+    *,
+    method: str = "svd",
+    weights: object | None = None,
+    cov_src: object | None = None,
+    cov_dst: object | None = None,
+    scale: bool = False,
+    robust: str | None = None,
+    lines: tuple[Sequence[int], Sequence[int]] | None = None,
+    three_points: Sequence[int] | None = None,
+    ransac_threshold: float | None = None,
+    seed: int = 0,
+) -> RigidFit:
+    """Fit ``T_dst_src`` (src → dst) from corresponding points, rows matched by index.
+
+    ``method``: ``svd`` (Kabsch/Arun/Umeyama, the default), ``quaternion`` (Horn),
+    ``rodrigues`` (Cayley matrix, iterated to convergence), ``rodrigues-linear`` (one
+    linear Cayley solve), ``small-angle`` (linearised Helmert, iterated), ``three-point``
+    and ``line`` (the paper's characteristic-line method; ``lines=(A, B)`` gives each line
+    as two or more point indices, else they are picked automatically).
+    ``weights``: per-point weights (1/σ²). ``cov_src``/``cov_dst``: per-point 3×3
+    covariances (or n×3 σ) — the fit then minimises the Mahalanobis residual.
+    ``scale``: also estimate a uniform scale (Umeyama). ``robust``: ``huber`` or
+    ``tukey`` (IRLS) or ``ransac`` (3-point samples; ``ransac_threshold`` in mm, else
+    from the least-median sample). The robust and weighted options need a least-squares
+    method.
+    """
+    P = as_points(src, "src")
+    Q = as_points(dst, "dst")
+    n = len(P)
+    if Q.shape != P.shape:
+        raise InputError(f"src has {n} points but dst has {len(Q)}; they must correspond")
+    if method not in METHODS:
+        raise InputError(f"unknown method {method!r}; choose one of {', '.join(METHODS)}")
+    if robust is not None and robust not in ROBUST:
+        raise InputError(f"unknown robust option {robust!r}; choose one of {', '.join(ROBUST)}")
+    if n < 3:
+        raise DegenerateGeometryError(f"need at least 3 common points, got {n}")
+    ls = method in LEAST_SQUARES_METHODS or method == "rodrigues-linear"
+    extras = [
+        name
+        for name, val in (
+            ("weights", weights),
+            ("covariances", cov_src if cov_src is not None else cov_dst),
+            ("robust", robust),
+        )
+        if val is not None
+    ] + (["scale"] if scale else [])
+    if extras and not ls:
+        raise InputError(
+            f"{method}: {', '.join(extras)} need a least-squares method (svd, quaternion, "
+            "rodrigues, small-angle)"
+        )
+    if weights is not None and (cov_src is not None or cov_dst is not None):
+        raise InputError("give either weights or covariances, not both")
+    if lines is not None and method != "line":
+        raise InputError("lines are only used by the line method")
+    if three_points is not None and method != "three-point":
+        raise InputError("three_points is only used by the three-point method")
+
+    C_src = C_dst = None
+    if cov_src is not None or cov_dst is not None:
+        C_src = _check_cov(cov_src, n, "cov_src") if cov_src is not None else np.zeros((n, 3, 3))
+        C_dst = _check_cov(cov_dst, n, "cov_dst") if cov_dst is not None else np.zeros((n, 3, 3))
+        tr = np.trace(C_src, axis1=1, axis2=2) + np.trace(C_dst, axis1=1, axis2=2)
+        if (tr <= 0).any():
+            raise InputError("covariances: every point needs a non-zero covariance")
+        w = 3.0 / tr
+    elif weights is not None:
+        w = _check_weights(weights, n)
+    else:
+        w = np.ones(n)
+
+    # Cheap geometry screen through H's singular values; diagnose in detail only if needed.
+    warnings: list[str] = []
+    pc, qc = P.mean(axis=0), Q.mean(axis=0)
+    Sv = np.linalg.svd((P - pc).T @ (Q - qc), compute_uv=False)
+    if not Sv[1] > NEAR_COLLINEAR_WARN**2 * Sv[0] or weights is not None:
+        warnings += _diagnose_geometry(P, Q, w)
+
+    inliers = w > 0
+    W = None
+    if method == "three-point":
+        sol = _solve_three_point(P, Q, three_points)
+    elif method == "line":
+        sol = _solve_line(P, Q, lines)
+    elif robust in ("huber", "tukey"):
+        sol, w, inliers = _irls(P, Q, w, method, scale, robust)
+    elif robust == "ransac":
+        sol, w, inliers = _ransac(P, Q, w, method, scale, ransac_threshold, seed)
+    else:
+        sol = _solve_ls(P, Q, w, method, scale)
+    if C_src is not None and C_dst is not None:
+        sol, Winv = _refine_full_covariance(P, Q, sol, C_src, C_dst, scale)
+        W = Winv
+    warnings += sol.warnings
+
+    R, s = sol.R, sol.scale
+    if not scale:
+        spread_p = float(np.sqrt(np.mean(np.sum((P - pc) ** 2, axis=1))))
+        spread_q = float(np.sqrt(np.mean(np.sum((Q - qc) ** 2, axis=1))))
+        ratio = spread_q / spread_p
+        if not 0.5 < ratio < 2.0:
+            warnings.append(
+                f"dst is {ratio:.4g}× the size of src: different units? (scale=True fits it)"
+            )
+    # Residuals on centred coordinates (exact for far-away origins).
+    pred_c = s * ((P - pc) @ R.T) + (s * (R @ pc) + sol.t - qc)
+    residuals = (Q - qc) - pred_c
+    norms = np.sqrt(np.einsum("ij,ij->i", residuals, residuals))
+    used = norms[inliers]
+    m = int(inliers.sum())
+    dof = 3 * m - (7 if scale else 6)
+    if method in ("three-point", "line"):
+        ssr = float(np.sum(used * used))
+    elif W is not None:
+        ssr = float(np.einsum("ni,nij,nj->", residuals[inliers], W[inliers], residuals[inliers]))
+    else:
+        ssr = float(np.sum(w[inliers] * used * used))
+    sigma0 = float(np.sqrt(ssr / dof)) if dof > 0 else float("nan")
+    if W is None:
+        W = w[:, None, None] * np.eye(3)
+    return RigidFit(
+        method=method,
+        T=homogeneous(R, sol.t, s),
+        R=R,
+        t=sol.t,
+        scale=s,
+        residuals=residuals,
+        residual_norms=norms,
+        rms=float(np.sqrt(np.mean(used * used))),
+        max=float(np.max(used)),
+        sigma0=sigma0,
+        dof=dof,
+        inliers=inliers,
+        iterations=sol.iterations,
+        warnings=tuple(warnings),
+        scale_estimated=scale,
+        support_points=sol.support,
+        line_steps=sol.steps,
+        _Pc=(P - pc)[inliers],
+        _pbar=pc,
+        _W=W[inliers],
+    )
+
+
+def fit_rigid_batch(src: object, dst: object, *, scale: bool = False) -> RigidFitBatch:
+    """Least-squares (SVD) fits of B independent problems at once: src, dst are B×n×3."""
+    P = np.asarray(src, dtype=np.float64)
+    Q = np.asarray(dst, dtype=np.float64)
+    if P.ndim != 3 or P.shape[2] != 3 or P.shape != Q.shape:
+        raise InputError(f"batch: expected two (B, n, 3) arrays, got {P.shape} and {Q.shape}")
+    if P.shape[1] < 3:
+        raise DegenerateGeometryError(f"batch: need at least 3 points, got {P.shape[1]}")
+    if not (np.isfinite(P).all() and np.isfinite(Q).all()):
+        raise InputError("batch: points must be finite")
+    pc = P.mean(axis=1)
+    qc = Q.mean(axis=1)
+    Pc = P - pc[:, None, :]
+    Qc = Q - qc[:, None, :]
+    H = np.einsum("bni,bnj->bij", Pc, Qc)
+    U, S, Vt = np.linalg.svd(H)
+    d = np.sign(np.linalg.det(U) * np.linalg.det(Vt))
+    d[d == 0] = 1.0
+    Vt[:, 2, :] *= d[:, None]
+    R = np.swapaxes(Vt, 1, 2) @ np.swapaxes(U, 1, 2)
+    if scale:
+        tr = S[:, 0] + S[:, 1] + d * S[:, 2]
+        s = tr / np.maximum(np.einsum("bni,bni->b", Pc, Pc), 1e-300)
+    else:
+        s = np.ones(len(P))
+    t = qc - s[:, None] * np.einsum("bij,bj->bi", R, pc)
+    res = Qc - s[:, None, None] * np.einsum("bij,bnj->bni", R, Pc)
+    norms = np.sqrt(np.einsum("bni,bni->bn", res, res))
+    Sp = np.linalg.svd(Pc, compute_uv=False)
+    degenerate = ~(Sp[:, 1] > COLLINEAR_TOL * Sp[:, 0])
+    return RigidFitBatch(
+        R=R,
+        t=t,
+        scale=s,
+        rms=np.sqrt(np.mean(norms**2, axis=1)),
+        max=norms.max(axis=1),
+        degenerate=degenerate,
+    )
+
+
+def leave_one_out(src: object, dst: object, **kwargs: object) -> LeaveOneOut:
+    """Predict each point from a fit to all the others (same method and options).
+
+    With the plain SVD method this runs as one batched problem. Point indices given for
+    ``lines`` or ``three_points`` are remapped; a point that one of them needs cannot be
+    left out, and its error is NaN (counted in ``skipped``).
+    """
+    P = as_points(src, "src")
+    Q = as_points(dst, "dst")
+    n = len(P)
+    if Q.shape != P.shape:
+        raise InputError(f"src has {n} points but dst has {len(Q)}; they must correspond")
+    if n < 4:
+        raise DegenerateGeometryError(f"leave-one-out needs at least 4 points, got {n}")
+    errors = np.full((n, 3), np.nan)
+    keep = ~np.eye(n, dtype=bool)
+    plain = all(kwargs.get(k) in (None, False, 0) for k in kwargs if k not in ("method", "seed"))
+    if plain and kwargs.get("method", "svd") == "svd":
+        idx = np.array([np.flatnonzero(row) for row in keep])
+        b = fit_rigid_batch(P[idx], Q[idx])
+        pred = np.einsum("bij,bj->bi", b.R, P) + b.t
+        errors = Q - pred
+        errors[b.degenerate] = np.nan
+    else:
+        for i in range(n):
+            others = np.flatnonzero(keep[i])
+            remap = {int(j): k for k, j in enumerate(others)}
+            kw = dict(kwargs)
+            try:
+                for key in ("lines", "three_points"):
+                    spec = kw.get(key)
+                    if spec is None:
+                        continue
+                    if key == "lines":
+                        kw[key] = tuple([remap[int(j)] for j in g] for g in spec)  # type: ignore[attr-defined]
+                    else:
+                        kw[key] = [remap[int(j)] for j in spec]  # type: ignore[attr-defined]
+                for key in ("weights", "cov_src", "cov_dst"):
+                    if kw.get(key) is not None:
+                        kw[key] = np.asarray(kw[key])[others]
+                f = fit_rigid(P[others], Q[others], **kw)  # type: ignore[arg-type]
+            except (KeyError, DegenerateGeometryError):
+                continue
+            errors[i] = Q[i] - apply_fit(f, P[i : i + 1])[0]
+    norms = np.linalg.norm(errors, axis=1)
+    ok = np.isfinite(norms)
+    rms = float(np.sqrt(np.mean(norms[ok] ** 2))) if ok.any() else float("nan")
+    return LeaveOneOut(errors=errors, norms=norms, rms=rms, skipped=int((~ok).sum()))
+
+
+def apply_fit(fit: RigidFit, points: object) -> Array:
+    """Map src points (n×3) into dst with a fit."""
+    X = as_points(points, "points")
+    out: Array = fit.scale * (X @ fit.R.T) + fit.t
+    return out

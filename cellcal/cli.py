@@ -1,0 +1,54 @@
+"""The one entry point: ``cellcal <subcommand>``.
+
+Each subcommand lives in its own module under ``cellcal.commands``. A user error
+(:class:`cellcal.errors.UserError`, or a usage error) prints one line on stderr and
+exits 2; success exits 0. Anything else is a bug and keeps its traceback.
+"""
+
+from __future__ import annotations
+
+import sys
+
+import click
+
+from cellcal import __version__
+from cellcal.commands.register import register
+from cellcal.errors import UserError
+
+EXIT_USER_ERROR = 2
+
+
+@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+@click.version_option(__version__, "--version", prog_name="cellcal")
+def cli() -> None:
+    """cellcal: online calibration of industrial robot cells.
+
+    Registers sensor frames to the robot base from common points, and (as the project
+    grows) identifies the robot's kinematic errors from laser-tracker and photogrammetry
+    campaigns. Lengths are millimetres and angles degrees at every boundary.
+    """
+
+
+cli.add_command(register)
+
+
+def main(argv: list[str] | None = None) -> None:
+    """Console-script entry point; turns user errors into one line and exit code 2."""
+    try:
+        rv = cli.main(args=argv, prog_name="cellcal", standalone_mode=False)
+    except UserError as exc:
+        click.echo(f"cellcal: error: {exc}", err=True)
+        sys.exit(EXIT_USER_ERROR)
+    except click.exceptions.NoArgsIsHelpError as exc:
+        click.echo(exc.ctx.get_help() if exc.ctx else "", err=False)
+        sys.exit(0)
+    except click.ClickException as exc:
+        msg = " ".join(exc.format_message().split())
+        click.echo(f"cellcal: error: {msg}", err=True)
+        sys.exit(EXIT_USER_ERROR)
+    except click.exceptions.Abort:
+        click.echo("cellcal: interrupted", err=True)
+        sys.exit(130)
+    except BrokenPipeError:
+        sys.exit(0)
+    sys.exit(rv if isinstance(rv, int) else 0)

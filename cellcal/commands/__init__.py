@@ -1,0 +1,1 @@
+"""One module per ``cellcal`` subcommand; each exposes a click command."""

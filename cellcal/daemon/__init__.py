@@ -1,0 +1,1 @@
+"""cellcal.daemon — see DESIGN.md; filled in by later issues."""

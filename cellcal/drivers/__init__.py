@@ -1,0 +1,1 @@
+"""cellcal.drivers — see DESIGN.md; filled in by later issues."""

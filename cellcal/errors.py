@@ -1,0 +1,37 @@
+"""The one exception hierarchy of cellcal.
+
+Every error the program raises on purpose derives from :class:`CellcalError`.
+A :class:`UserError` is something the person at the terminal can fix (a bad file,
+degenerate geometry, an unreachable device): the CLI prints its message on one line
+of stderr and exits with code 2. Anything else is a bug and keeps its traceback.
+"""
+
+from __future__ import annotations
+
+
+class CellcalError(Exception):
+    """Base class of every error cellcal raises on purpose."""
+
+
+class UserError(CellcalError):
+    """Bad input or a condition the user can correct; the CLI exits 2."""
+
+
+class InputError(UserError):
+    """Values that cannot be used: wrong shape, NaN/inf, unknown option."""
+
+
+class FileFormatError(InputError):
+    """A file that cannot be read: missing columns, non-numeric values, bad names."""
+
+
+class DegenerateGeometryError(UserError):
+    """The geometry does not determine the answer (too few, collinear, coincident points)."""
+
+
+class MirroredCorrespondenceError(DegenerateGeometryError):
+    """The correspondence is fitted by a reflection, not by a rotation (left-handed frame)."""
+
+
+class ConvergenceError(UserError):
+    """An iterative solver did not reach its tolerance."""

@@ -1,0 +1,1 @@
+"""cellcal.mocks — see DESIGN.md; filled in by later issues."""
