@@ -310,6 +310,15 @@ def _solve_ls(P: Array, Q: Array, w: Array, method: str, scale: bool) -> _Soluti
         R = rs.rodrigues_linear(Pc, Qc, w)
     else:
         R, it = rs.small_angle_iterated(Pc, Qc, w)
+    if method in ("rodrigues", "small-angle"):
+        # At the least-squares optimum R·H is symmetric with eigenvalues (S₀, S₁, ±S₂);
+        # a stationary point where two are negative is a saddle, not the answer.
+        ev = np.linalg.eigvalsh(0.5 * (R @ H + (R @ H).T))
+        if ev[0] + ev[1] < -1e-9 * abs(ev[2]):
+            raise ConvergenceError(
+                f"{method}: the iteration stopped at a saddle point (a rotation about "
+                "180° from the answer); use --method svd"
+            )
     s = 1.0
     if scale:
         s = float(np.trace(R @ H)) / float(np.sum(w[:, None] * Pc * Pc))
@@ -576,9 +585,13 @@ def fit_rigid(
     # Cheap geometry screen through H's singular values; diagnose in detail only if needed.
     warnings: list[str] = []
     pc, qc = P.mean(axis=0), Q.mean(axis=0)
-    Sv = np.linalg.svd((P - pc).T @ (Q - qc), compute_uv=False)
+    Pc, Qc = P - pc, Q - qc
+    H = Pc.T @ Qc
+    U, Sv, Vt = np.linalg.svd(H)
     if not Sv[1] > NEAR_COLLINEAR_WARN**2 * Sv[0] or weights is not None:
         warnings += _diagnose_geometry(P, Q, w)
+    if np.linalg.det(U) * np.linalg.det(Vt) < 0:
+        _mirror_check(H, Pc, Qc, np.ones(n))
 
     inliers = w > 0
     W = None
@@ -590,6 +603,12 @@ def fit_rigid(
         sol, w, inliers = _irls(P, Q, w, method, scale, robust)
     elif robust == "ransac":
         sol, w, inliers = _ransac(P, Q, w, method, scale, ransac_threshold, seed)
+    elif method == "svd" and weights is None and C_src is None:
+        R = rs.rotation_from_svd(U, Vt)
+        s = 1.0
+        if scale:
+            s = float(np.trace(R @ H)) / float(np.sum(Pc * Pc))
+        sol = _Solution(R, qc - s * (R @ pc), s)
     else:
         sol = _solve_ls(P, Q, w, method, scale)
     if C_src is not None and C_dst is not None:
@@ -607,8 +626,8 @@ def fit_rigid(
                 f"dst is {ratio:.4g}× the size of src: different units? (scale=True fits it)"
             )
     # Residuals on centred coordinates (exact for far-away origins).
-    pred_c = s * ((P - pc) @ R.T) + (s * (R @ pc) + sol.t - qc)
-    residuals = (Q - qc) - pred_c
+    pred_c = s * (Pc @ R.T) + (s * (R @ pc) + sol.t - qc)
+    residuals = Qc - pred_c
     norms = np.sqrt(np.einsum("ij,ij->i", residuals, residuals))
     used = norms[inliers]
     m = int(inliers.sum())
@@ -640,7 +659,7 @@ def fit_rigid(
         scale_estimated=scale,
         support_points=sol.support,
         line_steps=sol.steps,
-        _Pc=(P - pc)[inliers],
+        _Pc=Pc[inliers],
         _pbar=pc,
         _W=W[inliers],
     )
@@ -702,7 +721,8 @@ def leave_one_out(src: object, dst: object, **kwargs: object) -> LeaveOneOut:
         raise DegenerateGeometryError(f"leave-one-out needs at least 4 points, got {n}")
     errors = np.full((n, 3), np.nan)
     keep = ~np.eye(n, dtype=bool)
-    plain = all(kwargs.get(k) in (None, False, 0) for k in kwargs if k not in ("method", "seed"))
+    options = [v for k, v in kwargs.items() if k not in ("method", "seed")]
+    plain = all(v is None or v is False for v in options)
     if plain and kwargs.get("method", "svd") == "svd":
         idx = np.array([np.flatnonzero(row) for row in keep])
         b = fit_rigid_batch(P[idx], Q[idx])

@@ -32,8 +32,14 @@ def cross_covariance(P: Array, Q: Array, w: Array) -> Array:
 def svd_rotation(H: Array) -> Array:
     """Kabsch / Arun with the reflection fix: the proper rotation maximising tr(R H)."""
     U, _, Vt = np.linalg.svd(H)
+    return rotation_from_svd(U, Vt)
+
+
+def rotation_from_svd(U: Array, Vt: Array) -> Array:
+    """``R = V diag(1, 1, det(V Uᵀ)) Uᵀ`` from the SVD ``H = U S Vᵀ``."""
     R: Array = Vt.T @ U.T
     if np.linalg.det(R) < 0.0:
+        Vt = Vt.copy()
         Vt[2] *= -1.0
         R = Vt.T @ U.T
     return R
@@ -84,31 +90,47 @@ def cayley(u: Array) -> Array:
     return out
 
 
-def _cayley_step(P: Array, Q: Array, w: Array) -> Array:
-    """One linear Cayley solve: ``q − p = u × (q + p)`` in the weighted least-squares sense."""
+def _cayley_step(P: Array, Q: Array, w: Array) -> tuple[Array, float]:
+    """One linear Cayley solve, ``q − p = u × (q + p)`` in the weighted least-squares
+    sense; returns u and the condition number of its normal matrix."""
     S = P + Q
     ws = w[:, None] * S
     M = float(np.sum(ws * S)) * np.eye(3) - ws.T @ S
     rhs = 2.0 * np.sum(w[:, None] * np.cross(P, Q), axis=0)
+    ev = np.linalg.eigvalsh(M)
+    cond = float(ev[2] / ev[0]) if ev[0] > 0 else float("inf")
     u: Array = np.linalg.lstsq(M, rhs, rcond=None)[0]
-    return u
+    return u, cond
 
 
-_FLIPS = (np.diag([1.0, -1.0, -1.0]), np.diag([-1.0, 1.0, -1.0]), np.diag([-1.0, -1.0, 1.0]))
+_FLIPS = (
+    np.eye(3),
+    np.diag([1.0, -1.0, -1.0]),
+    np.diag([-1.0, 1.0, -1.0]),
+    np.diag([-1.0, -1.0, 1.0]),
+)
+#: A Cayley normal matrix worse conditioned than this means a rotation near 180°.
+_CAYLEY_MAX_COND = 1e8
 
 
 def rodrigues_linear(P: Array, Q: Array, w: Array) -> Array:
-    """One-shot Cayley solve. Cayley parameters are infinite at 180°, so when the rotation
-    exceeds 90° the source is first turned by 180° about a coordinate axis and the
-    candidate with the smallest residual rotation is kept."""
-    u = _cayley_step(P, Q, w)
-    best_R, best_norm = cayley(u), float(u @ u)
-    if best_norm > 1.0:
-        for F in _FLIPS:
-            uf = _cayley_step(P @ F.T, Q, w)
-            if float(uf @ uf) < best_norm:
-                best_R, best_norm = cayley(uf) @ F, float(uf @ uf)
-    return best_R
+    """One-shot Cayley solve. Cayley parameters are infinite at 180° (and the linear
+    system singular there), so the source is also pre-turned by 180° about each
+    coordinate axis and the candidate with the smallest, well-determined residual
+    rotation is kept: one of the four is always at most about 120° from the answer."""
+    best: tuple[float, Array] | None = None
+    for F in _FLIPS:
+        u, cond = _cayley_step(P @ F.T, Q, w)
+        if cond > _CAYLEY_MAX_COND:
+            continue
+        uu = float(u @ u)
+        if best is None or uu < best[0]:
+            best = (uu, cayley(u) @ F)
+        if uu <= 1.0:  # residual rotation ≤ 90°: well inside Cayley's range
+            break
+    if best is None:
+        raise ConvergenceError("rodrigues: the linear Cayley system is singular")
+    return best[1]
 
 
 def rodrigues_iterated(P: Array, Q: Array, w: Array) -> tuple[Array, int]:
@@ -116,7 +138,7 @@ def rodrigues_iterated(P: Array, Q: Array, w: Array) -> tuple[Array, int]:
     satisfies ``Σ wᵢ (R pᵢ) × qᵢ = 0``, the least-squares stationarity condition."""
     R = rodrigues_linear(P, Q, w)
     for it in range(1, MAX_ITER + 1):
-        u = _cayley_step(P @ R.T, Q, w)
+        u, _ = _cayley_step(P @ R.T, Q, w)
         R = cayley(u) @ R
         if float(u @ u) < (ANGLE_TOL / 2.0) ** 2:
             return R, it

@@ -8,7 +8,14 @@ import click
 import numpy as np
 
 from cellcal.calib.geometry import rotation_angle, so3_log
-from cellcal.calib.registration import METHODS, ROBUST, RigidFit, fit_rigid, leave_one_out
+from cellcal.calib.registration import (
+    METHODS,
+    ROBUST,
+    LeaveOneOut,
+    RigidFit,
+    fit_rigid,
+    leave_one_out,
+)
 from cellcal.commands.output import print_json, warn
 from cellcal.errors import InputError
 from cellcal.pointfiles import MatchedPoints, match_points, read_points
@@ -27,7 +34,7 @@ def _fit(m: MatchedPoints, method: str, **opts: Any) -> RigidFit:
     return fit_rigid(m.src, m.dst, method=method, **opts)
 
 
-def _report(fit: RigidFit, m: MatchedPoints, loo: float | None) -> None:
+def _report(fit: RigidFit, m: MatchedPoints, loo: LeaveOneOut | None) -> None:
     deg = np.degrees
     rv = so3_log(fit.R)
     angle = rotation_angle(fit.R)
@@ -58,8 +65,10 @@ def _report(fit: RigidFit, m: MatchedPoints, loo: float | None) -> None:
     stats = f"RMS {fit.rms:.4f} mm   max {fit.max:.4f} mm"
     if np.isfinite(fit.sigma0):
         stats += f"   σ₀ {fit.sigma0:.4g} (dof {fit.dof})"
-    if loo is not None:
-        stats += f"   leave-one-out RMS {loo:.4f} mm"
+    if loo is not None and np.isfinite(loo.rms):
+        stats += f"   leave-one-out RMS {loo.rms:.4f} mm"
+        if loo.skipped:
+            stats += f" ({loo.skipped} point(s) the method needs not left out)"
     click.echo(stats)
     if fit.covariance is not None:
         sd = np.sqrt(np.diag(fit.covariance))
@@ -139,9 +148,7 @@ def register(
     fit = _fit(m, method, **opts)
     loo = None
     if m.src.shape[0] >= 4 and robust is None:
-        loo_opts = {k: v for k, v in opts.items() if k not in ("robust",)}
-        loo = leave_one_out(m.src, m.dst, method=method, **loo_opts).rms
-        loo = loo if np.isfinite(loo) else None
+        loo = leave_one_out(m.src, m.dst, method=method, **opts)
     for w in fit.warnings:
         warn(w)
     if as_json:
@@ -163,7 +170,8 @@ def register(
                 "translation_mm": fit.t,
                 "sigma0": fit.sigma0,
                 "dof": fit.dof,
-                "loo_rms_mm": loo,
+                "loo_rms_mm": None if loo is None else loo.rms,
+                "loo_residuals_mm": None if loo is None else loo.norms,
                 "rotation_std_deg": None if sd is None else np.degrees(sd[:3]),
                 "translation_std_mm": None if sd is None else sd[3:],
                 "condition_number": fit.condition,
