@@ -8,6 +8,7 @@ origin (a tracker 10 km from its datum) lose nothing.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from functools import cached_property
@@ -18,7 +19,7 @@ from numpy.typing import NDArray
 
 from cellcal.calib import rigid_solvers as rs
 from cellcal.calib.characteristic_line import CoincidenceStep, auto_lines, characteristic_line
-from cellcal.calib.geometry import Array, homogeneous, skew, so3_exp
+from cellcal.calib.geometry import Array, skew, so3_exp
 from cellcal.errors import (
     ConvergenceError,
     DegenerateGeometryError,
@@ -75,11 +76,6 @@ class RigidFit:
     R: Array
     t: Array
     scale: float
-    residuals: Array
-    residual_norms: Array
-    rms: float
-    max: float
-    sigma0: float
     dof: int
     inliers: NDArray[np.bool_]
     iterations: int
@@ -87,19 +83,75 @@ class RigidFit:
     scale_estimated: bool = False
     support_points: tuple[tuple[int, ...], ...] = ()
     line_steps: tuple[CoincidenceStep, ...] = ()
-    # What the lazily computed statistics need (centred source, weights); not part of equality.
+    # What the lazily computed statistics need: centred clouds, the residual offset of the
+    # centroids, the weights. Not part of equality.
     _Pc: Array = field(default_factory=lambda: np.zeros((0, 3)), repr=False, compare=False)
+    _Qc: Array = field(default_factory=lambda: np.zeros((0, 3)), repr=False, compare=False)
+    _offset: Array = field(default_factory=lambda: np.zeros(3), repr=False, compare=False)
     _pbar: Array = field(default_factory=lambda: np.zeros(3), repr=False, compare=False)
-    _W: Array = field(default_factory=lambda: np.zeros((0, 3, 3)), repr=False, compare=False)
+    _w: Array | None = field(default=None, repr=False, compare=False)
+    _W: Array | None = field(default=None, repr=False, compare=False)
 
     @property
     def n(self) -> int:
-        return int(self.residual_norms.shape[0])
+        return int(self._Pc.shape[0])
+
+    @cached_property
+    def residuals(self) -> Array:
+        """``dst − T(src)`` per point (n×3, mm), computed on centred coordinates."""
+        r: Array = self._Qc - self.scale * (self._Pc @ self.R.T) - self._offset
+        return r
+
+    @cached_property
+    def _sq(self) -> Array:
+        r = self.residuals
+        sq: Array = np.einsum("ij,ij->i", r, r)
+        return sq
+
+    @cached_property
+    def _sq_used(self) -> Array:
+        sq = self._sq
+        return (
+            sq if self.dof + (7 if self.scale_estimated else 6) == 3 * len(sq) else sq[self.inliers]
+        )
+
+    @cached_property
+    def residual_norms(self) -> Array:
+        """Length of each residual (mm)."""
+        out: Array = np.sqrt(self._sq)
+        return out
+
+    @cached_property
+    def rms(self) -> float:
+        """Root mean square residual length over the inliers (mm)."""
+        sq = self._sq_used
+        return math.sqrt(float(sq.sum()) / sq.shape[0])
+
+    @cached_property
+    def max(self) -> float:
+        """Largest residual length among the inliers (mm)."""
+        return math.sqrt(float(self._sq_used.max()))
+
+    @cached_property
+    def sigma0(self) -> float:
+        """√(Σ wᵢ|rᵢ|² / dof) over the inliers; NaN without redundancy."""
+        if self.dof <= 0:
+            return math.nan
+        inl = self.inliers
+        if self._W is not None:
+            ri = self.residuals[inl]
+            ssr = float(np.einsum("ni,nij,nj->", ri, self._W[inl], ri))
+        elif self._w is not None and self.method not in ("three-point", "line"):
+            ssr = float(self._w[inl] @ self._sq[inl])
+        else:
+            ssr = float(np.sum(self._sq[inl]))
+        return math.sqrt(ssr / self.dof)
 
     @cached_property
     def _normal(self) -> Array:
         """Normal matrix of (ω, centroid shift[, scale]) at the solution (centred)."""
-        Rp = self.scale * (self._Pc @ self.R.T)
+        inl = self.inliers
+        Rp = self.scale * (self._Pc[inl] @ self.R.T)
         m = len(Rp)
         k = 7 if self.scale_estimated else 6
         J = np.zeros((m, 3, k))
@@ -109,7 +161,11 @@ class RigidFit:
         J[:, :, 3:6] = -np.eye(3)
         if k == 7:
             J[:, :, 6] = -Rp / self.scale
-        N: Array = np.einsum("nia,nij,njb->ab", J, self._W, J)
+        if self._W is not None:
+            N: Array = np.einsum("nia,nij,njb->ab", J, self._W[inl], J)
+        else:
+            w = np.ones(m) if self._w is None else self._w[inl]
+            N = np.einsum("n,nia,nib->ab", w, J, J)
         return N
 
     @cached_property
@@ -165,8 +221,9 @@ class LeaveOneOut:
 @dataclass(frozen=True)
 class RigidFitBatch:
     """Many least-squares fits at once (SVD): ``R`` (B×3×3), ``t`` (B×3), ``scale`` (B,),
-    ``rms`` and ``max`` (B,), and ``degenerate`` (B,) for problems whose points were
-    collinear or coincident (their R, t are not meaningful)."""
+    ``rms`` and ``max`` (B,); ``degenerate`` (B,) marks problems whose points are collinear
+    or coincident in either cloud, ``mirrored`` (B,) those a reflection fits far better
+    than a rotation, as :func:`fit_rigid` would refuse them; their R, t are not meaningful."""
 
     R: Array
     t: Array
@@ -174,6 +231,7 @@ class RigidFitBatch:
     rms: Array
     max: Array
     degenerate: NDArray[np.bool_]
+    mirrored: NDArray[np.bool_]
 
     @property
     def T(self) -> Array:
@@ -471,7 +529,7 @@ def _ransac(
     else:
         samples = np.array([rng.choice(cand, 3, replace=False) for _ in range(max_samples)])
     bs = fit_rigid_batch(P[samples], Q[samples], scale=scale)
-    ok = ~bs.degenerate
+    ok = ~(bs.degenerate | bs.mirrored)
     if not ok.any():
         raise DegenerateGeometryError("ransac: every 3-point sample is collinear")
     R, t, s = bs.R[ok], bs.t[ok], bs.scale[ok]
@@ -536,17 +594,144 @@ def fit_rigid(
     from the least-median sample). The robust and weighted options need a least-squares
     method.
     """
-    P = as_points(src, "src")
-    Q = as_points(dst, "dst")
-    n = len(P)
+    P = _points(src, "src")
+    Q = _points(dst, "dst")
+    n = P.shape[0]
     if Q.shape != P.shape:
         raise InputError(f"src has {n} points but dst has {len(Q)}; they must correspond")
     if method not in METHODS:
         raise InputError(f"unknown method {method!r}; choose one of {', '.join(METHODS)}")
-    if robust is not None and robust not in ROBUST:
-        raise InputError(f"unknown robust option {robust!r}; choose one of {', '.join(ROBUST)}")
     if n < 3:
         raise DegenerateGeometryError(f"need at least 3 common points, got {n}")
+    # NaN and inf propagate into the sums: check the whole arrays only if a sum is bad.
+    sum_p, sum_q = np.add.reduce(P, 0), np.add.reduce(Q, 0)
+    if not math.isfinite(sum(sum_p.tolist()) + sum(sum_q.tolist())):
+        as_points(P, "src")
+        as_points(Q, "dst")
+        raise InputError("coordinates too large: their sum overflows")
+    plain = weights is None and cov_src is None and cov_dst is None and robust is None and not scale
+    if not plain:
+        _check_options(method, weights, cov_src, cov_dst, scale, robust)
+    if lines is not None and method != "line":
+        raise InputError("lines are only used by the line method")
+    if three_points is not None and method != "three-point":
+        raise InputError("three_points is only used by the three-point method")
+
+    C_src = C_dst = None
+    w: Array | None = None
+    if cov_src is not None or cov_dst is not None:
+        C_src = _check_cov(cov_src, n, "cov_src") if cov_src is not None else np.zeros((n, 3, 3))
+        C_dst = _check_cov(cov_dst, n, "cov_dst") if cov_dst is not None else np.zeros((n, 3, 3))
+        tr = np.trace(C_src, axis1=1, axis2=2) + np.trace(C_dst, axis1=1, axis2=2)
+        if (tr <= 0).any():
+            raise InputError("covariances: every point needs a non-zero covariance")
+        w = 3.0 / tr
+    elif weights is not None:
+        w = _check_weights(weights, n)
+
+    # Cheap geometry screen through H's singular values; diagnose in detail only if needed.
+    warnings: list[str] = []
+    pc, qc = sum_p / n, sum_q / n
+    Pc, Qc = P - pc, Q - qc
+    H = Pc.T @ Qc
+    U, Sv, Vt = np.linalg.svd(H)
+    if not Sv[1] > NEAR_COLLINEAR_WARN**2 * Sv[0] or w is not None:
+        warnings += _diagnose_geometry(P, Q, np.ones(n) if w is None else w)
+    if _det3(U) * _det3(Vt) < 0:
+        _mirror_check(H, Pc, Qc, np.ones(n))
+
+    inliers: NDArray[np.bool_] | None = None
+    W = None
+    if method == "three-point":
+        sol = _solve_three_point(P, Q, three_points)
+    elif method == "line":
+        sol = _solve_line(P, Q, lines)
+    elif robust in ("huber", "tukey"):
+        sol, w, inliers = _irls(P, Q, _ones_or(w, n), method, scale, robust)
+    elif robust == "ransac":
+        sol, w, inliers = _ransac(P, Q, _ones_or(w, n), method, scale, ransac_threshold, seed)
+    elif method == "svd" and w is None:
+        R = rs.rotation_from_svd(U, Vt)
+        s_ = 1.0
+        if scale:
+            s_ = float(np.trace(R @ H)) / float(np.vdot(Pc, Pc))
+        sol = _Solution(R, qc - s_ * (R @ pc), s_)
+    else:
+        sol = _solve_ls(P, Q, _ones_or(w, n), method, scale)
+    if C_src is not None and C_dst is not None:
+        sol, W = _refine_full_covariance(P, Q, sol, C_src, C_dst, scale)
+    warnings += sol.warnings
+
+    R, s, t = sol.R, sol.scale, sol.t
+    if inliers is not None and w is not None:
+        inliers = inliers & (w > 0)
+    elif w is not None:
+        inliers = w > 0
+    if inliers is None or inliers.all():
+        inliers = np.ones(n, dtype=bool)
+        m = n
+    else:
+        m = int(np.count_nonzero(inliers))
+    if not scale:
+        pp, qq = float(np.vdot(Pc, Pc)), float(np.vdot(Qc, Qc))
+        if not 0.25 * pp < qq < 4.0 * pp:
+            warnings.append(
+                f"dst is {math.sqrt(qq / pp):.4g}× the size of src: different units? "
+                "(scale=True fits it)"
+            )
+    T = np.zeros((4, 4))
+    T[:3, :3] = R if s == 1.0 else s * R
+    T[:3, 3] = t
+    T[3, 3] = 1.0
+    return RigidFit(
+        method=method,
+        T=T,
+        R=R,
+        t=t,
+        scale=s,
+        dof=3 * m - (7 if scale else 6),
+        inliers=inliers,
+        iterations=sol.iterations,
+        warnings=tuple(warnings),
+        scale_estimated=scale,
+        support_points=sol.support,
+        line_steps=sol.steps,
+        _Pc=Pc,
+        _Qc=Qc,
+        # Zero up to rounding for least squares; the centroid mismatch of CL / three-point.
+        _offset=s * (R @ pc) + t - qc,
+        _pbar=pc,
+        _w=w,
+        _W=W,
+    )
+
+
+def _points(x: object, name: str) -> Array:
+    a = x if isinstance(x, np.ndarray) and x.dtype == np.float64 else None
+    if a is None or a.ndim != 2 or a.shape[1] != 3:
+        return as_points(x, name)
+    return a
+
+
+def _det3(A: Array) -> float:
+    (a, b, c), (d, e, f), (g, h, i) = A.tolist()
+    return float(a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g))
+
+
+def _ones_or(w: Array | None, n: int) -> Array:
+    return np.ones(n) if w is None else w
+
+
+def _check_options(
+    method: str,
+    weights: object | None,
+    cov_src: object | None,
+    cov_dst: object | None,
+    scale: bool,
+    robust: str | None,
+) -> None:
+    if robust is not None and robust not in ROBUST:
+        raise InputError(f"unknown robust option {robust!r}; choose one of {', '.join(ROBUST)}")
     ls = method in LEAST_SQUARES_METHODS or method == "rodrigues-linear"
     extras = [
         name
@@ -564,105 +749,6 @@ def fit_rigid(
         )
     if weights is not None and (cov_src is not None or cov_dst is not None):
         raise InputError("give either weights or covariances, not both")
-    if lines is not None and method != "line":
-        raise InputError("lines are only used by the line method")
-    if three_points is not None and method != "three-point":
-        raise InputError("three_points is only used by the three-point method")
-
-    C_src = C_dst = None
-    if cov_src is not None or cov_dst is not None:
-        C_src = _check_cov(cov_src, n, "cov_src") if cov_src is not None else np.zeros((n, 3, 3))
-        C_dst = _check_cov(cov_dst, n, "cov_dst") if cov_dst is not None else np.zeros((n, 3, 3))
-        tr = np.trace(C_src, axis1=1, axis2=2) + np.trace(C_dst, axis1=1, axis2=2)
-        if (tr <= 0).any():
-            raise InputError("covariances: every point needs a non-zero covariance")
-        w = 3.0 / tr
-    elif weights is not None:
-        w = _check_weights(weights, n)
-    else:
-        w = np.ones(n)
-
-    # Cheap geometry screen through H's singular values; diagnose in detail only if needed.
-    warnings: list[str] = []
-    pc, qc = P.mean(axis=0), Q.mean(axis=0)
-    Pc, Qc = P - pc, Q - qc
-    H = Pc.T @ Qc
-    U, Sv, Vt = np.linalg.svd(H)
-    if not Sv[1] > NEAR_COLLINEAR_WARN**2 * Sv[0] or weights is not None:
-        warnings += _diagnose_geometry(P, Q, w)
-    if np.linalg.det(U) * np.linalg.det(Vt) < 0:
-        _mirror_check(H, Pc, Qc, np.ones(n))
-
-    inliers = w > 0
-    W = None
-    if method == "three-point":
-        sol = _solve_three_point(P, Q, three_points)
-    elif method == "line":
-        sol = _solve_line(P, Q, lines)
-    elif robust in ("huber", "tukey"):
-        sol, w, inliers = _irls(P, Q, w, method, scale, robust)
-    elif robust == "ransac":
-        sol, w, inliers = _ransac(P, Q, w, method, scale, ransac_threshold, seed)
-    elif method == "svd" and weights is None and C_src is None:
-        R = rs.rotation_from_svd(U, Vt)
-        s = 1.0
-        if scale:
-            s = float(np.trace(R @ H)) / float(np.sum(Pc * Pc))
-        sol = _Solution(R, qc - s * (R @ pc), s)
-    else:
-        sol = _solve_ls(P, Q, w, method, scale)
-    if C_src is not None and C_dst is not None:
-        sol, Winv = _refine_full_covariance(P, Q, sol, C_src, C_dst, scale)
-        W = Winv
-    warnings += sol.warnings
-
-    R, s = sol.R, sol.scale
-    if not scale:
-        spread_p = float(np.sqrt(np.mean(np.sum((P - pc) ** 2, axis=1))))
-        spread_q = float(np.sqrt(np.mean(np.sum((Q - qc) ** 2, axis=1))))
-        ratio = spread_q / spread_p
-        if not 0.5 < ratio < 2.0:
-            warnings.append(
-                f"dst is {ratio:.4g}× the size of src: different units? (scale=True fits it)"
-            )
-    # Residuals on centred coordinates (exact for far-away origins).
-    pred_c = s * (Pc @ R.T) + (s * (R @ pc) + sol.t - qc)
-    residuals = Qc - pred_c
-    norms = np.sqrt(np.einsum("ij,ij->i", residuals, residuals))
-    used = norms[inliers]
-    m = int(inliers.sum())
-    dof = 3 * m - (7 if scale else 6)
-    if method in ("three-point", "line"):
-        ssr = float(np.sum(used * used))
-    elif W is not None:
-        ssr = float(np.einsum("ni,nij,nj->", residuals[inliers], W[inliers], residuals[inliers]))
-    else:
-        ssr = float(np.sum(w[inliers] * used * used))
-    sigma0 = float(np.sqrt(ssr / dof)) if dof > 0 else float("nan")
-    if W is None:
-        W = w[:, None, None] * np.eye(3)
-    return RigidFit(
-        method=method,
-        T=homogeneous(R, sol.t, s),
-        R=R,
-        t=sol.t,
-        scale=s,
-        residuals=residuals,
-        residual_norms=norms,
-        rms=float(np.sqrt(np.mean(used * used))),
-        max=float(np.max(used)),
-        sigma0=sigma0,
-        dof=dof,
-        inliers=inliers,
-        iterations=sol.iterations,
-        warnings=tuple(warnings),
-        scale_estimated=scale,
-        support_points=sol.support,
-        line_steps=sol.steps,
-        _Pc=Pc[inliers],
-        _pbar=pc,
-        _W=W[inliers],
-    )
 
 
 def fit_rigid_batch(src: object, dst: object, *, scale: bool = False) -> RigidFitBatch:
@@ -679,29 +765,37 @@ def fit_rigid_batch(src: object, dst: object, *, scale: bool = False) -> RigidFi
     qc = Q.mean(axis=1)
     Pc = P - pc[:, None, :]
     Qc = Q - qc[:, None, :]
-    H = np.einsum("bni,bnj->bij", Pc, Qc)
+    PcT = np.swapaxes(Pc, 1, 2)
+    H = PcT @ Qc
     U, S, Vt = np.linalg.svd(H)
     d = np.sign(np.linalg.det(U) * np.linalg.det(Vt))
     d[d == 0] = 1.0
     Vt[:, 2, :] *= d[:, None]
     R = np.swapaxes(Vt, 1, 2) @ np.swapaxes(U, 1, 2)
-    if scale:
-        tr = S[:, 0] + S[:, 1] + d * S[:, 2]
-        s = tr / np.maximum(np.einsum("bni,bni->b", Pc, Pc), 1e-300)
-    else:
-        s = np.ones(len(P))
+    pp = np.einsum("bni,bni->b", Pc, Pc)
+    qq = np.einsum("bni,bni->b", Qc, Qc)
+    s = (S[:, 0] + S[:, 1] + d * S[:, 2]) / np.maximum(pp, 1e-300) if scale else np.ones(len(P))
     t = qc - s[:, None] * np.einsum("bij,bj->bi", R, pc)
-    res = Qc - s[:, None, None] * np.einsum("bij,bnj->bni", R, Pc)
-    norms = np.sqrt(np.einsum("bni,bni->bn", res, res))
-    Sp = np.linalg.svd(Pc, compute_uv=False)
-    degenerate = ~(Sp[:, 1] > COLLINEAR_TOL * Sp[:, 0])
+    res = Qc - s[:, None, None] * (Pc @ np.swapaxes(R, 1, 2))
+    sq = np.einsum("bni,bni->bn", res, res)
+    # Collinear or coincident points in either cloud (eigenvalues of the scatter matrices).
+    ev_p = np.linalg.eigvalsh(PcT @ Pc)
+    ev_q = np.linalg.eigvalsh(np.swapaxes(Qc, 1, 2) @ Qc)
+    tol2 = COLLINEAR_TOL**2
+    degenerate = ~((ev_p[:, 1] > tol2 * ev_p[:, 2]) & (ev_q[:, 1] > tol2 * ev_q[:, 2]))
+    # Mirrored: the reflection fits far better than the proper rotation (as in fit_rigid).
+    with np.errstate(divide="ignore", invalid="ignore"):
+        e_rot = qq - (S[:, 0] + S[:, 1] - S[:, 2]) ** 2 / pp
+        e_ref = qq - (S[:, 0] + S[:, 1] + S[:, 2]) ** 2 / pp
+        mirrored = (d < 0) & (S[:, 2] > 1e-9 * S[:, 0]) & (e_ref < 0.25 * e_rot)
     return RigidFitBatch(
         R=R,
         t=t,
         scale=s,
-        rms=np.sqrt(np.mean(norms**2, axis=1)),
-        max=norms.max(axis=1),
+        rms=np.sqrt(sq.mean(axis=1)),
+        max=np.sqrt(sq.max(axis=1)),
         degenerate=degenerate,
+        mirrored=mirrored,
     )
 
 
@@ -728,7 +822,7 @@ def leave_one_out(src: object, dst: object, **kwargs: object) -> LeaveOneOut:
         b = fit_rigid_batch(P[idx], Q[idx])
         pred = np.einsum("bij,bj->bi", b.R, P) + b.t
         errors = Q - pred
-        errors[b.degenerate] = np.nan
+        errors[b.degenerate | b.mirrored] = np.nan
     else:
         for i in range(n):
             others = np.flatnonzero(keep[i])

@@ -38,7 +38,8 @@ def svd_rotation(H: Array) -> Array:
 def rotation_from_svd(U: Array, Vt: Array) -> Array:
     """``R = V diag(1, 1, det(V Uᵀ)) Uᵀ`` from the SVD ``H = U S Vᵀ``."""
     R: Array = Vt.T @ U.T
-    if np.linalg.det(R) < 0.0:
+    (a, b, c), (d, e, f), (g, h, i) = R.tolist()
+    if a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g) < 0.0:
         Vt = Vt.copy()
         Vt[2] *= -1.0
         R = Vt.T @ U.T

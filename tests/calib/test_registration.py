@@ -499,3 +499,10 @@ def test_weights_leaving_fewer_than_three_points():
     P, Q, _, _ = rigid_problem(31, n=6)
     with pytest.raises(DegenerateGeometryError, match="fewer than 3"):
         fit_rigid(P, Q, weights=[1, 1, 0, 0, 0, 0])
+
+
+def test_batch_flags_mirrored_problems():
+    P, Q, _, _ = rigid_problem(32, n=10)
+    b = fit_rigid_batch(np.stack([P, P]), np.stack([Q, Q * [1, 1, -1]]))
+    assert list(b.mirrored) == [False, True]
+    assert list(b.degenerate) == [False, False]
