@@ -152,15 +152,8 @@ class RigidFit:
         """Normal matrix of (ω, centroid shift[, scale]) at the solution (centred)."""
         inl = self.inliers
         Rp = self.scale * (self._Pc[inl] @ self.R.T)
+        J = _pose_jacobian(Rp, self.scale_estimated, self.scale)
         m = len(Rp)
-        k = 7 if self.scale_estimated else 6
-        J = np.zeros((m, 3, k))
-        J[:, 0, 1], J[:, 0, 2] = -Rp[:, 2], Rp[:, 1]
-        J[:, 1, 0], J[:, 1, 2] = Rp[:, 2], -Rp[:, 0]
-        J[:, 2, 0], J[:, 2, 1] = -Rp[:, 1], Rp[:, 0]
-        J[:, :, 3:6] = -np.eye(3)
-        if k == 7:
-            J[:, :, 6] = -Rp / self.scale
         if self._W is not None:
             N: Array = np.einsum("nia,nij,njb->ab", J, self._W[inl], J)
         else:
@@ -200,7 +193,11 @@ class RigidFit:
     @cached_property
     def condition(self) -> float:
         """Condition number of the rotation block of the normal matrix (geometry only)."""
-        ev = np.linalg.eigvalsh(self._normal[:3, :3])
+        # The rotation block with translation (and scale) eliminated: the Schur
+        # complement, independent of where the centroid is taken.
+        N = self._normal
+        S = N[:3, :3] - N[:3, 3:] @ np.linalg.solve(N[3:, 3:], N[3:, :3])
+        ev = np.linalg.eigvalsh(0.5 * (S + S.T))
         return float("inf") if ev[0] <= ev[2] * 1e-15 else float(ev[2] / ev[0])
 
 
@@ -432,36 +429,70 @@ def _solve_line(P: Array, Q: Array, lines: tuple[Sequence[int], Sequence[int]] |
     )
 
 
+def _pose_jacobian(Rp: Array, with_scale: bool, scale: float) -> Array:
+    """∂rᵢ/∂(ω, c[, s]) for rᵢ = qᵢ − (Exp(ω) s R pᵢ + c); ``Rp`` holds s R pᵢ (n×3)."""
+    J = np.zeros((len(Rp), 3, 7 if with_scale else 6))
+    J[:, 0, 1], J[:, 0, 2] = -Rp[:, 2], Rp[:, 1]
+    J[:, 1, 0], J[:, 1, 2] = Rp[:, 2], -Rp[:, 0]
+    J[:, 2, 0], J[:, 2, 1] = -Rp[:, 1], Rp[:, 0]
+    J[:, :, 3:6] = -np.eye(3)
+    if with_scale:
+        J[:, :, 6] = -Rp / scale
+    return J
+
+
+def _combined_weights(R: Array, s: float, C_src: Array, C_dst: Array) -> Array:
+    """Σᵢ⁻¹ with Σᵢ = C_dstᵢ + s² R C_srcᵢ Rᵀ; a singular Σᵢ is a user error."""
+    Sig = C_dst + s * s * np.einsum("ij,njk,lk->nil", R, C_src, R)
+    ev = np.linalg.eigvalsh(Sig)
+    bad = np.flatnonzero(ev[:, 0] <= 1e-12 * np.maximum(ev[:, 2], 1e-300))
+    if len(bad):
+        raise InputError(
+            f"covariances: point {int(bad[0])} has no uncertainty along some direction "
+            "(a zero σ on the same axis in both files); give every point a positive σ"
+        )
+    W: Array = np.linalg.inv(Sig)
+    return W
+
+
 def _refine_full_covariance(
-    P: Array, Q: Array, sol: _Solution, C_src: Array, C_dst: Array, scale: bool
+    P: Array,
+    Q: Array,
+    sol: _Solution,
+    C_src: Array,
+    C_dst: Array,
+    scale: bool,
+    inliers: NDArray[np.bool_] | None,
 ) -> tuple[_Solution, Array]:
-    """Gauss–Newton on (ω, t[, s]) minimising Σ rᵢᵀ Σᵢ⁻¹ rᵢ, Σᵢ = C_dst + s² R C_src Rᵀ."""
-    R, t, s = sol.R, sol.t, sol.scale
-    k = 7 if scale else 6
+    """Gauss–Newton on (ω, c[, s]) minimising Σ rᵢᵀ Σᵢ⁻¹ rᵢ over the inliers, where
+    Σᵢ = C_dst + s² R C_src Rᵀ is re-evaluated each step. Works on centred coordinates
+    (a datum kilometres away costs nothing); returns the solution and Σᵢ⁻¹ of every point."""
+    use = np.ones(len(P), dtype=bool) if inliers is None else inliers
+    pc, qc = P[use].mean(axis=0), Q[use].mean(axis=0)
+    Pc, Qc = P[use] - pc, Q[use] - qc
+    Cs, Cd = C_src[use], C_dst[use]
+    R, s = sol.R, sol.scale
+    c = s * (R @ pc) + sol.t - qc  # image of the source centroid, in centred dst coordinates
+    cost_prev = math.inf
     for it in range(1, rs.MAX_ITER + 1):
-        Sig = C_dst + s * s * np.einsum("ij,njk,lk->nil", R, C_src, R)
-        W = np.linalg.inv(Sig)
-        Rp = s * (P @ R.T)
-        r = Q - Rp - t
-        J = np.zeros((len(P), 3, k))
-        J[:, 0, 1], J[:, 0, 2] = -Rp[:, 2], Rp[:, 1]
-        J[:, 1, 0], J[:, 1, 2] = Rp[:, 2], -Rp[:, 0]
-        J[:, 2, 0], J[:, 2, 1] = -Rp[:, 1], Rp[:, 0]
-        J[:, :, 3:6] = -np.eye(3)
-        if scale:
-            J[:, :, 6] = -Rp / s
+        W = _combined_weights(R, s, Cs, Cd)
+        Rp = s * (Pc @ R.T)
+        r = Qc - Rp - c
+        cost = float(np.einsum("ni,nij,nj->", r, W, r))
+        J = _pose_jacobian(Rp, scale, s)
         N = np.einsum("nia,nij,njb->ab", J, W, J)
         g = np.einsum("nia,nij,nj->a", J, W, r)
         dx = -np.linalg.solve(N, g)
-        dR = so3_exp(dx[:3])
-        # Left perturbation of R about the origin; translation moves with it.
-        R, t = dR @ R, t + dx[3:6]
+        R, c = so3_exp(dx[:3]) @ R, c + dx[3:6]
         if scale:
             s *= 1.0 + dx[6] / s
-        if float(dx[:3] @ dx[:3]) < rs.ANGLE_TOL**2 and float(dx[3:6] @ dx[3:6]) < 1e-24:
-            Sig = C_dst + s * s * np.einsum("ij,njk,lk->nil", R, C_src, R)
-            return _Solution(R, t, s, sol.iterations + it), np.linalg.inv(Sig)
-    raise ConvergenceError("covariance-weighted fit: no convergence")
+        small = float(dx[:3] @ dx[:3]) < 1e-26 and float(dx[3:6] @ dx[3:6]) < 1e-20
+        stalled = it > 2 and abs(cost_prev - cost) <= 1e-14 * cost
+        if small or stalled:
+            t = c + qc - s * (R @ pc)
+            return _Solution(R, t, s, sol.iterations + it), _combined_weights(R, s, C_src, C_dst)
+        cost_prev = cost
+    raise ConvergenceError(f"covariance-weighted fit: no convergence in {rs.MAX_ITER} steps")
 
 
 # --------------------------------------------------------------------------- robust wrappers
@@ -542,13 +573,14 @@ def _ransac(
         threshold = max(RANSAC_SIGMAS * sigma, 1e-9 * max(1.0, float(np.max(np.abs(Q)))))
     elif not np.isfinite(threshold) or threshold <= 0:
         raise InputError("ransac threshold must be a positive number of mm")
-    counts = (r <= threshold).sum(axis=1)
-    score = np.where(r <= threshold, r**2, threshold**2).sum(axis=1)  # MSAC
-    best = int(np.lexsort((score, -counts))[0])
+    # MSAC (Torr & Zisserman 2000): inliers cost their squared residual, outliers the
+    # squared threshold; the lowest total wins.
+    score = np.minimum(r, threshold) ** 2
+    best = int(np.argmin(score.sum(axis=1)))
     inl = np.zeros(n, dtype=bool)
     inl[cand[r[best] <= threshold]] = True
-    sol = _Solution(R[best], t[best], float(s[best]))
-    for _ in range(10):
+    # Refit on the inliers until the set is stable; the set returned is the one fitted.
+    for attempt in range(20):
         if inl.sum() < 3:
             raise DegenerateGeometryError("ransac: fewer than 3 inliers")
         w = np.where(inl, w0, 0.0)
@@ -556,7 +588,7 @@ def _ransac(
         sol = _solve_ls(P, Q, w, method, scale)
         res = np.linalg.norm(Q - sol.scale * (P @ sol.R.T) - sol.t, axis=1)
         new = (res <= threshold) & (w0 > 0)
-        if np.array_equal(new, inl):
+        if np.array_equal(new, inl) or new.sum() < 3 or attempt == 19:
             break
         inl = new
     return sol, np.where(inl, w0, 0.0), inl
@@ -616,6 +648,8 @@ def fit_rigid(
         raise InputError("lines are only used by the line method")
     if three_points is not None and method != "three-point":
         raise InputError("three_points is only used by the three-point method")
+    if ransac_threshold is not None and robust != "ransac":
+        raise InputError("ransac_threshold is only used with robust='ransac'")
 
     C_src = C_dst = None
     w: Array | None = None
@@ -659,7 +693,7 @@ def fit_rigid(
     else:
         sol = _solve_ls(P, Q, _ones_or(w, n), method, scale)
     if C_src is not None and C_dst is not None:
-        sol, W = _refine_full_covariance(P, Q, sol, C_src, C_dst, scale)
+        sol, W = _refine_full_covariance(P, Q, sol, C_src, C_dst, scale, inliers)
     warnings += sol.warnings
 
     R, s, t = sol.R, sol.scale, sol.t
@@ -744,8 +778,8 @@ def _check_options(
     ] + (["scale"] if scale else [])
     if extras and not ls:
         raise InputError(
-            f"{method}: {', '.join(extras)} need a least-squares method (svd, quaternion, "
-            "rodrigues, small-angle)"
+            f"{method}: the option(s) {', '.join(extras)} require a least-squares method "
+            "(svd, quaternion, rodrigues, rodrigues-linear, small-angle)"
         )
     if weights is not None and (cov_src is not None or cov_dst is not None):
         raise InputError("give either weights or covariances, not both")
@@ -753,8 +787,11 @@ def _check_options(
 
 def fit_rigid_batch(src: object, dst: object, *, scale: bool = False) -> RigidFitBatch:
     """Least-squares (SVD) fits of B independent problems at once: src, dst are B×n×3."""
-    P = np.asarray(src, dtype=np.float64)
-    Q = np.asarray(dst, dtype=np.float64)
+    try:
+        P = np.asarray(src, dtype=np.float64)
+        Q = np.asarray(dst, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"batch: not arrays of numbers ({exc})") from None
     if P.ndim != 3 or P.shape[2] != 3 or P.shape != Q.shape:
         raise InputError(f"batch: expected two (B, n, 3) arrays, got {P.shape} and {Q.shape}")
     if P.shape[1] < 3:

@@ -134,16 +134,21 @@ def rodrigues_linear(P: Array, Q: Array, w: Array) -> Array:
     return best[1]
 
 
+def _step_tolerance(cond: float) -> float:
+    """Smallest meaningful rotation update: rounding in a solve grows with its condition."""
+    return ANGLE_TOL * max(1.0, cond)
+
+
 def rodrigues_iterated(P: Array, Q: Array, w: Array) -> tuple[Array, int]:
     """Cayley solve repeated on the residual rotation until it vanishes; the fixed point
     satisfies ``Σ wᵢ (R pᵢ) × qᵢ = 0``, the least-squares stationarity condition."""
     R = rodrigues_linear(P, Q, w)
     for it in range(1, MAX_ITER + 1):
-        u, _ = _cayley_step(P @ R.T, Q, w)
+        u, cond = _cayley_step(P @ R.T, Q, w)
         R = cayley(u) @ R
-        if float(u @ u) < (ANGLE_TOL / 2.0) ** 2:
+        if float(u @ u) < (_step_tolerance(cond) / 2.0) ** 2:
             return R, it
-    raise ConvergenceError(f"rodrigues: no convergence in {MAX_ITER} iterations")
+    raise ConvergenceError(f"rodrigues: no convergence in {MAX_ITER} iterations; use --method svd")
 
 
 def small_angle_iterated(
@@ -153,21 +158,23 @@ def small_angle_iterated(
 
     Each step solves ``Σ wᵢ (|pᵢ|² I − pᵢ pᵢᵀ) ω = Σ wᵢ pᵢ × qᵢ`` for the rotated source
     and applies the exact exponential. Converges from the identity for rotations well
-    beyond the 5° where a single linear step is accurate; near 180° it cannot start and
-    says so."""
+    beyond the 5° where a single linear step is accurate; exactly at 180° it may not
+    start, and says so rather than return a wrong answer."""
     R = np.eye(3) if R0 is None else R0
     for it in range(1, MAX_ITER + 1):
         Pr = P @ R.T
         wp = w[:, None] * Pr
         M = float(np.sum(wp * Pr)) * np.eye(3) - wp.T @ Pr
         rhs = np.sum(w[:, None] * np.cross(Pr, Q), axis=0)
+        ev = np.linalg.eigvalsh(M)
+        cond = float(ev[2] / ev[0]) if ev[0] > 0 else float("inf")
         omega: Array = np.linalg.lstsq(M, rhs, rcond=None)[0]
         R = so3_exp(omega) @ R
-        if float(omega @ omega) < ANGLE_TOL**2:
+        if float(omega @ omega) < _step_tolerance(cond) ** 2:
             return R, it
     raise ConvergenceError(
-        f"small-angle: no convergence in {MAX_ITER} iterations; the frames are probably "
-        "rotated by nearly 180°; use --method svd"
+        f"small-angle: no convergence in {MAX_ITER} iterations (the points are nearly "
+        "collinear, or the frames are turned by about 180°); use --method svd"
     )
 
 

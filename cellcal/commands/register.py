@@ -74,7 +74,7 @@ def _report(fit: RigidFit, m: MatchedPoints, loo: LeaveOneOut | None) -> None:
         sd = np.sqrt(np.diag(fit.covariance))
         click.echo(
             f"1σ: rotation ({deg(sd[0]):.2g}, {deg(sd[1]):.2g}, {deg(sd[2]):.2g})°  "
-            f"translation ({sd[3]:.3g}, {sd[4]:.3g}, {sd[5]:.3g}) mm   "
+            f"translation at the dst origin ({sd[3]:.3g}, {sd[4]:.3g}, {sd[5]:.3g}) mm   "
             f"condition {fit.condition:.3g}"
         )
 

@@ -506,3 +506,62 @@ def test_batch_flags_mirrored_problems():
     b = fit_rigid_batch(np.stack([P, P]), np.stack([Q, Q * [1, 1, -1]]))
     assert list(b.mirrored) == [False, True]
     assert list(b.degenerate) == [False, False]
+
+
+def test_robust_with_covariances_keeps_outliers_out():
+    P, Q, R, _t = rigid_problem(33, n=20, noise=0.01)
+    Q[7] += 5.0
+    fit = fit_rigid(P, Q, robust="ransac", cov_dst=np.full((20, 3), 0.01))
+    assert not fit.inliers[7]
+    assert fit.rms < 0.05
+    np.testing.assert_allclose(fit.R, R, atol=1e-3)
+
+
+def test_covariance_weighting_far_from_the_origin():
+    P, Q, _R, _t = rigid_problem(34, n=10, noise=0.01)
+    far = np.array([2.0e7, -1.0e7, 5.0e6])  # 20 km: a site datum
+    fit = fit_rigid(P + far, Q + far, cov_dst=np.full((10, 3), 0.01))
+    ref = fit_rigid(P + far, Q + far)
+    np.testing.assert_allclose(fit.R, ref.R, atol=1e-9)
+
+
+def test_zero_uncertainty_in_both_files_is_a_user_error():
+    P, _, _, _ = rigid_problem(35, n=6)
+    sig = np.full((6, 3), 0.01)
+    sig[:, 1] = 0.0  # no y uncertainty anywhere, frames parallel: Σᵢ singular
+    with pytest.raises(InputError, match="point 0 has no uncertainty"):
+        fit_rigid(P, P + 1.0, cov_src=sig, cov_dst=sig)
+
+
+def test_condition_does_not_depend_on_weights_being_uneven():
+    P, Q, _, _ = rigid_problem(36, n=12, noise=0.02)
+    w = np.linspace(0.1, 10.0, 12)
+    a = fit_rigid(P, Q, weights=w)
+    b = fit_rigid(P, Q, weights=w * 7.0)
+    assert a.condition == pytest.approx(b.condition, rel=1e-9)
+    # The rotation block about the weighted centroid, computed directly.
+    pc = (w @ P) / w.sum()
+    X = (P - pc) @ a.R.T
+    N = sum(wi * (x @ x * np.eye(3) - np.outer(x, x)) for wi, x in zip(w, X, strict=True))
+    ev = np.linalg.eigvalsh(N)
+    assert a.condition == pytest.approx(ev[2] / ev[0], rel=1e-9)
+
+
+@pytest.mark.parametrize("method", ["rodrigues", "small-angle"])
+def test_iterative_methods_on_nearly_collinear_points(method):
+    P, _, _, _ = rigid_problem(37, n=10)
+    P[:, 1:] = P[:, 1:] * 1e-3 + P[0, 1:]
+    R = Rotation.from_rotvec([0.1, 0.2, 0.3]).as_matrix()
+    Q = P @ R.T + np.random.default_rng(37).normal(0, 0.01, P.shape)
+    np.testing.assert_allclose(fit_rigid(P, Q, method=method).R, fit_rigid(P, Q).R, atol=1e-8)
+
+
+def test_ransac_threshold_without_ransac_is_refused():
+    P, Q, _, _ = rigid_problem(38, n=6)
+    with pytest.raises(InputError, match="ransac_threshold"):
+        fit_rigid(P, Q, ransac_threshold=1.0)
+
+
+def test_batch_text_input_is_an_input_error():
+    with pytest.raises(InputError, match="numbers"):
+        fit_rigid_batch([[["a", "b", "c"]] * 3], [[["a", "b", "c"]] * 3])
