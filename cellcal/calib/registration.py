@@ -83,11 +83,11 @@ class RigidFit:
     scale_estimated: bool = False
     support_points: tuple[tuple[int, ...], ...] = ()
     line_steps: tuple[CoincidenceStep, ...] = ()
-    # What the lazily computed statistics need: centred clouds, the residual offset of the
-    # centroids, the weights. Not part of equality.
+    # What the lazily computed statistics need: centred clouds, their centroids, the
+    # weights. Not part of equality.
     _Pc: Array = field(default_factory=lambda: np.zeros((0, 3)), repr=False, compare=False)
     _Qc: Array = field(default_factory=lambda: np.zeros((0, 3)), repr=False, compare=False)
-    _offset: Array = field(default_factory=lambda: np.zeros(3), repr=False, compare=False)
+    _qbar: Array = field(default_factory=lambda: np.zeros(3), repr=False, compare=False)
     _pbar: Array = field(default_factory=lambda: np.zeros(3), repr=False, compare=False)
     _w: Array | None = field(default=None, repr=False, compare=False)
     _W: Array | None = field(default=None, repr=False, compare=False)
@@ -99,7 +99,9 @@ class RigidFit:
     @cached_property
     def residuals(self) -> Array:
         """``dst − T(src)`` per point (n×3, mm), computed on centred coordinates."""
-        r: Array = self._Qc - self.scale * (self._Pc @ self.R.T) - self._offset
+        # Zero up to rounding for least squares; the centroid mismatch of CL / three-point.
+        offset = self.scale * (self.R @ self._pbar) + self.t - self._qbar
+        r: Array = self._Qc - self.scale * (self._Pc @ self.R.T) - offset
         return r
 
     @cached_property
@@ -314,8 +316,8 @@ def _diagnose_geometry(P: Array, Q: Array, w: Array) -> list[str]:
 
 def _mirror_check(H: Array, Pc: Array, Qc: Array, w: Array) -> None:
     """Refuse a correspondence that a reflection fits far better than any rotation."""
-    U, S, Vt = np.linalg.svd(H)
-    if np.linalg.det(U) * np.linalg.det(Vt) >= 0 or S[2] <= 1e-9 * S[0]:
+    U, S, Vt = rs.svd3(H)
+    if _det3(U) * _det3(Vt) >= 0 or S[2] <= 1e-9 * S[0]:
         return
     pp = float(np.sum(w[:, None] * Pc * Pc))
     qq = float(np.sum(w[:, None] * Qc * Qc))
@@ -668,10 +670,11 @@ def fit_rigid(
     pc, qc = sum_p / n, sum_q / n
     Pc, Qc = P - pc, Q - qc
     H = Pc.T @ Qc
-    U, Sv, Vt = np.linalg.svd(H)
+    U, Sv, Vt = rs.svd3(H)
     if not Sv[1] > NEAR_COLLINEAR_WARN**2 * Sv[0] or w is not None:
         warnings += _diagnose_geometry(P, Q, np.ones(n) if w is None else w)
-    if _det3(U) * _det3(Vt) < 0:
+    det_uv = _det3(U) * _det3(Vt)
+    if det_uv < 0:
         _mirror_check(H, Pc, Qc, np.ones(n))
 
     inliers: NDArray[np.bool_] | None = None
@@ -685,7 +688,7 @@ def fit_rigid(
     elif robust == "ransac":
         sol, w, inliers = _ransac(P, Q, _ones_or(w, n), method, scale, ransac_threshold, seed)
     elif method == "svd" and w is None:
-        R = rs.rotation_from_svd(U, Vt)
+        R = rs.rotation_from_svd(U, Vt, det_uv)
         s_ = 1.0
         if scale:
             s_ = float(np.trace(R @ H)) / float(np.vdot(Pc, Pc))
@@ -732,8 +735,7 @@ def fit_rigid(
         line_steps=sol.steps,
         _Pc=Pc,
         _Qc=Qc,
-        # Zero up to rounding for least squares; the centroid mismatch of CL / three-point.
-        _offset=s * (R @ pc) + t - qc,
+        _qbar=qc,
         _pbar=pc,
         _w=w,
         _W=W,
