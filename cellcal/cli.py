@@ -12,6 +12,9 @@ import sys
 import click
 
 from cellcal import __version__
+from cellcal.commands.calibrate import calibrate
+from cellcal.commands.models import models
+from cellcal.commands.predict import predict
 from cellcal.commands.register import register
 from cellcal.errors import UserError
 
@@ -29,7 +32,8 @@ def cli() -> None:
     """
 
 
-cli.add_command(register)
+for command in (register, calibrate, predict, models):
+    cli.add_command(command)
 
 
 def main(argv: list[str] | None = None) -> None:

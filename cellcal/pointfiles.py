@@ -6,14 +6,13 @@ problem is a :class:`~cellcal.errors.FileFormatError` naming the file and line.
 
 from __future__ import annotations
 
-import csv
-import math
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
 
+from cellcal.csvtable import read_table
 from cellcal.errors import FileFormatError, InputError
 
 Array = NDArray[np.float64]
@@ -30,70 +29,32 @@ class NamedPoints:
     sigma: Array | None
 
 
-def _number(text: str, where: str, column: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise FileFormatError(f"{where}: {column} is not a number: {text.strip()!r}") from None
-    if not math.isfinite(value):
-        raise FileFormatError(f"{where}: {column} is not finite: {text.strip()!r}")
-    return value
-
-
 def read_points(path: str | Path) -> NamedPoints:
     """Read a ``name,x,y,z`` CSV (extra columns ignored; optional ``sx,sy,sz``)."""
-    p = Path(path)
-    try:
-        text = p.read_text(encoding="utf-8-sig")
-    except FileNotFoundError:
-        raise FileFormatError(f"{p}: no such file") from None
-    except IsADirectoryError:
-        raise FileFormatError(f"{p}: is a directory, not a CSV file") from None
-    except UnicodeDecodeError:
-        raise FileFormatError(f"{p}: not a UTF-8 text file") from None
-    except OSError as exc:
-        raise FileFormatError(f"{p}: cannot be read ({exc.strerror})") from None
-    rows = list(csv.reader(text.splitlines()))
-    rows = [r for r in rows if any(c.strip() for c in r)]
-    if not rows:
-        raise FileFormatError(f"{p}: empty file; expected a header name,x,y,z")
-    header = [h.strip().lower() for h in rows[0]]
-    missing = [c for c in ("name", "x", "y", "z") if c not in header]
-    if missing:
-        raise FileFormatError(
-            f"{p}: header lacks column(s) {', '.join(missing)}; expected name,x,y,z"
-        )
-    dup_cols = {h for h in header if header.count(h) > 1 and h in ("name", "x", "y", "z")}
-    if dup_cols:
-        raise FileFormatError(f"{p}: column {sorted(dup_cols)[0]} appears twice in the header")
-    col = {h: header.index(h) for h in header}
-    has_sigma = all(c in col for c in ("sx", "sy", "sz"))
+    t = read_table(path, ("name", "x", "y", "z"), "name,x,y,z")
+    has_sigma = t.has("sx", "sy", "sz")
     names: list[str] = []
     seen: dict[str, int] = {}
     xyz: list[list[float]] = []
     sig: list[list[float]] = []
-    lines = [i + 1 for i, line in enumerate(text.splitlines()) if line.strip()]
-    for row, lineno in zip(rows[1:], lines[1:], strict=True):
-        where = f"{p}:{lineno}"
-        if len(row) < len(header):
-            raise FileFormatError(f"{where}: {len(row)} fields, the header has {len(header)}")
-        name = row[col["name"]].strip()
+    for k, row in enumerate(t.rows):
+        name = row[t.column("name")]
         if not name:
-            raise FileFormatError(f"{where}: empty point name")
+            raise FileFormatError(f"{t.where(k)}: empty point name")
         if name in seen:
-            raise FileFormatError(f"{where}: point name {name!r} already used on line {seen[name]}")
-        seen[name] = lineno
+            raise FileFormatError(
+                f"{t.where(k)}: point name {name!r} already used on line {seen[name]}"
+            )
+        seen[name] = t.lines[k]
         names.append(name)
-        xyz.append([_number(row[col[c]], where, c) for c in ("x", "y", "z")])
+        xyz.append([t.number(k, c) for c in ("x", "y", "z")])
         if has_sigma:
-            s = [_number(row[col[c]], where, c) for c in ("sx", "sy", "sz")]
+            s = [t.number(k, c) for c in ("sx", "sy", "sz")]
             if min(s) <= 0:
-                raise FileFormatError(f"{where}: sx, sy, sz must be positive (1σ in mm)")
+                raise FileFormatError(f"{t.where(k)}: sx, sy, sz must be positive (1σ in mm)")
             sig.append(s)
-    if not names:
-        raise FileFormatError(f"{p}: no points after the header")
     return NamedPoints(
-        path=str(p),
+        path=t.path,
         names=tuple(names),
         xyz=np.array(xyz, dtype=np.float64),
         sigma=np.array(sig, dtype=np.float64) if has_sigma else None,

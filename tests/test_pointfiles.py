@@ -34,7 +34,7 @@ def test_reads_optional_sigma_columns(tmp_path):
         ("", "empty file"),
         ("name,x,y\nA,1,2\n", "lacks column.*z"),
         ("x,y,z\n1,2,3\n", "lacks column.*name"),
-        ("name,x,y,z\n", "no points"),
+        ("name,x,y,z\n", "no data rows"),
         ("name,x,y,z\nA,1,2,oops\n", r"p.csv:2: z is not a number: 'oops'"),
         ("name,x,y,z\nA,1,2,nan\n", "not finite"),
         ("name,x,y,z\nA,1,2,inf\n", "not finite"),

@@ -1,1 +1,1 @@
-"""cellcal.mocks — see DESIGN.md; filled in by later issues."""
+"""The simulated cell (ground truth) and the protocol-level mock servers that serve it."""

@@ -1,0 +1,354 @@
+"""Identification of kinematic errors from target positions measured by an instrument.
+
+``calibrate(nominal, q, measured)`` estimates, together, the identifiable kinematic
+corrections, the target offset on the flange and the instrument frame — the last two
+are unknown at the start. It starts from a closed-form registration of the nominal
+model's positions to the measurements (SVD, then a linear solve for the target offset),
+fits the instrument frame and target offset alone (the "before" model: nominal
+geometry, best-fit frames), chooses the identifiable parameters from the Jacobian at
+that point, and runs Levenberg–Marquardt (scipy.optimize.least_squares) on them.
+Standard uncertainties come from the a-posteriori covariance σ₀²(JᵀJ)⁻¹.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import least_squares
+
+from cellcal.calib.error_model import (
+    KINEMATIC_KINDS,
+    ParameterSpec,
+    State,
+    apply,
+    jacobian,
+    parameter_specs,
+    predict,
+)
+from cellcal.calib.geometry import Array, skew
+from cellcal.calib.identifiability import Identifiability, analyse
+from cellcal.calib.kinematics import target_kinematics
+from cellcal.calib.registration import fit_rigid
+from cellcal.calib.robot_model import RobotModel
+from cellcal.errors import ConvergenceError, DegenerateGeometryError, InputError
+
+ROBUST_LOSSES = ("huber", "soft_l1", "cauchy")
+#: Above this condition number of the (unit-scaled) identification Jacobian a warning
+#: says the poses are poorly chosen; well-spread poses with varied wrist orientation
+#: give tens to a few hundred, the paper's fixed-orientation cube about 5e3.
+ILL_CONDITIONED = 1e3
+
+
+@dataclass(frozen=True)
+class ParameterEstimate:
+    """A parameter's estimate in display units (mm or deg): for a kinematic parameter
+    ``value`` is the correction to nominal, for the target offset the coordinate itself.
+    ``std`` is its standard uncertainty (0 for a parameter left at nominal)."""
+
+    name: str
+    kind: str
+    joint: int
+    unit: str
+    identified: bool
+    value: float
+    std: float
+
+
+@dataclass(frozen=True)
+class CalibrationResult:
+    """Everything a calibration produced. Lengths mm; ``T_instrument_base`` maps robot-base
+    coordinates into the instrument frame. ``rms_before``/``residuals_before`` are those of
+    the nominal model with best-fit instrument frame and target offset."""
+
+    nominal: RobotModel
+    calibrated: RobotModel
+    tool: Array
+    tool_std: Array
+    T_instrument_base: Array
+    frame_std: Array  # rotation vector (rad, 3) then translation (mm, 3), of T at its origin
+    parameters: tuple[ParameterEstimate, ...]
+    identifiability: Identifiability
+    n_points: int
+    dof: int
+    sigma0: float
+    residuals: Array
+    residuals_before: Array
+    iterations: int
+    weighted: bool
+    robust: str | None
+    warnings: tuple[str, ...]
+
+    @property
+    def identified(self) -> tuple[str, ...]:
+        return tuple(p.name for p in self.parameters if p.identified)
+
+    @property
+    def unidentifiable(self) -> tuple[str, ...]:
+        return tuple(p.name for p in self.parameters if not p.identified)
+
+    @property
+    def condition_number(self) -> float:
+        return self.identifiability.condition_number
+
+    @property
+    def rms_before(self) -> float:
+        return _rms(self.residuals_before)
+
+    @property
+    def rms_after(self) -> float:
+        return _rms(self.residuals)
+
+    @property
+    def max_after(self) -> float:
+        return float(np.max(np.linalg.norm(self.residuals, axis=1)))
+
+    @property
+    def state(self) -> State:
+        T = self.T_instrument_base
+        return State(self.calibrated, self.tool, T[:3, :3], T[:3, 3], np.zeros(3))
+
+    def predict(self, q: Array) -> Array:
+        """Target positions in the instrument frame (mm) for joint readings ``q`` (rad)."""
+        return predict(self.state, q)
+
+
+def _rms(r: Array) -> float:
+    return float(np.sqrt(np.mean(np.sum(r * r, axis=1))))
+
+
+# --------------------------------------------------------------------------- input checks
+
+
+def check_measurements(
+    model: RobotModel, q: Array, measured: Array, sigma: Array | None
+) -> tuple[Array, Array, Array | None]:
+    """Shapes, finiteness and joint limits; returns float64 copies."""
+    q = np.asarray(q, dtype=np.float64)
+    m = np.asarray(measured, dtype=np.float64)
+    if q.ndim != 2 or q.shape[1] != model.dof:
+        raise InputError(f"joint readings: expected N×{model.dof}, got shape {q.shape}")
+    if m.shape != (len(q), 3):
+        raise InputError(f"measurements: expected {len(q)}×3 positions, got shape {m.shape}")
+    for name, arr in (("joint readings", q), ("measurements", m)):
+        bad = np.flatnonzero(~np.isfinite(arr).all(axis=1))
+        if len(bad):
+            raise InputError(f"{name}: row {int(bad[0]) + 1} is not finite")
+    lo, hi = model.limits
+    outside = (q < lo - 1e-9) | (q > hi + 1e-9)
+    if outside.any():
+        r, j = (int(v) for v in np.argwhere(outside)[0])
+        raise InputError(
+            f"row {r + 1}: joint {j + 1} reads {math.degrees(q[r, j]):.3f}°, outside the "
+            f"model's limits [{math.degrees(lo[j]):.1f}°, {math.degrees(hi[j]):.1f}°]"
+        )
+    s = None
+    if sigma is not None:
+        s = np.asarray(sigma, dtype=np.float64)
+        if s.shape != m.shape or not np.isfinite(s).all() or (s <= 0).any():
+            raise InputError("sx, sy, sz: must be positive, finite, one triple per row")
+    return q, m, s
+
+
+# --------------------------------------------------------------------------- the fit
+
+
+def initial_state(model: RobotModel, q: Array, measured: Array) -> State:
+    """Closed-form start: register the nominal positions to the measurements (SVD), then
+    solve the target offset and the translation linearly, and register once more."""
+    k = target_kinematics(model, q, model.tool, jacobian=False)
+    fit = fit_rigid(k.p, measured)
+    R = fit.R
+    # measured − R·o_flange = R·R_flange·tool + t: linear in (tool, t).
+    A = np.concatenate(
+        [np.einsum("ij,njk->nik", R, k.R_flange), np.broadcast_to(np.eye(3), (len(q), 3, 3))],
+        axis=2,
+    )
+    b = measured - (k.p - k.R_flange @ model.tool) @ R.T
+    sol, _, rank, _ = np.linalg.lstsq(A.reshape(-1, 6), b.reshape(-1), rcond=1e-9)
+    tool = sol[:3] if rank == 6 else model.tool.copy()
+    k = target_kinematics(model, q, tool, jacobian=False)
+    fit = fit_rigid(k.p, measured)
+    return State(model, tool, fit.R, fit.t, measured.mean(axis=0))
+
+
+def _weights(sigma: Array | None, n: int) -> Array:
+    return np.ones((n, 3)) if sigma is None else 1.0 / sigma
+
+
+def _least_squares(
+    state: State,
+    specs: tuple[ParameterSpec, ...],
+    q: Array,
+    measured: Array,
+    w: Array,
+    robust: str | None = None,
+    f_scale: float = 1.0,
+) -> tuple[State, Array, int]:
+    """Levenberg–Marquardt (or TRF with a robust loss) over ``specs`` from ``state``."""
+
+    def fun(x: Array) -> Array:
+        out: Array = ((measured - predict(apply(state, specs, x), q)) * w).ravel()
+        return out
+
+    def jac(x: Array) -> Array:
+        _, J = jacobian(apply(state, specs, x), q, specs)
+        out: Array = -(J * w[:, :, None]).reshape(-1, len(specs))
+        return out
+
+    x0 = np.zeros(len(specs))
+    kwargs: dict[str, object] = {"xtol": 1e-12, "ftol": 1e-12, "gtol": 1e-12}
+    if robust is None:
+        res = least_squares(fun, x0, jac=jac, method="lm", x_scale="jac", **kwargs)
+    else:
+        res = least_squares(
+            fun, x0, jac=jac, method="trf", loss=robust, f_scale=f_scale, x_scale="jac", **kwargs
+        )
+    if not res.success or not np.all(np.isfinite(res.x)):
+        raise ConvergenceError(f"identification did not converge: {res.message}")
+    st = apply(state, specs, res.x)
+    return st, np.asarray(res.jac), int(res.nfev)
+
+
+def _frame_tool_specs(specs: tuple[ParameterSpec, ...]) -> tuple[ParameterSpec, ...]:
+    return tuple(s for s in specs if s.kind not in KINEMATIC_KINDS)
+
+
+def fit_frames(model: RobotModel, q: Array, measured: Array, sigma: Array | None = None) -> State:
+    """The nominal geometry with best-fit instrument frame and target offset (the
+    "before" model of a calibration, and the baseline of validation)."""
+    q, measured, sigma = check_measurements(model, q, measured, sigma)
+    return _fit_frames(model, q, measured, _weights(sigma, len(q)))
+
+
+def _fit_frames(model: RobotModel, q: Array, measured: Array, w: Array) -> State:
+    state = initial_state(model, q, measured)
+    specs = _frame_tool_specs(parameter_specs(model))
+    _, J = jacobian(state, q, specs)
+    ident = analyse((J * w[:, :, None]).reshape(-1, len(specs)), specs)
+    sel = tuple(specs[i] for i in ident.identified)
+    state, _, _ = _least_squares(state, sel, q, measured, w)
+    return state
+
+
+def calibrate(
+    nominal: RobotModel,
+    q: Array,
+    measured: Array,
+    sigma: Array | None = None,
+    *,
+    robust: str | None = None,
+    paper_parameters: bool = False,
+) -> CalibrationResult:
+    """Identify kinematic errors, target offset and instrument frame together.
+
+    ``q``: joint readings (N×n, rad); ``measured``: target positions in the instrument
+    frame (N×3, mm); ``sigma``: their 1σ per axis (N×3, mm) to weight the fit;
+    ``robust``: a robust loss (huber, soft_l1, cauchy) after the least-squares fit;
+    ``paper_parameters``: the paper's θ, d, a, α on every row (no β).
+    """
+    q, measured, sigma = check_measurements(nominal, q, measured, sigma)
+    if robust is not None and robust not in ROBUST_LOSSES:
+        raise InputError(
+            f"unknown robust loss {robust!r}; choose one of {', '.join(ROBUST_LOSSES)}"
+        )
+    N = len(q)
+    if N < 3:
+        raise DegenerateGeometryError(f"need at least 3 measurements, got {N}")
+    w = _weights(sigma, N)
+    warnings: list[str] = []
+
+    baseline = _fit_frames(nominal, q, measured, w)
+    residuals_before = measured - predict(baseline, q)
+
+    specs = parameter_specs(nominal, paper_parameters=paper_parameters)
+    _, J = jacobian(baseline, q, specs)
+    ident = analyse((J * w[:, :, None]).reshape(-1, len(specs)), specs)
+    sel = tuple(specs[i] for i in ident.identified)
+    P = len(sel)
+    if 3 * N <= P:
+        raise InputError(
+            f"{N} measurements give {3 * N} equations for {P} identifiable parameters; "
+            f"measure at least {P // 3 + 1} poses"
+        )
+    state, Jw, nfev = _least_squares(baseline, sel, q, measured, w)
+    if robust is not None:
+        r = np.linalg.norm((measured - predict(state, q)) * w, axis=1)
+        f_scale = 2.5 * max(float(np.median(r)) / 1.5382, 1e-12)
+        state, Jw, more = _least_squares(state, sel, q, measured, w, robust, f_scale)
+        nfev += more
+    if ident.condition_number > ILL_CONDITIONED:
+        warnings.append(
+            f"the identification is ill-conditioned (condition number "
+            f"{ident.condition_number:.3g}): vary the wrist orientation between poses and "
+            "spread them over a larger volume"
+        )
+
+    residuals = measured - predict(state, q)
+    dof = 3 * N - P
+    sigma0 = float(np.sqrt(np.sum((residuals * w) ** 2) / dof))
+    try:
+        cov: Array = np.asarray(sigma0**2 * np.linalg.inv(Jw.T @ Jw), dtype=np.float64)
+        std = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    except np.linalg.LinAlgError:
+        cov = np.full((P, P), np.nan)
+        std = np.full(P, np.nan)
+        warnings.append("the normal matrix is singular at the solution: no uncertainties")
+
+    sel_index = {s.name: k for k, s in enumerate(sel)}
+    estimates = []
+    for sp in specs:
+        if sp.kind.startswith("frame"):
+            continue
+        k = sel_index.get(sp.name)
+        if sp.kind == "tool":
+            value = float(state.tool["xyz".index(sp.name[-1])])
+        else:
+            value = sp.to_display(
+                getattr(state.model.joints[sp.joint - 1], sp.kind)
+                - getattr(nominal.joints[sp.joint - 1], sp.kind)
+            )
+        sd = 0.0 if k is None else sp.to_display(float(std[k]))
+        estimates.append(
+            ParameterEstimate(sp.name, sp.kind, sp.joint, sp.unit, k is not None, value, sd)
+        )
+    tool_std = np.array([e.std for e in estimates if e.kind == "tool"])
+    frame_std = _frame_std(state, sel, cov)
+    return CalibrationResult(
+        nominal=nominal,
+        calibrated=state.model,
+        tool=state.tool,
+        tool_std=tool_std,
+        T_instrument_base=state_T(state),
+        frame_std=frame_std,
+        parameters=tuple(estimates),
+        identifiability=ident,
+        n_points=N,
+        dof=dof,
+        sigma0=sigma0,
+        residuals=residuals,
+        residuals_before=residuals_before,
+        iterations=nfev,
+        weighted=sigma is not None,
+        robust=robust,
+        warnings=tuple(warnings),
+    )
+
+
+def state_T(state: State) -> Array:
+    return state.T_instrument_base
+
+
+def _frame_std(state: State, sel: tuple[ParameterSpec, ...], cov: Array) -> Array:
+    """Standard uncertainty of T_instrument_base's rotation vector and translation (at the
+    instrument origin), from the covariance of the pivot parameterisation."""
+    idx = [k for k, s in enumerate(sel) if s.kind.startswith("frame")]
+    if len(idx) != 6:
+        return np.full(6, np.nan)
+    C = cov[np.ix_(idx, idx)]
+    # t = E(ω)(t₀ − pivot) + pivot + δt  ⇒  ∂t/∂ω = −[t₀ − pivot]×, ∂t/∂δt = I.
+    G = np.eye(6)
+    G[3:6, 0:3] = -skew(state.t - state.pivot)
+    out: Array = np.sqrt(np.clip(np.diag(G @ C @ G.T), 0.0, None))
+    return out

@@ -1,0 +1,121 @@
+"""Forward kinematics of a target point and its derivatives, batched over poses.
+
+Everything is vectorised over N poses with numpy: a campaign's few thousand poses cost
+a few milliseconds, where a per-pose loop (through Pinocchio or otherwise) would pay
+the Python call overhead N times. The tests check these positions against Pinocchio.
+
+The derivatives are those of the target position (base frame, mm) with respect to the
+five elementary geometric parameters of each row — θ, d, a, α, β, in that order — and
+to the target offset in the flange frame. Each is the classic screw expression: a
+rotation δ about a unit axis u through o moves the point p by δ·u × (p − o); a
+translation along u moves it by δ·u.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from cellcal.calib.geometry import Array
+from cellcal.calib.robot_model import RobotModel
+
+#: Order of the elementary parameters of each row in the Jacobian.
+ROW_PARAMS = ("theta", "d", "a", "alpha", "beta")
+
+
+@dataclass(frozen=True)
+class TargetKinematics:
+    """Positions ``p`` (N×3, base frame, mm), flange rotations ``R_flange`` (N×3×3),
+    ``J_rows`` (N×3×5n): ∂p/∂(θ, d, a, α, β) of every row (mm/rad, mm/mm), and the joint
+    axes ``axes`` (N×3×n, unit vectors in the base frame). ∂p/∂qᵢ equals ∂p/∂θᵢ."""
+
+    p: Array
+    R_flange: Array
+    J_rows: Array
+    axes: Array
+
+
+def _cross(u: Array, v: Array) -> Array:
+    out: Array = np.cross(u, v)
+    return out
+
+
+def target_kinematics(
+    model: RobotModel, q: Array, tool: Array, *, jacobian: bool = True
+) -> TargetKinematics:
+    """Target positions for joint readings ``q`` (N×n, rad) and target offset ``tool`` (mm)."""
+    q = np.atleast_2d(np.asarray(q, dtype=np.float64))
+    N, n = q.shape
+    if n != model.dof:
+        raise ValueError(f"q has {n} joints, the model {model.dof}")
+    x = np.zeros((N, 3))
+    y = np.zeros((N, 3))
+    z = np.zeros((N, 3))
+    x[:, 0] = y[:, 1] = z[:, 2] = 1.0
+    o = np.zeros((N, 3))
+    # Per row: (axis, origin) pairs for θ, α, β and directions for d, a.
+    rec: list[tuple[Array, ...]] = []
+    dh = model.convention == "dh"
+    for i, jt in enumerate(model.joints):
+        ang = jt.theta + q[:, i]
+        c, s = np.cos(ang)[:, None], np.sin(ang)[:, None]
+        ca, sa = np.cos(jt.alpha), np.sin(jt.alpha)
+        cb, sb = np.cos(jt.beta), np.sin(jt.beta)
+        if dh:
+            # Rz(θ+q): about z through o.
+            z_th, o_th = z, o
+            x1 = c * x + s * y
+            y1 = -s * x + c * y
+            z1 = z
+            d_dir = z1
+            a_dir = x1
+            o3 = o + jt.d * z1 + jt.a * x1
+            al_axis, al_org = x1, o3
+            y4 = ca * y1 + sa * z1
+            z4 = -sa * y1 + ca * z1
+            be_axis, be_org = y4, o3
+            x, y, z = cb * x1 - sb * z4, y4, sb * x1 + cb * z4
+            o = o3
+        else:
+            al_axis, al_org = x, o
+            ya = ca * y + sa * z
+            za = -sa * y + ca * z
+            be_axis, be_org = ya, o
+            xb = cb * x - sb * za
+            zb = sb * x + cb * za
+            yb = ya
+            a_dir = xb
+            oc = o + jt.a * xb
+            z_th, o_th = zb, oc
+            x, y, z = c * xb + s * yb, -s * xb + c * yb, zb
+            d_dir = zb
+            o = oc + jt.d * zb
+        if jacobian:
+            rec.append((z_th, o_th, d_dir, a_dir, al_axis, al_org, be_axis, be_org))
+    R = np.stack([x, y, z], axis=2)
+    p = o + R @ np.asarray(tool, dtype=np.float64)
+    if not jacobian:
+        return TargetKinematics(
+            p=p, R_flange=R, J_rows=np.zeros((N, 3, 0)), axes=np.zeros((N, 3, 0))
+        )
+    J = np.empty((N, 3, 5 * n))
+    axes = np.empty((N, 3, n))
+    for i, (z_th, o_th, d_dir, a_dir, al_axis, al_org, be_axis, be_org) in enumerate(rec):
+        J[:, :, 5 * i + 0] = _cross(z_th, p - o_th)
+        J[:, :, 5 * i + 1] = d_dir
+        J[:, :, 5 * i + 2] = a_dir
+        J[:, :, 5 * i + 3] = _cross(al_axis, p - al_org)
+        J[:, :, 5 * i + 4] = _cross(be_axis, p - be_org)
+        axes[:, :, i] = z_th
+    return TargetKinematics(p=p, R_flange=R, J_rows=J, axes=axes)
+
+
+def flange_transforms(model: RobotModel, q: Array) -> Array:
+    """T_base_flange (N×4×4) for joint readings ``q`` (N×n, rad)."""
+    k = target_kinematics(model, q, np.zeros(3), jacobian=False)
+    T = np.zeros((len(k.p), 4, 4))
+    T[:, :3, :3] = k.R_flange
+    T[:, :3, 3] = k.p
+    T[:, 3, 3] = 1.0
+    return T

@@ -1,0 +1,193 @@
+"""Robot kinematic models: standard (DH) and Craig's modified (MDH) Denavit–Hartenberg.
+
+A model is a frozen value: its joints' geometry in mm and radians, joint limits, the
+nominal target offset on the flange, and which rows use Hayati's β in place of d
+because two consecutive joint axes are (nearly) parallel. Models are read from the
+TOML format of the public contract by :func:`model_from_dict`; the file itself is read
+at the edge (``cellcal.modelfiles``).
+
+Per joint i, the transform from frame i−1 to frame i is a product of elementary
+transforms; ``q`` is the joint reading, θ its offset:
+
+* ``dh``:  Rz(θᵢ + qᵢ) · Tz(dᵢ) · Tx(aᵢ) · Rx(αᵢ) · Ry(βᵢ)
+* ``mdh``: Rx(αᵢ₋₁) · Ry(βᵢ₋₁) · Tx(aᵢ₋₁) · Rz(θᵢ + qᵢ) · Tz(dᵢ)   (the row of joint i holds
+  αᵢ₋₁, aᵢ₋₁, dᵢ, θᵢ, as in Craig)
+
+β is zero in every nominal model; it exists so that a small tilt between parallel axes
+has a parameter that is small too (in DH, d of a parallel pair is undefined: any tilt
+moves the common normal arbitrarily far).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+
+from cellcal.calib.geometry import Array
+from cellcal.errors import InputError
+
+Convention = Literal["dh", "mdh"]
+#: Consecutive axes closer than this are treated as parallel (Hayati's β replaces d).
+PARALLEL_AXES_DEG = 1.0
+
+_JOINT_KEYS = {"a", "alpha", "d", "theta", "beta", "min", "max"}
+_TOP_KEYS = {"name", "convention", "joint", "tool", "description"}
+
+
+class ModelError(InputError):
+    """A robot model that cannot be used (bad TOML values, unknown keys, missing rows)."""
+
+
+@dataclass(frozen=True)
+class Joint:
+    """One row of the table. Lengths mm, angles rad; limits apply to the joint reading."""
+
+    a: float
+    alpha: float
+    d: float
+    theta: float
+    beta: float = 0.0
+    q_min: float = -math.inf
+    q_max: float = math.inf
+
+
+@dataclass(frozen=True)
+class RobotModel:
+    """A serial robot with revolute joints. ``tool`` is the nominal target offset in the
+    flange frame (mm), a starting guess only. ``parallel[i]`` is True where row i uses β
+    in place of d."""
+
+    name: str
+    convention: Convention
+    joints: tuple[Joint, ...]
+    tool: Array = field(default_factory=lambda: np.zeros(3))
+    parallel: tuple[bool, ...] = ()
+
+    def __post_init__(self) -> None:
+        if not self.parallel:
+            object.__setattr__(self, "parallel", detect_parallel(self.convention, self.joints))
+
+    @property
+    def dof(self) -> int:
+        return len(self.joints)
+
+    @property
+    def limits(self) -> tuple[Array, Array]:
+        """Joint-reading limits (rad): two arrays of length ``dof``."""
+        lo = np.array([j.q_min for j in self.joints])
+        hi = np.array([j.q_max for j in self.joints])
+        return lo, hi
+
+    def with_joints(self, joints: tuple[Joint, ...]) -> RobotModel:
+        """The same model with other geometry (same β rows)."""
+        return RobotModel(self.name, self.convention, joints, self.tool, self.parallel)
+
+
+def detect_parallel(convention: str, joints: tuple[Joint, ...]) -> tuple[bool, ...]:
+    """Rows whose twist makes two consecutive joint axes parallel within 1°.
+
+    DH row i (i < n) carries αᵢ between axes i and i+1; the flange row is not between two
+    joint axes. MDH row i (i > 1) carries αᵢ₋₁ between axes i−1 and i.
+    """
+    tol = math.sin(math.radians(PARALLEL_AXES_DEG))
+    n = len(joints)
+    flags = []
+    for i, j in enumerate(joints):
+        between_axes = i < n - 1 if convention == "dh" else i > 0
+        flags.append(between_axes and abs(math.sin(j.alpha)) < tol)
+    return tuple(flags)
+
+
+def _number(value: object, where: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        raise ModelError(f"{where}: expected a number, got {value!r}")
+    x = float(value)
+    if not math.isfinite(x):
+        raise ModelError(f"{where}: not finite")
+    return x
+
+
+def model_from_dict(data: Mapping[str, object], source: str = "model") -> RobotModel:
+    """Build a model from the contract's TOML structure (mm, deg); strict about keys."""
+    unknown = sorted(set(data) - _TOP_KEYS)
+    if unknown:
+        raise ModelError(f"{source}: unknown key {unknown[0]!r}")
+    name = data.get("name", "unnamed")
+    if not isinstance(name, str) or not name:
+        raise ModelError(f"{source}: name must be a non-empty string")
+    convention = data.get("convention", "dh")
+    if convention not in ("dh", "mdh"):
+        raise ModelError(f'{source}: convention must be "dh" or "mdh", got {convention!r}')
+    rows = data.get("joint")
+    if not isinstance(rows, list) or not rows:
+        raise ModelError(f"{source}: needs one [[joint]] table per joint")
+    joints = []
+    for i, row in enumerate(rows, start=1):
+        where = f"{source}: joint {i}"
+        if not isinstance(row, dict):
+            raise ModelError(f"{where}: must be a table")
+        bad = sorted(set(row) - _JOINT_KEYS)
+        if bad:
+            raise ModelError(f"{where}: unknown key {bad[0]!r}")
+        missing = [k for k in ("a", "alpha", "d", "theta") if k not in row]
+        if missing:
+            raise ModelError(f"{where}: missing {', '.join(missing)}")
+        lo = _number(row["min"], f"{where}.min") if "min" in row else -math.inf
+        hi = _number(row["max"], f"{where}.max") if "max" in row else math.inf
+        if lo >= hi:
+            raise ModelError(f"{where}: min must be below max")
+        joints.append(
+            Joint(
+                a=_number(row["a"], f"{where}.a"),
+                alpha=math.radians(_number(row["alpha"], f"{where}.alpha")),
+                d=_number(row["d"], f"{where}.d"),
+                theta=math.radians(_number(row["theta"], f"{where}.theta")),
+                beta=math.radians(_number(row.get("beta", 0.0), f"{where}.beta")),
+                q_min=math.radians(lo) if math.isfinite(lo) else lo,
+                q_max=math.radians(hi) if math.isfinite(hi) else hi,
+            )
+        )
+    tool = np.zeros(3)
+    if "tool" in data:
+        t = data["tool"]
+        if not isinstance(t, dict) or set(t) - {"xyz"}:
+            raise ModelError(f"{source}: [tool] takes only xyz = [x, y, z] (mm)")
+        xyz = t.get("xyz")
+        if not isinstance(xyz, list) or len(xyz) != 3:
+            raise ModelError(f"{source}: tool.xyz must be [x, y, z] in mm")
+        tool = np.array([_number(v, f"{source}: tool.xyz") for v in xyz])
+    conv: Convention = "dh" if convention == "dh" else "mdh"
+    return RobotModel(name=name, convention=conv, joints=tuple(joints), tool=tool)
+
+
+def _deg(rad: float) -> float:
+    """Degrees, rounded at 1e-12° so that 15° read and written stays 15°."""
+    return round(math.degrees(rad), 12) + 0.0
+
+
+def model_to_dict(model: RobotModel) -> dict[str, object]:
+    """The contract's TOML structure (mm, deg) of a model. ``beta`` (an optional key that
+    cellcal adds to the format) is written only where it is not zero."""
+    rows: list[dict[str, float]] = []
+    for j in model.joints:
+        row = {
+            "a": j.a,
+            "alpha": _deg(j.alpha),
+            "d": j.d,
+            "theta": _deg(j.theta),
+        }
+        if j.beta != 0.0:
+            row["beta"] = _deg(j.beta)
+        if math.isfinite(j.q_min):
+            row["min"] = _deg(j.q_min)
+        if math.isfinite(j.q_max):
+            row["max"] = _deg(j.q_max)
+        rows.append(row)
+    out: dict[str, object] = {"name": model.name, "convention": model.convention, "joint": rows}
+    if np.any(model.tool != 0):
+        out["tool"] = {"xyz": [float(v) for v in model.tool]}
+    return out

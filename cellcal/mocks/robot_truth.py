@@ -1,0 +1,93 @@
+"""Ground truth of a simulated robot: a nominal model with seeded kinematic errors, an
+instrument placed somewhere in the cell, a target offset on the flange, and noisy
+measurements of the target. Every function takes a numpy Generator: same seed, same
+robot, same measurements."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from cellcal.calib.geometry import Array, so3_exp
+from cellcal.calib.kinematics import target_kinematics
+from cellcal.calib.robot_model import RobotModel
+
+
+@dataclass(frozen=True)
+class TrueCell:
+    """The simulated truth: real geometry, target offset (mm) and T_instrument_base."""
+
+    model: RobotModel
+    tool: Array
+    T_instrument_base: Array
+
+    def positions(self, q: Array) -> Array:
+        """Noise-free target positions in the instrument frame (mm) for q (rad)."""
+        p = target_kinematics(self.model, q, self.tool, jacobian=False).p
+        out: Array = p @ self.T_instrument_base[:3, :3].T + self.T_instrument_base[:3, 3]
+        return out
+
+
+def perturbed_model(
+    nominal: RobotModel,
+    rng: np.random.Generator,
+    *,
+    length_mm: float = 0.3,
+    angle_deg: float = 0.03,
+) -> RobotModel:
+    """Nominal geometry plus uniform errors: lengths (a, d) ±length_mm, angles (θ, α)
+    ±angle_deg, and a tilt β of the same size on rows with parallel axes."""
+    ang = math.radians(angle_deg)
+    joints = []
+    for j, par in zip(nominal.joints, nominal.parallel, strict=True):
+        joints.append(
+            replace(
+                j,
+                a=j.a + rng.uniform(-length_mm, length_mm),
+                d=j.d + rng.uniform(-length_mm, length_mm),
+                theta=j.theta + rng.uniform(-ang, ang),
+                alpha=j.alpha + rng.uniform(-ang, ang),
+                beta=j.beta + (rng.uniform(-ang, ang) if par else 0.0),
+            )
+        )
+    return nominal.with_joints(tuple(joints))
+
+
+def random_cell(
+    nominal: RobotModel,
+    rng: np.random.Generator,
+    *,
+    tool_mm: tuple[float, float, float] = (25.0, -40.0, 130.0),
+    distance_mm: float = 3000.0,
+    length_mm: float = 0.3,
+    angle_deg: float = 0.03,
+) -> TrueCell:
+    """A perturbed robot seen by an instrument about ``distance_mm`` away, in a random
+    orientation."""
+    model = perturbed_model(nominal, rng, length_mm=length_mm, angle_deg=angle_deg)
+    T = np.eye(4)
+    T[:3, :3] = so3_exp(rng.normal(size=3))
+    T[:3, 3] = rng.normal(size=3) / math.sqrt(3) * distance_mm
+    return TrueCell(model, np.asarray(tool_mm, dtype=np.float64), T)
+
+
+def random_joints(
+    model: RobotModel, rng: np.random.Generator, n: int, *, span: float = 0.8
+) -> Array:
+    """n joint readings (rad) uniform in the central ``span`` of each joint's range (a
+    range wider than a turn counts as one turn each way)."""
+    lo, hi = model.limits
+    lo = np.maximum(lo, -math.pi)
+    hi = np.minimum(hi, math.pi)
+    mid, half = (lo + hi) / 2, (hi - lo) / 2 * span
+    out: Array = rng.uniform(mid - half, mid + half, (n, model.dof))
+    return out
+
+
+def measure(cell: TrueCell, q: Array, rng: np.random.Generator, sigma_mm: float) -> Array:
+    """Positions in the instrument frame with isotropic Gaussian noise (mm)."""
+    p = cell.positions(q)
+    out: Array = p + rng.normal(0.0, sigma_mm, p.shape)
+    return out

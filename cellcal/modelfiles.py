@@ -1,0 +1,205 @@
+"""Robot model files, read and written at the edge.
+
+``--model`` is a built-in name (``kuka-kr5-arc``, ``ur5e``, ``ur10e``, shipped as
+package data) or a TOML file in the contract's format; a calibrated model written by
+``cellcal calibrate --out`` is also accepted. Writing is atomic: a temporary file in
+the same folder, renamed over the target only once it is complete.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import tempfile
+import tomllib
+from dataclasses import dataclass
+from datetime import UTC, datetime
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import tomli_w
+
+from cellcal import __version__
+from cellcal.calib.geometry import Array, so3_log
+from cellcal.calib.identification import CalibrationResult
+from cellcal.calib.robot_model import RobotModel, model_from_dict, model_to_dict
+from cellcal.calib.validation import Validation
+from cellcal.errors import FileFormatError
+
+CALIBRATED_FORMAT = "cellcal-calibrated-model"
+FORMAT_VERSION = 1
+
+
+@dataclass(frozen=True)
+class LoadedModel:
+    """A model as read from ``--model``: the geometry, the target offset, and for a
+    calibrated file the instrument frame (``T_instrument_base``, else None)."""
+
+    source: str
+    model: RobotModel
+    tool: Array
+    T_instrument_base: Array | None
+    calibrated: bool
+
+
+def builtin_names() -> list[str]:
+    folder = resources.files("cellcal") / "data" / "models"
+    return sorted(p.name[: -len(".toml")] for p in folder.iterdir() if p.name.endswith(".toml"))
+
+
+def _read_toml(path: Path, label: str) -> dict[str, Any]:
+    try:
+        with path.open("rb") as fh:
+            return tomllib.load(fh)
+    except FileNotFoundError:
+        raise FileFormatError(
+            f"{label}: no such file, and not a built-in model ({', '.join(builtin_names())})"
+        ) from None
+    except IsADirectoryError:
+        raise FileFormatError(f"{label}: is a directory, not a TOML file") from None
+    except UnicodeDecodeError:
+        raise FileFormatError(f"{label}: not a UTF-8 text file") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise FileFormatError(f"{label}: not valid TOML ({exc})") from None
+
+
+def load_model(spec: str) -> LoadedModel:
+    """A built-in model by name, or a model / calibrated-model TOML file."""
+    if spec in builtin_names():
+        ref = resources.files("cellcal") / "data" / "models" / f"{spec}.toml"
+        with resources.as_file(ref) as p:
+            data = _read_toml(p, spec)
+        model = model_from_dict(data, spec)
+        return LoadedModel(spec, model, model.tool, None, False)
+    data = _read_toml(Path(spec), spec)
+    if data.get("format") == CALIBRATED_FORMAT:
+        version = data.get("format_version")
+        if version != FORMAT_VERSION:
+            raise FileFormatError(f"{spec}: calibrated-model format_version {version!r} unknown")
+        try:
+            geometry = {k: data[k] for k in ("name", "convention", "joint")}
+            matrix = np.array(data["instrument"]["matrix"], dtype=np.float64)
+            tool = np.array(data["tool"]["xyz"], dtype=np.float64)
+        except (KeyError, TypeError, ValueError) as exc:
+            raise FileFormatError(f"{spec}: incomplete calibrated model ({exc})") from None
+        if matrix.shape != (4, 4) or tool.shape != (3,) or not np.isfinite(matrix).all():
+            raise FileFormatError(f"{spec}: instrument.matrix must be 4×4, tool.xyz 3 numbers")
+        model = model_from_dict(geometry, spec)
+        return LoadedModel(spec, model, tool, matrix, True)
+    model = model_from_dict(data, spec)
+    return LoadedModel(spec, model, model.tool, None, False)
+
+
+def _clean(value: Any) -> Any:
+    """TOML has no null and no numpy: floats, lists, and NaN written as strings."""
+    if isinstance(value, dict):
+        return {k: _clean(v) for k, v in value.items() if v is not None}
+    if isinstance(value, list | tuple):
+        return [_clean(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return _clean(value.tolist())
+    if isinstance(value, np.bool_ | bool):
+        return bool(value)
+    if isinstance(value, np.integer):
+        return int(value)
+    if isinstance(value, float | np.floating):
+        f = float(value)
+        return f if math.isfinite(f) else str(f)
+    return value
+
+
+def calibrated_document(
+    result: CalibrationResult, validation: Validation | None, data_path: str
+) -> dict[str, Any]:
+    """The calibrated-model TOML document (mm, deg)."""
+    geometry = model_to_dict(result.calibrated)
+    T = result.T_instrument_base
+    doc: dict[str, Any] = {
+        "format": CALIBRATED_FORMAT,
+        "format_version": FORMAT_VERSION,
+        "created": datetime.now(UTC).isoformat(timespec="seconds"),
+        "cellcal_version": __version__,
+        "data": data_path,
+        "name": geometry["name"],
+        "convention": geometry["convention"],
+        "joint": geometry["joint"],
+        "tool": {"xyz": result.tool, "std_mm": result.tool_std},
+        "instrument": {
+            "matrix": T,
+            "rotation_vector_deg": np.degrees(so3_log(T[:3, :3])),
+            "translation_mm": T[:3, 3],
+            "std_rotation_deg": np.degrees(result.frame_std[:3]),
+            "std_translation_mm": result.frame_std[3:],
+        },
+        "nominal": model_to_dict(result.nominal),
+        "parameter": [
+            {
+                "name": p.name,
+                "joint": p.joint,
+                "kind": p.kind,
+                "unit": p.unit,
+                "identified": p.identified,
+                "error" if p.kind != "tool" else "value": p.value,
+                "std": p.std,
+            }
+            for p in result.parameters
+        ],
+        "fit": {
+            "n_points": result.n_points,
+            "dof": result.dof,
+            "sigma0": result.sigma0,
+            "weighted": result.weighted,
+            "robust": result.robust if result.robust else "none",
+            "rms_before_mm": result.rms_before,
+            "rms_after_mm": result.rms_after,
+            "max_after_mm": result.max_after,
+            "condition_number": result.condition_number,
+            "identified": list(result.identified),
+            "unidentifiable": list(result.unidentifiable),
+            "correlated": [list(c) for c in result.identifiability.correlated],
+            "warnings": list(result.warnings),
+        },
+    }
+    if validation is not None:
+        doc["validation"] = {
+            "method": validation.method,
+            "n_points": validation.after.n,
+            **{
+                f"before_{k}_mm": getattr(validation.before, k)
+                for k in ("mean", "rms", "max", "p95")
+            },
+            **{
+                f"after_{k}_mm": getattr(validation.after, k) for k in ("mean", "rms", "max", "p95")
+            },
+        }
+    out: dict[str, Any] = _clean(doc)
+    return out
+
+
+def write_atomically(path: str | Path, text: str) -> None:
+    """Write ``text`` to ``path`` so that a reader sees the old file or the whole new one."""
+    p = Path(path)
+    folder = p.parent if str(p.parent) else Path(".")
+    if not folder.is_dir():
+        raise FileFormatError(f"{p}: folder {folder} does not exist")
+    fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.", suffix=".tmp", dir=folder)
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as fh:
+            fh.write(text)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, p)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def write_calibrated(
+    path: str | Path, result: CalibrationResult, validation: Validation | None, data_path: str
+) -> None:
+    text = "# cellcal calibrated robot model: read by `cellcal predict --model FILE`.\n"
+    text += "# Top-level name/convention/[[joint]]/[tool] are the calibrated geometry (mm, deg).\n"
+    text += tomli_w.dumps(calibrated_document(result, validation, data_path))
+    write_atomically(path, text)
