@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
@@ -57,19 +57,24 @@ class Joint:
 
 @dataclass(frozen=True)
 class RobotModel:
-    """A serial robot with revolute joints. ``tool`` is the nominal target offset in the
-    flange frame (mm), a starting guess only. ``parallel[i]`` is True where row i uses β
+    """A serial robot with revolute joints. ``tool_xyz`` is the nominal target offset in
+    the flange frame (mm), a starting guess only. ``parallel[i]`` is True where row i uses β
     in place of d."""
 
     name: str
     convention: Convention
     joints: tuple[Joint, ...]
-    tool: Array = field(default_factory=lambda: np.zeros(3))
+    tool_xyz: tuple[float, float, float] = (0.0, 0.0, 0.0)
     parallel: tuple[bool, ...] = ()
 
     def __post_init__(self) -> None:
         if not self.parallel:
             object.__setattr__(self, "parallel", detect_parallel(self.convention, self.joints))
+
+    @property
+    def tool(self) -> Array:
+        """The nominal target offset as an array (mm)."""
+        return np.array(self.tool_xyz, dtype=np.float64)
 
     @property
     def dof(self) -> int:
@@ -84,7 +89,7 @@ class RobotModel:
 
     def with_joints(self, joints: tuple[Joint, ...]) -> RobotModel:
         """The same model with other geometry (same β rows)."""
-        return RobotModel(self.name, self.convention, joints, self.tool, self.parallel)
+        return RobotModel(self.name, self.convention, joints, self.tool_xyz, self.parallel)
 
 
 def detect_parallel(convention: str, joints: tuple[Joint, ...]) -> tuple[bool, ...]:
@@ -151,7 +156,7 @@ def model_from_dict(data: Mapping[str, object], source: str = "model") -> RobotM
                 q_max=math.radians(hi) if math.isfinite(hi) else hi,
             )
         )
-    tool = np.zeros(3)
+    tool = (0.0, 0.0, 0.0)
     if "tool" in data:
         t = data["tool"]
         if not isinstance(t, dict) or set(t) - {"xyz"}:
@@ -159,9 +164,10 @@ def model_from_dict(data: Mapping[str, object], source: str = "model") -> RobotM
         xyz = t.get("xyz")
         if not isinstance(xyz, list) or len(xyz) != 3:
             raise ModelError(f"{source}: tool.xyz must be [x, y, z] in mm")
-        tool = np.array([_number(v, f"{source}: tool.xyz") for v in xyz])
+        x, y, z = (_number(v, f"{source}: tool.xyz") for v in xyz)
+        tool = (x, y, z)
     conv: Convention = "dh" if convention == "dh" else "mdh"
-    return RobotModel(name=name, convention=conv, joints=tuple(joints), tool=tool)
+    return RobotModel(name=name, convention=conv, joints=tuple(joints), tool_xyz=tool)
 
 
 def _deg(rad: float) -> float:
@@ -188,6 +194,6 @@ def model_to_dict(model: RobotModel) -> dict[str, object]:
             row["max"] = _deg(j.q_max)
         rows.append(row)
     out: dict[str, object] = {"name": model.name, "convention": model.convention, "joint": rows}
-    if np.any(model.tool != 0):
-        out["tool"] = {"xyz": [float(v) for v in model.tool]}
+    if any(model.tool_xyz):
+        out["tool"] = {"xyz": list(model.tool_xyz)}
     return out
