@@ -16,6 +16,7 @@ from cellcal.commands.calibrate import calibrate
 from cellcal.commands.models import models
 from cellcal.commands.predict import predict
 from cellcal.commands.register import register
+from cellcal.commands.run import run
 from cellcal.errors import UserError
 
 EXIT_USER_ERROR = 2
@@ -32,7 +33,7 @@ def cli() -> None:
     """
 
 
-for command in (register, calibrate, predict, models):
+for command in (run, register, calibrate, predict, models):
     cli.add_command(command)
 
 

@@ -35,3 +35,11 @@ class MirroredCorrespondenceError(DegenerateGeometryError):
 
 class ConvergenceError(UserError):
     """An iterative solver did not reach its tolerance."""
+
+
+class DeviceError(UserError):
+    """A device that cannot be reached, refuses a command or reports a fault."""
+
+
+class CampaignError(UserError):
+    """A campaign that cannot be started or resumed as asked (unknown id, changed plan)."""

@@ -196,10 +196,16 @@ def write_atomically(path: str | Path, text: str) -> None:
         raise
 
 
+def calibrated_toml(
+    result: CalibrationResult, validation: Validation | None, data_path: str
+) -> str:
+    """The calibrated-model file's text."""
+    text = "# cellcal calibrated robot model: read by `cellcal predict --model FILE`.\n"
+    text += "# Top-level name/convention/[[joint]]/[tool] are the calibrated geometry (mm, deg).\n"
+    return text + tomli_w.dumps(calibrated_document(result, validation, data_path))
+
+
 def write_calibrated(
     path: str | Path, result: CalibrationResult, validation: Validation | None, data_path: str
 ) -> None:
-    text = "# cellcal calibrated robot model: read by `cellcal predict --model FILE`.\n"
-    text += "# Top-level name/convention/[[joint]]/[tool] are the calibrated geometry (mm, deg).\n"
-    text += tomli_w.dumps(calibrated_document(result, validation, data_path))
-    write_atomically(path, text)
+    write_atomically(path, calibrated_toml(result, validation, data_path))

@@ -1,1 +1,1 @@
-"""cellcal.daemon — see DESIGN.md; filled in by later issues."""
+"""The campaign: plan, engine, store, analysis, and the service around them."""

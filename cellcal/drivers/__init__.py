@@ -1,1 +1,1 @@
-"""cellcal.drivers — see DESIGN.md; filled in by later issues."""
+"""Device drivers, one module per device family; the Protocols are in ``base``."""

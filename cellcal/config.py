@@ -1,0 +1,170 @@
+"""Cell and campaign configuration: TOML in, a frozen, typed value out.
+
+Validation is strict (pydantic, ``extra="forbid"``): an unknown key is an error that
+names its path (``campaign.dwel_s``), and so is a value of the wrong type or range.
+Lengths are mm and angles degrees in the file, as everywhere a person writes.
+"""
+
+from __future__ import annotations
+
+import tomllib
+from pathlib import Path
+from typing import Annotated, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from cellcal.errors import UserError
+
+
+class ConfigError(UserError):
+    """A configuration file that cannot be used; the message names the key."""
+
+
+Vec3 = Annotated[list[float], Field(min_length=3, max_length=3)]
+Positive = Annotated[float, Field(gt=0)]
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class RobotConfig(_Strict):
+    """The robot: its model (built-in name or TOML file), its driver and address."""
+
+    model: str = "kuka-kr5-arc"
+    driver: Literal["simulated"] = "simulated"
+    address: str = ""
+    speed: Annotated[float, Field(gt=0, le=1)] = 0.25
+    home_deg: list[float] = Field(default_factory=lambda: [0.0, -30.0, 40.0, 0.0, -20.0, 0.0])
+    settle_timeout_s: Positive = 60.0
+
+
+class SensorConfig(_Strict):
+    """One measuring instrument and the target it follows on the flange."""
+
+    name: Annotated[str, Field(min_length=1, pattern=r"^[A-Za-z0-9_.-]+$")]
+    kind: Literal["laser-tracker", "photogrammetry"]
+    driver: Literal["simulated"] = "simulated"
+    url: str = ""
+    rate_hz: Annotated[float, Field(gt=0, le=1000)] = 10.0
+    target_offset_mm: Vec3 = Field(default_factory=lambda: [0.0, 0.0, 0.0])
+    reference: bool = False
+
+
+class CampaignConfig(_Strict):
+    """The plan (the paper's cube and validation regions) and the acquisition rhythm."""
+
+    cube_centre_mm: Vec3 = Field(default_factory=lambda: [750.0, 0.0, 1000.0])
+    cube_edge_mm: Positive = 200.0
+    grid: Annotated[list[Annotated[int, Field(ge=2, le=50)]], Field(min_length=3, max_length=3)] = (
+        Field(default_factory=lambda: [4, 4, 5])
+    )
+    orientation_variation_deg: Annotated[float, Field(ge=0, le=90)] = 30.0
+    dwell_s: Annotated[float, Field(ge=0)] = 7.0
+    samples_per_pose: Annotated[int, Field(ge=1, le=10000)] = 20
+    validation_inside: Annotated[int, Field(ge=0, le=10000)] = 20
+    validation_regions_mm: list[Vec3] = Field(
+        default_factory=lambda: [
+            [1000.0, 150.0, 550.0],
+            [780.0, 710.0, 900.0],
+            [780.0, 870.0, 410.0],
+            [600.0, -800.0, 860.0],
+            [940.0, -960.0, 450.0],
+        ]
+    )
+    validation_per_region: Annotated[int, Field(ge=0, le=10000)] = 6
+    validation_region_radius_mm: Positive = 200.0
+    workspace_min_mm: Vec3 = Field(default_factory=lambda: [-1500.0, -1500.0, 0.0])
+    workspace_max_mm: Vec3 = Field(default_factory=lambda: [1500.0, 1500.0, 2000.0])
+    seed: int = 0
+
+    @model_validator(mode="after")
+    def _box(self) -> CampaignConfig:
+        if any(
+            lo >= hi for lo, hi in zip(self.workspace_min_mm, self.workspace_max_mm, strict=True)
+        ):
+            raise ValueError("workspace_min_mm must be below workspace_max_mm on every axis")
+        return self
+
+
+class StorageConfig(_Strict):
+    database: str = "cellcal.db"
+
+
+class SimulationConfig(_Strict):
+    """The simulated cell's ground truth (mock mode only). Same seed, same campaign."""
+
+    seed: int = 2018
+    length_error_mm: Annotated[float, Field(ge=0)] = 0.3
+    angle_error_deg: Annotated[float, Field(ge=0)] = 0.03
+    tracker_position_mm: Vec3 = Field(default_factory=lambda: [2800.0, -600.0, 300.0])
+    tracker_rotation_deg: Vec3 = Field(default_factory=lambda: [0.0, 0.0, 160.0])
+    tracker_radial_um: Annotated[float, Field(ge=0)] = 10.0
+    tracker_transverse_um_per_m: Annotated[float, Field(ge=0)] = 6.0
+    rig_position_mm: Vec3 = Field(default_factory=lambda: [1900.0, 1200.0, 2200.0])
+    rig_rotation_deg: Vec3 = Field(default_factory=lambda: [150.0, 20.0, -120.0])
+    rig_noise_mm: Annotated[float, Field(ge=0)] = 0.05
+    joint_speed_deg_s: Positive = 60.0
+
+
+class CellConfig(_Strict):
+    """The whole configuration file."""
+
+    name: str = "cell"
+    robot: RobotConfig = Field(default_factory=RobotConfig)
+    sensor: Annotated[list[SensorConfig], Field(min_length=1)]
+    campaign: CampaignConfig = Field(default_factory=CampaignConfig)
+    storage: StorageConfig = Field(default_factory=StorageConfig)
+    simulation: SimulationConfig = Field(default_factory=SimulationConfig)
+
+    @model_validator(mode="after")
+    def _sensors(self) -> CellConfig:
+        names = [s.name for s in self.sensor]
+        if len(set(names)) != len(names):
+            raise ValueError("sensor names must be unique")
+        refs = [s.name for s in self.sensor if s.reference]
+        if len(refs) != 1:
+            raise ValueError(
+                "exactly one sensor must have reference = true (the calibration "
+                f"instrument); got {len(refs)}"
+            )
+        return self
+
+    @property
+    def reference_sensor(self) -> SensorConfig:
+        return next(s for s in self.sensor if s.reference)
+
+
+def _message(exc: ValidationError) -> str:
+    err = exc.errors()[0]
+    path = ".".join(str(p) for p in err["loc"]) or "(top level)"
+    kind = err["type"]
+    if kind == "extra_forbidden":
+        return f"{path}: unknown key"
+    if kind == "missing":
+        return f"{path}: required key missing"
+    return f"{path}: {str(err['msg']).removeprefix('Value error, ')}"
+
+
+def config_from_dict(data: dict[str, object], source: str = "config") -> CellConfig:
+    try:
+        return CellConfig.model_validate(data)
+    except ValidationError as exc:
+        raise ConfigError(f"{source}: {_message(exc)}") from None
+
+
+def load_config(path: str | Path) -> CellConfig:
+    """Read and validate a cell configuration file."""
+    p = Path(path)
+    try:
+        with p.open("rb") as fh:
+            data = tomllib.load(fh)
+    except FileNotFoundError:
+        raise ConfigError(f"{p}: no such file") from None
+    except IsADirectoryError:
+        raise ConfigError(f"{p}: is a directory, not a TOML file") from None
+    except UnicodeDecodeError:
+        raise ConfigError(f"{p}: not a UTF-8 text file") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{p}: not valid TOML ({exc})") from None
+    return config_from_dict(data, str(p))

@@ -1,0 +1,192 @@
+"""A whole campaign: plan, acquire, store, register, calibrate, validate, report —
+started afresh or resumed from the database."""
+
+from __future__ import annotations
+
+import json
+import threading
+from dataclasses import dataclass
+
+import numpy as np
+
+from cellcal.clock import SimulatedClock, WallClock
+from cellcal.config import CellConfig, config_from_dict
+from cellcal.daemon.analysis import CampaignSummary, analyse
+from cellcal.daemon.devices import build_devices
+from cellcal.daemon.engine import Acquisition, Progress, acquire
+from cellcal.daemon.plan import CALIBRATION, VALIDATION, Plan, make_plan
+from cellcal.daemon.store import Store
+from cellcal.errors import CampaignError
+from cellcal.modelfiles import load_model
+
+
+@dataclass(frozen=True)
+class CampaignOutcome:
+    campaign_id: int
+    db_path: str
+    config: CellConfig
+    plan: Plan
+    acquisition: Acquisition
+    summary: CampaignSummary | None
+
+
+def with_seed(config: CellConfig, seed: int | None) -> CellConfig:
+    """The configuration with one seed for the simulated truth, its noise and the plan."""
+    if seed is None:
+        return config
+    return config.model_copy(
+        update={
+            "simulation": config.simulation.model_copy(update={"seed": seed}),
+            "campaign": config.campaign.model_copy(update={"seed": seed}),
+        }
+    )
+
+
+def _plan(config: CellConfig) -> tuple[Plan, object]:
+    nominal = load_model(config.robot.model).model
+    home = np.radians(np.asarray(config.robot.home_deg, dtype=np.float64))
+    if len(home) != nominal.dof:
+        raise CampaignError(f"robot.home_deg has {len(home)} joints, the model {nominal.dof}")
+    tool = np.asarray(config.reference_sensor.target_offset_mm, dtype=np.float64)
+    plan = make_plan(config.campaign, nominal, home, tool)
+    if plan.count(CALIBRATION) == 0:
+        raise CampaignError("no calibration pose of the plan is reachable; check the cube")
+    if plan.count(VALIDATION) == 0:
+        raise CampaignError("no validation pose of the plan is reachable")
+    return plan, nominal
+
+
+def _run(
+    store: Store,
+    campaign_id: int,
+    config: CellConfig,
+    plan: Plan,
+    *,
+    mock: bool,
+    time_scale: float,
+    stop: threading.Event | None,
+    progress: Progress | None,
+) -> CampaignOutcome:
+    nominal = load_model(config.robot.model).model
+    clock = SimulatedClock(time_scale) if mock else WallClock()
+    devices = build_devices(config, nominal, clock, mock=mock, seed=config.simulation.seed)
+    try:
+        acquisition = acquire(
+            store,
+            campaign_id,
+            plan,
+            devices.robot,
+            devices.sensors,
+            clock,
+            dwell_s=config.campaign.dwell_s,
+            samples_per_pose=config.campaign.samples_per_pose,
+            speed=config.robot.speed,
+            stop=stop,
+            progress=progress,
+        )
+    except BaseException as exc:
+        store.add_event(campaign_id, "error", f"{type(exc).__name__}: {exc}")
+        store.set_status(campaign_id, "interrupted")
+        raise
+    finally:
+        devices.robot.close()
+        for s in devices.sensors:
+            s.sensor.close()
+    if acquisition.interrupted:
+        store.add_event(campaign_id, "interrupted", f"stopped after {acquisition.stored} poses")
+        store.set_status(campaign_id, "interrupted")
+        return CampaignOutcome(campaign_id, store.path, config, plan, acquisition, None)
+    summary = analyse(store, campaign_id, nominal, config.reference_sensor.name)
+    store.set_status(campaign_id, "complete")
+    return CampaignOutcome(campaign_id, store.path, config, plan, acquisition, summary)
+
+
+def start_campaign(
+    config: CellConfig,
+    db_path: str,
+    *,
+    config_path: str | None,
+    mock: bool,
+    seed: int | None = None,
+    time_scale: float = 0.0,
+    stop: threading.Event | None = None,
+    progress: Progress | None = None,
+) -> CampaignOutcome:
+    """Plan, create a new campaign in ``db_path``, acquire and analyse it."""
+    config = with_seed(config, seed)
+    plan, _ = _plan(config)
+    store = Store(db_path)
+    try:
+        campaign_id = store.create_campaign(
+            config_json=config.model_dump_json(),
+            config_path=config_path,
+            mock=mock,
+            seed=config.simulation.seed if mock else None,
+            time_scale=time_scale if mock else None,
+            model=config.robot.model,
+            sensors=[s.name for s in config.sensor],
+            n_poses=len(plan.poses),
+            samples_per_pose=config.campaign.samples_per_pose,
+            dwell_s=config.campaign.dwell_s,
+            plan_digest=plan.digest,
+        )
+        for u in plan.unreachable:
+            store.add_event(
+                campaign_id,
+                "unreachable",
+                f"{u.role} pose in {u.region} at "
+                f"{np.round(u.target_mm, 1).tolist()} mm: {u.reason}",
+            )
+        return _run(
+            store,
+            campaign_id,
+            config,
+            plan,
+            mock=mock,
+            time_scale=time_scale,
+            stop=stop,
+            progress=progress,
+        )
+    finally:
+        store.close()
+
+
+def resume_campaign(
+    db_path: str,
+    campaign_id: int,
+    *,
+    time_scale: float | None = None,
+    stop: threading.Event | None = None,
+    progress: Progress | None = None,
+) -> CampaignOutcome:
+    """Continue an interrupted campaign from its last stored pose, with its stored
+    configuration; the plan must come out the same."""
+    store = Store(db_path)
+    try:
+        row = store.campaign(campaign_id)
+        if row.status == "complete":
+            raise CampaignError(f"campaign {campaign_id} is already complete")
+        config = config_from_dict(json.loads(row.config_json), f"campaign {campaign_id}")
+        plan, _ = _plan(config)
+        if plan.digest != row.plan_digest:
+            raise CampaignError(
+                f"campaign {campaign_id}: the plan computed now differs from the stored one "
+                "(another cellcal version or robot model?); start a new campaign"
+            )
+        store.add_event(
+            campaign_id, "resumed", f"{len(store.completed_indices(campaign_id))} poses stored"
+        )
+        store.set_status(campaign_id, "running")
+        scale = time_scale if time_scale is not None else (row.time_scale or 0.0)
+        return _run(
+            store,
+            campaign_id,
+            config,
+            plan,
+            mock=row.mock,
+            time_scale=scale,
+            stop=stop,
+            progress=progress,
+        )
+    finally:
+        store.close()

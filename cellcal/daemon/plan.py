@@ -1,0 +1,168 @@
+"""The plan: which poses a campaign visits, computed before any motion (pure).
+
+Calibration poses fill the paper's cube (80 points in a 200 mm cube by default) in a
+serpentine order; at each point the flange is turned by a seeded rotation of up to
+``orientation_variation_deg`` about each axis, which is what makes the identification
+well conditioned (0 reproduces the paper's fixed orientation). Validation poses lie
+inside the cube and in the paper's regions O1–O5 outside it (Table 3). Every pose is
+solved by inverse kinematics of the nominal model and checked against the joint limits
+and the workspace box; a pose that fails is reported as unreachable, not dropped
+silently.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from dataclasses import dataclass
+
+import numpy as np
+
+from cellcal.calib.geometry import Array, so3_exp
+from cellcal.calib.inverse_kinematics import solve
+from cellcal.calib.kinematics import target_kinematics
+from cellcal.calib.robot_model import RobotModel
+from cellcal.config import CampaignConfig
+
+CALIBRATION = "calibration"
+VALIDATION = "validation"
+
+
+@dataclass(frozen=True)
+class PlannedPose:
+    """``idx``: position in the plan; ``role``: calibration or validation; ``region``:
+    ``cube`` or ``O1``…; ``target_mm``: the nominal target position (base frame);
+    ``q``: joint readings (rad)."""
+
+    idx: int
+    role: str
+    region: str
+    target_mm: Array
+    q: Array
+
+
+@dataclass(frozen=True)
+class UnreachablePose:
+    role: str
+    region: str
+    target_mm: Array
+    reason: str
+
+
+@dataclass(frozen=True)
+class Plan:
+    poses: tuple[PlannedPose, ...]
+    unreachable: tuple[UnreachablePose, ...]
+
+    @property
+    def digest(self) -> str:
+        """A fingerprint of the poses (roles and joints to 1e-9 rad): a resumed campaign
+        must follow the same plan."""
+        h = hashlib.sha256()
+        for p in self.poses:
+            h.update(f"{p.idx}:{p.role}:{p.region}:".encode())
+            h.update(np.round(p.q, 9).tobytes())
+        return h.hexdigest()[:16]
+
+    def count(self, role: str) -> int:
+        return sum(1 for p in self.poses if p.role == role)
+
+
+def cube_points(cfg: CampaignConfig) -> Array:
+    """Grid points of the cube in serpentine order (mm, base frame)."""
+    c = np.asarray(cfg.cube_centre_mm)
+    h = cfg.cube_edge_mm / 2.0
+    xs, ys, zs = (np.linspace(-h, h, k) for k in cfg.grid)
+    pts = []
+    for i, x in enumerate(xs):
+        ys_i = ys if i % 2 == 0 else ys[::-1]
+        for j, y in enumerate(ys_i):
+            zs_j = zs if (i * len(ys) + j) % 2 == 0 else zs[::-1]
+            pts += [[x, y, z] for z in zs_j]
+    return c + np.array(pts)
+
+
+def _ball(rng: np.random.Generator, centre: Array, radius: float, n: int) -> Array:
+    d = rng.normal(size=(n, 3))
+    d /= np.linalg.norm(d, axis=1)[:, None]
+    r = radius * rng.uniform(0, 1, n) ** (1 / 3)
+    out: Array = centre + d * r[:, None]
+    return out
+
+
+def _orientations(rng: np.random.Generator, R0: Array, n: int, deg: float) -> Array:
+    if deg == 0 or n == 0:
+        return np.broadcast_to(R0, (n, 3, 3)).copy()
+    v = rng.uniform(-1, 1, (n, 3)) * np.radians(deg)
+    return np.array([so3_exp(w) @ R0 for w in v])
+
+
+def make_plan(cfg: CampaignConfig, model: RobotModel, home_q: Array, tool: Array) -> Plan:
+    """The campaign's poses for ``model`` starting from ``home_q`` (rad), with the target
+    at ``tool`` (mm, flange frame)."""
+    rng = np.random.default_rng(cfg.seed)
+    R0 = target_kinematics(model, home_q[None], tool, jacobian=False).R_flange[0]
+    lo_box = np.asarray(cfg.workspace_min_mm)
+    hi_box = np.asarray(cfg.workspace_max_mm)
+    groups: list[tuple[str, str, Array, Array]] = []
+    cube = cube_points(cfg)
+    groups.append(
+        (
+            CALIBRATION,
+            "cube",
+            cube,
+            _orientations(rng, R0, len(cube), cfg.orientation_variation_deg),
+        )
+    )
+    c = np.asarray(cfg.cube_centre_mm)
+    h = cfg.cube_edge_mm / 2.0
+    inside = c + rng.uniform(-h, h, (cfg.validation_inside, 3))
+    groups.append(
+        (
+            VALIDATION,
+            "cube",
+            inside,
+            _orientations(rng, R0, len(inside), cfg.orientation_variation_deg),
+        )
+    )
+    for k, centre in enumerate(cfg.validation_regions_mm, start=1):
+        pts = _ball(
+            rng, np.asarray(centre), cfg.validation_region_radius_mm, cfg.validation_per_region
+        )
+        groups.append(
+            (
+                VALIDATION,
+                f"O{k}",
+                pts,
+                _orientations(rng, R0, len(pts), cfg.orientation_variation_deg),
+            )
+        )
+
+    poses: list[PlannedPose] = []
+    unreachable: list[UnreachablePose] = []
+    for role, region, pts, Rs in groups:
+        if len(pts) == 0:
+            continue
+        # Seed from the group's centre, solved from home: neighbouring poses, short moves.
+        centre_sol = solve(model, tool, pts.mean(axis=0)[None], R0, home_q)
+        seed = centre_sol.q[0] if centre_sol.ok[0] else home_q
+        sol = solve(model, tool, pts, Rs, seed)
+        retry = ~sol.ok
+        if retry.any():  # a second chance from home for the ones that failed
+            again = solve(model, tool, pts[retry], Rs[retry], home_q)
+            q = sol.q.copy()
+            q[retry] = again.q
+            ok = sol.ok.copy()
+            ok[retry] = again.ok
+        else:
+            q, ok = sol.q, sol.ok
+        for p, qi, good in zip(pts, q, ok, strict=True):
+            in_box = bool(np.all(p >= lo_box) and np.all(p <= hi_box))
+            if not in_box:
+                unreachable.append(UnreachablePose(role, region, p, "outside the workspace box"))
+            elif not good:
+                unreachable.append(
+                    UnreachablePose(role, region, p, "no joint solution within the limits")
+                )
+            else:
+                poses.append(PlannedPose(len(poses), role, region, p, qi))
+    return Plan(tuple(poses), tuple(unreachable))

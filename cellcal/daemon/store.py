@@ -1,0 +1,526 @@
+"""The campaign database (SQLite through sqlite-utils): append-only, crash-safe.
+
+The core is public (``shared/specs/cli-and-files.md``): ``campaigns``, ``poses`` (``idx``
+unique within a campaign, planned and reached joints), ``samples`` (``pose_id``,
+``sensor``, host and device timestamps, ``x, y, z``). Other tools read it directly.
+
+Rules that make a SIGKILL at any moment harmless:
+
+* a pose, its raw samples and its statistics are written in one transaction — after a
+  crash the pose is either wholly there or not there, and a resumed campaign redoes
+  exactly the poses that are not there;
+* ``UNIQUE(campaign_id, idx)`` makes storing a pose twice impossible;
+* WAL journal with ``synchronous=FULL``: a committed pose survives a crash of the
+  process and of the machine;
+* nothing is updated in place but a campaign's ``status`` and ``finished`` time; a
+  rerun is a new campaign.
+
+sqlite-utils opens the file and runs the migrations; the pose write goes through the
+same connection with explicit ``BEGIN IMMEDIATE``/``COMMIT`` (``executemany`` of the
+samples), because sqlite-utils' own ``insert_all`` commits by itself and would split
+the pose's transaction.
+
+The schema version is SQLite's ``user_version``; :data:`MIGRATIONS` bring an older file
+up to date when it is opened (schema 1 held the acquisition only; 2 added the analysis
+tables).
+"""
+
+from __future__ import annotations
+
+import json
+import sqlite3
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import sqlite_utils
+
+from cellcal.calib.geometry import Array
+from cellcal.drivers.base import Series
+from cellcal.errors import CampaignError, UserError
+
+SCHEMA_VERSION = 2
+
+
+class StoreError(UserError):
+    """A database that cannot be opened or used (not SQLite, newer schema, locked)."""
+
+
+def _utc() -> str:
+    return datetime.now(UTC).isoformat(timespec="milliseconds")
+
+
+def _schema_1(db: sqlite_utils.Database) -> None:
+    db.execute(
+        """CREATE TABLE campaigns (
+            id INTEGER PRIMARY KEY,
+            created TEXT NOT NULL,
+            status TEXT NOT NULL,
+            mock INTEGER NOT NULL,
+            seed INTEGER,
+            time_scale REAL,
+            model TEXT NOT NULL,
+            sensors TEXT NOT NULL,
+            n_poses INTEGER NOT NULL,
+            samples_per_pose INTEGER NOT NULL,
+            dwell_s REAL NOT NULL,
+            plan_digest TEXT NOT NULL,
+            config_path TEXT,
+            config_json TEXT NOT NULL
+        )"""
+    )
+    db.execute(
+        """CREATE TABLE poses (
+            id INTEGER PRIMARY KEY,
+            campaign_id INTEGER NOT NULL REFERENCES campaigns(id),
+            idx INTEGER NOT NULL,
+            role TEXT NOT NULL,
+            region TEXT NOT NULL,
+            target_x REAL, target_y REAL, target_z REAL,
+            planned_q_deg TEXT NOT NULL,
+            reached_q_deg TEXT NOT NULL,
+            t_start REAL NOT NULL,
+            t_end REAL NOT NULL,
+            stored TEXT NOT NULL,
+            UNIQUE (campaign_id, idx)
+        )"""
+    )
+    db.execute(
+        """CREATE TABLE samples (
+            id INTEGER PRIMARY KEY,
+            pose_id INTEGER NOT NULL REFERENCES poses(id),
+            sensor TEXT NOT NULL,
+            host_time REAL NOT NULL,
+            device_time REAL NOT NULL,
+            x REAL NOT NULL, y REAL NOT NULL, z REAL NOT NULL
+        )"""
+    )
+    db.execute("CREATE INDEX samples_pose ON samples (pose_id, sensor)")
+    db.execute(
+        """CREATE TABLE pose_stats (
+            pose_id INTEGER NOT NULL REFERENCES poses(id),
+            sensor TEXT NOT NULL,
+            n INTEGER NOT NULL,
+            mean_x REAL, mean_y REAL, mean_z REAL,
+            std_x REAL, std_y REAL, std_z REAL,
+            retries INTEGER NOT NULL,
+            PRIMARY KEY (pose_id, sensor)
+        )"""
+    )
+    db.execute(
+        """CREATE TABLE events (
+            id INTEGER PRIMARY KEY,
+            campaign_id INTEGER NOT NULL REFERENCES campaigns(id),
+            time TEXT NOT NULL,
+            kind TEXT NOT NULL,
+            pose_idx INTEGER,
+            message TEXT NOT NULL
+        )"""
+    )
+
+
+def _schema_2(db: sqlite_utils.Database) -> None:
+    db.execute("ALTER TABLE campaigns ADD COLUMN finished TEXT")
+    db.execute(
+        """CREATE TABLE registrations (
+            id INTEGER PRIMARY KEY,
+            campaign_id INTEGER NOT NULL REFERENCES campaigns(id),
+            sensor TEXT NOT NULL,
+            geometry TEXT NOT NULL,
+            created TEXT NOT NULL,
+            n INTEGER NOT NULL,
+            rms_mm REAL NOT NULL,
+            max_mm REAL NOT NULL,
+            T_sensor_base TEXT NOT NULL,
+            target_offset_mm TEXT NOT NULL
+        )"""
+    )
+    db.execute(
+        """CREATE TABLE calibrations (
+            id INTEGER PRIMARY KEY,
+            campaign_id INTEGER NOT NULL REFERENCES campaigns(id),
+            sensor TEXT NOT NULL,
+            created TEXT NOT NULL,
+            n_points INTEGER NOT NULL,
+            rms_before_mm REAL NOT NULL,
+            rms_after_mm REAL NOT NULL,
+            condition_number REAL NOT NULL,
+            identified TEXT NOT NULL,
+            unidentifiable TEXT NOT NULL,
+            model_toml TEXT NOT NULL
+        )"""
+    )
+    db.execute(
+        """CREATE TABLE reports (
+            id INTEGER PRIMARY KEY,
+            campaign_id INTEGER NOT NULL REFERENCES campaigns(id),
+            created TEXT NOT NULL,
+            summary TEXT NOT NULL
+        )"""
+    )
+
+
+MIGRATIONS: tuple[Callable[[sqlite_utils.Database], None], ...] = (_schema_1, _schema_2)
+
+
+@dataclass(frozen=True)
+class CampaignRow:
+    id: int
+    status: str
+    mock: bool
+    seed: int | None
+    time_scale: float | None
+    model: str
+    sensors: tuple[str, ...]
+    n_poses: int
+    samples_per_pose: int
+    plan_digest: str
+    config_json: str
+    config_path: str | None
+
+
+@dataclass(frozen=True)
+class PoseData:
+    """Everything stored about a campaign's poses, as arrays in plan order: ``idx``,
+    ``role``, ``region``, reached joints (rad), and per sensor the mean position, its
+    standard deviation and the sample count."""
+
+    idx: Array
+    role: tuple[str, ...]
+    region: tuple[str, ...]
+    q: Array
+    mean: dict[str, Array]
+    std: dict[str, Array]
+    n: dict[str, Array]
+
+
+class Store:
+    """One campaign database file."""
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = str(path)
+        try:
+            conn = sqlite3.connect(self.path, isolation_level=None, timeout=10.0)
+            conn.execute("PRAGMA journal_mode=WAL")
+            conn.execute("PRAGMA synchronous=FULL")
+            conn.execute("PRAGMA foreign_keys=ON")
+            version = conn.execute("PRAGMA user_version").fetchone()[0]
+        except sqlite3.DatabaseError as exc:
+            raise StoreError(f"{self.path}: not a cellcal database ({exc})") from None
+        self.conn = conn
+        self.db = sqlite_utils.Database(conn)
+        if version > SCHEMA_VERSION:
+            raise StoreError(
+                f"{self.path}: schema version {version} is newer than this cellcal "
+                f"understands ({SCHEMA_VERSION}); upgrade cellcal"
+            )
+        if version == 0 and self.db.table_names():
+            raise StoreError(f"{self.path}: an SQLite file that is not a cellcal database")
+        self.migrate(version)
+
+    def migrate(self, version: int) -> None:
+        for v in range(version, SCHEMA_VERSION):
+            with self.transaction():
+                MIGRATIONS[v](self.db)
+                self.conn.execute(f"PRAGMA user_version = {v + 1}")
+
+    def transaction(self) -> _Transaction:
+        return _Transaction(self.conn)
+
+    def close(self) -> None:
+        self.conn.close()
+
+    @property
+    def schema_version(self) -> int:
+        return int(self.conn.execute("PRAGMA user_version").fetchone()[0])
+
+    # ------------------------------------------------------------------ campaigns
+
+    def create_campaign(
+        self,
+        *,
+        config_json: str,
+        config_path: str | None,
+        mock: bool,
+        seed: int | None,
+        time_scale: float | None,
+        model: str,
+        sensors: Iterable[str],
+        n_poses: int,
+        samples_per_pose: int,
+        dwell_s: float,
+        plan_digest: str,
+    ) -> int:
+        with self.transaction():
+            cur = self.conn.execute(
+                """INSERT INTO campaigns (created, status, mock, seed, time_scale, model,
+                sensors, n_poses, samples_per_pose, dwell_s, plan_digest, config_path,
+                config_json) VALUES (?, 'running', ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)""",
+                (
+                    _utc(),
+                    int(mock),
+                    seed,
+                    time_scale,
+                    model,
+                    json.dumps(list(sensors)),
+                    n_poses,
+                    samples_per_pose,
+                    dwell_s,
+                    plan_digest,
+                    config_path,
+                    config_json,
+                ),
+            )
+            return int(cur.lastrowid or 0)
+
+    def campaign(self, campaign_id: int) -> CampaignRow:
+        row = self.conn.execute(
+            """SELECT id, status, mock, seed, time_scale, model, sensors, n_poses,
+            samples_per_pose, plan_digest, config_json, config_path FROM campaigns
+            WHERE id = ?""",
+            (campaign_id,),
+        ).fetchone()
+        if row is None:
+            raise CampaignError(f"{self.path}: no campaign {campaign_id}")
+        return CampaignRow(
+            id=row[0],
+            status=row[1],
+            mock=bool(row[2]),
+            seed=row[3],
+            time_scale=row[4],
+            model=row[5],
+            sensors=tuple(json.loads(row[6])),
+            n_poses=row[7],
+            samples_per_pose=row[8],
+            plan_digest=row[9],
+            config_json=row[10],
+            config_path=row[11],
+        )
+
+    def set_status(self, campaign_id: int, status: str) -> None:
+        finished = _utc() if status in ("complete", "failed") else None
+        with self.transaction():
+            self.conn.execute(
+                "UPDATE campaigns SET status = ?, finished = ? WHERE id = ?",
+                (status, finished, campaign_id),
+            )
+
+    # ------------------------------------------------------------------ poses
+
+    def completed_indices(self, campaign_id: int) -> set[int]:
+        rows = self.conn.execute("SELECT idx FROM poses WHERE campaign_id = ?", (campaign_id,))
+        return {int(r[0]) for r in rows}
+
+    def add_pose(
+        self,
+        campaign_id: int,
+        *,
+        idx: int,
+        role: str,
+        region: str,
+        target_mm: Array,
+        planned_q: Array,
+        reached_q: Array,
+        t_start: float,
+        t_end: float,
+        series: Iterable[Series],
+    ) -> int:
+        """Store a pose, all its samples and their statistics atomically."""
+        series = list(series)
+        try:
+            with self.transaction():
+                cur = self.conn.execute(
+                    """INSERT INTO poses (campaign_id, idx, role, region, target_x, target_y,
+                    target_z, planned_q_deg, reached_q_deg, t_start, t_end, stored)
+                    VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)""",
+                    (
+                        campaign_id,
+                        idx,
+                        role,
+                        region,
+                        *(float(v) for v in target_mm),
+                        json.dumps([round(float(v), 9) for v in np.degrees(planned_q)]),
+                        json.dumps([round(float(v), 9) for v in np.degrees(reached_q)]),
+                        t_start,
+                        t_end,
+                        _utc(),
+                    ),
+                )
+                pose_id = int(cur.lastrowid or 0)
+                for s in series:
+                    self.conn.executemany(
+                        """INSERT INTO samples (pose_id, sensor, host_time, device_time, x, y, z)
+                        VALUES (?, ?, ?, ?, ?, ?, ?)""",
+                        [
+                            (
+                                pose_id,
+                                s.sensor,
+                                float(h),
+                                float(d),
+                                float(p[0]),
+                                float(p[1]),
+                                float(p[2]),
+                            )
+                            for h, d, p in zip(s.host_time, s.device_time, s.xyz, strict=True)
+                        ],
+                    )
+                    m, sd = s.mean, s.std
+                    self.conn.execute(
+                        """INSERT INTO pose_stats (pose_id, sensor, n, mean_x, mean_y, mean_z,
+                        std_x, std_y, std_z, retries) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?)""",
+                        (pose_id, s.sensor, s.n, *map(float, m), *map(float, sd), s.retries),
+                    )
+        except sqlite3.IntegrityError as exc:
+            raise CampaignError(
+                f"campaign {campaign_id}: pose {idx} is already stored ({exc})"
+            ) from None
+        return pose_id
+
+    def add_event(
+        self, campaign_id: int, kind: str, message: str, pose_idx: int | None = None
+    ) -> None:
+        with self.transaction():
+            self.conn.execute(
+                """INSERT INTO events (campaign_id, time, kind, pose_idx, message)
+                VALUES (?, ?, ?, ?, ?)""",
+                (campaign_id, _utc(), kind, pose_idx, message),
+            )
+
+    def events(self, campaign_id: int) -> list[dict[str, Any]]:
+        rows = self.conn.execute(
+            "SELECT time, kind, pose_idx, message FROM events WHERE campaign_id = ? ORDER BY id",
+            (campaign_id,),
+        )
+        return [dict(zip(("time", "kind", "pose_idx", "message"), r, strict=True)) for r in rows]
+
+    def pose_data(self, campaign_id: int) -> PoseData:
+        poses = self.conn.execute(
+            """SELECT id, idx, role, region, reached_q_deg FROM poses WHERE campaign_id = ?
+            ORDER BY idx""",
+            (campaign_id,),
+        ).fetchall()
+        ids = [p[0] for p in poses]
+        pos = {pid: k for k, pid in enumerate(ids)}
+        mean: dict[str, Array] = {}
+        std: dict[str, Array] = {}
+        n: dict[str, Array] = {}
+        stats = self.conn.execute(
+            """SELECT s.pose_id, s.sensor, s.n, s.mean_x, s.mean_y, s.mean_z, s.std_x, s.std_y,
+            s.std_z FROM pose_stats s JOIN poses p ON p.id = s.pose_id WHERE p.campaign_id = ?""",
+            (campaign_id,),
+        )
+        for pid, sensor, cnt, mx, my, mz, sx, sy, sz in stats:
+            if sensor not in mean:
+                mean[sensor] = np.full((len(ids), 3), np.nan)
+                std[sensor] = np.full((len(ids), 3), np.nan)
+                n[sensor] = np.zeros(len(ids))
+            k = pos[pid]
+            mean[sensor][k] = (mx, my, mz)
+            std[sensor][k] = (sx, sy, sz)
+            n[sensor][k] = cnt
+        q = np.radians(np.array([json.loads(p[4]) for p in poses])) if poses else np.zeros((0, 0))
+        return PoseData(
+            idx=np.array([p[1] for p in poses], dtype=int),
+            role=tuple(p[2] for p in poses),
+            region=tuple(p[3] for p in poses),
+            q=q,
+            mean=mean,
+            std=std,
+            n=n,
+        )
+
+    # ------------------------------------------------------------------ analysis results
+
+    def add_registration(
+        self,
+        campaign_id: int,
+        sensor: str,
+        geometry: str,
+        n: int,
+        rms_mm: float,
+        max_mm: float,
+        T_sensor_base: Array,
+        target_offset_mm: Array,
+    ) -> None:
+        with self.transaction():
+            self.conn.execute(
+                """INSERT INTO registrations (campaign_id, sensor, geometry, created, n, rms_mm,
+                max_mm, T_sensor_base, target_offset_mm) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)""",
+                (
+                    campaign_id,
+                    sensor,
+                    geometry,
+                    _utc(),
+                    n,
+                    rms_mm,
+                    max_mm,
+                    json.dumps(np.asarray(T_sensor_base).tolist()),
+                    json.dumps(np.asarray(target_offset_mm).tolist()),
+                ),
+            )
+
+    def add_calibration(
+        self,
+        campaign_id: int,
+        sensor: str,
+        *,
+        n_points: int,
+        rms_before_mm: float,
+        rms_after_mm: float,
+        condition_number: float,
+        identified: Iterable[str],
+        unidentifiable: Iterable[str],
+        model_toml: str,
+    ) -> None:
+        with self.transaction():
+            self.conn.execute(
+                """INSERT INTO calibrations (campaign_id, sensor, created, n_points,
+                rms_before_mm, rms_after_mm, condition_number, identified, unidentifiable,
+                model_toml) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?)""",
+                (
+                    campaign_id,
+                    sensor,
+                    _utc(),
+                    n_points,
+                    rms_before_mm,
+                    rms_after_mm,
+                    condition_number,
+                    json.dumps(list(identified)),
+                    json.dumps(list(unidentifiable)),
+                    model_toml,
+                ),
+            )
+
+    def add_report(self, campaign_id: int, summary: dict[str, Any]) -> None:
+        with self.transaction():
+            self.conn.execute(
+                "INSERT INTO reports (campaign_id, created, summary) VALUES (?, ?, ?)",
+                (campaign_id, _utc(), json.dumps(summary)),
+            )
+
+    def latest_report(self, campaign_id: int) -> dict[str, Any] | None:
+        row = self.conn.execute(
+            "SELECT summary FROM reports WHERE campaign_id = ? ORDER BY id DESC LIMIT 1",
+            (campaign_id,),
+        ).fetchone()
+        return None if row is None else dict(json.loads(row[0]))
+
+
+class _Transaction:
+    """``BEGIN IMMEDIATE`` … ``COMMIT``, or ``ROLLBACK`` on any exception."""
+
+    def __init__(self, conn: sqlite3.Connection) -> None:
+        self.conn = conn
+
+    def __enter__(self) -> sqlite3.Connection:
+        self.conn.execute("BEGIN IMMEDIATE")
+        return self.conn
+
+    def __exit__(self, exc_type: object, exc: object, tb: object) -> None:
+        if exc_type is None:
+            self.conn.execute("COMMIT")
+        else:
+            self.conn.execute("ROLLBACK")

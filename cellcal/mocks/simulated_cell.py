@@ -1,0 +1,122 @@
+"""The simulated cell: one ground truth that every simulated device reads.
+
+A robot whose real geometry differs from nominal by seeded errors, each instrument's
+pose in the cell, each target's real offset on the flange (the nominal offset in the
+configuration is only a guess, off by up to 0.5 mm), and the instruments' noise:
+
+* laser tracker: 10 µm along the beam (distance meter) and 6 µm per metre of range
+  across it (angle encoders), 1σ per sample — the class of a FARO / Leica tracker;
+* photogrammetry rig: 0.05 mm isotropic per sample.
+
+Same seed, same truth; the noise comes from a generator seeded from it too.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from cellcal.calib.geometry import Array, invert
+from cellcal.calib.kinematics import target_kinematics
+from cellcal.calib.robot_model import RobotModel
+from cellcal.config import CellConfig, SensorConfig
+from cellcal.mocks.robot_truth import perturbed_model
+
+
+@dataclass(frozen=True)
+class SensorTruth:
+    """Where an instrument is (T_sensor_base), where its target really is on the flange,
+    and its noise (kind, σ values in mm)."""
+
+    name: str
+    kind: str
+    T_sensor_base: Array
+    tool: Array
+    sigma_radial: float
+    sigma_transverse_per_mm: float
+    sigma_isotropic: float
+
+
+def _pose(position_mm: list[float], rotation_deg: list[float]) -> Array:
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_euler("xyz", rotation_deg, degrees=True).as_matrix()
+    T[:3, 3] = position_mm
+    return T
+
+
+class SimulatedCell:
+    """The truth, plus the one piece of state the devices share: where the robot is."""
+
+    def __init__(self, config: CellConfig, nominal: RobotModel, seed: int | None = None) -> None:
+        sim = config.simulation
+        self.seed = sim.seed if seed is None else seed
+        rng = np.random.default_rng(self.seed)
+        self.nominal = nominal
+        self.model = perturbed_model(
+            nominal, rng, length_mm=sim.length_error_mm, angle_deg=sim.angle_error_deg
+        )
+        self.sensors: dict[str, SensorTruth] = {}
+        for s in config.sensor:
+            self.sensors[s.name] = self._sensor_truth(s, config, rng)
+        self.noise = np.random.default_rng([self.seed, 1])
+        self.joint_speed = math.radians(sim.joint_speed_deg_s)
+        self._lock = threading.Lock()
+        self._q = np.radians(np.asarray(config.robot.home_deg, dtype=np.float64))
+
+    @staticmethod
+    def _sensor_truth(s: SensorConfig, config: CellConfig, rng: np.random.Generator) -> SensorTruth:
+        sim = config.simulation
+        tool = np.asarray(s.target_offset_mm, dtype=np.float64) + rng.uniform(-0.5, 0.5, 3)
+        if s.kind == "laser-tracker":
+            T_base_sensor = _pose(sim.tracker_position_mm, sim.tracker_rotation_deg)
+            return SensorTruth(
+                s.name,
+                s.kind,
+                invert(T_base_sensor),
+                tool,
+                sim.tracker_radial_um / 1000.0,
+                sim.tracker_transverse_um_per_m / 1000.0 / 1000.0,
+                0.0,
+            )
+        T_base_sensor = _pose(sim.rig_position_mm, sim.rig_rotation_deg)
+        return SensorTruth(s.name, s.kind, invert(T_base_sensor), tool, 0.0, 0.0, sim.rig_noise_mm)
+
+    @property
+    def q(self) -> Array:
+        with self._lock:
+            return self._q.copy()
+
+    def set_q(self, q: Array) -> None:
+        with self._lock:
+            self._q = np.asarray(q, dtype=np.float64).copy()
+
+    def true_position(self, sensor: str, q: Array | None = None) -> Array:
+        """Noise-free target position of ``sensor`` in its frame (mm)."""
+        s = self.sensors[sensor]
+        qq = self.q if q is None else q
+        p = target_kinematics(self.model, np.atleast_2d(qq), s.tool, jacobian=False).p
+        out: Array = p @ s.T_sensor_base[:3, :3].T + s.T_sensor_base[:3, 3]
+        return out if q is not None and np.ndim(q) == 2 else out[0]
+
+    def sample(self, sensor: str, n: int) -> Array:
+        """n noisy measurements of the target at the robot's current position (n×3, mm)."""
+        s = self.sensors[sensor]
+        p = self.true_position(sensor)
+        with self._lock:
+            z = self.noise.normal(size=(n, 3))
+        if s.kind != "laser-tracker":
+            out: Array = p + s.sigma_isotropic * z
+            return out
+        r = float(np.linalg.norm(p))
+        u = p / r
+        a = np.cross(u, [0.0, 0.0, 1.0] if abs(u[2]) < 0.9 else [1.0, 0.0, 0.0])
+        a /= np.linalg.norm(a)
+        b = np.cross(u, a)
+        st = s.sigma_transverse_per_mm * r
+        out = p + np.outer(z[:, 0] * s.sigma_radial, u) + np.outer(z[:, 1] * st, a)
+        out += np.outer(z[:, 2] * st, b)
+        return out

@@ -1,0 +1,73 @@
+"""In-process simulated devices behind the driver Protocols, reading the simulated cell.
+
+These are the test doubles of the campaign issue: they take time on the clock like the
+real thing (motion at the configured joint speed, sampling at the configured rate) and
+refuse what a controller would refuse. The protocol-level mocks that real drivers talk
+to over sockets and pseudo-terminals are separate.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from cellcal.calib.geometry import Array
+from cellcal.clock import Clock
+from cellcal.drivers.base import Series
+from cellcal.errors import DeviceError
+from cellcal.mocks.simulated_cell import SimulatedCell
+
+SETTLE_S = 0.5
+
+
+class SimulatedRobot:
+    def __init__(self, cell: SimulatedCell, clock: Clock, name: str = "simulated-robot") -> None:
+        self.cell = cell
+        self.clock = clock
+        self.name = name
+        self.moves = 0
+
+    def connect(self) -> None:
+        pass
+
+    def move_joints(self, q: Array, speed: float) -> None:
+        lo, hi = self.cell.model.limits
+        q = np.asarray(q, dtype=np.float64)
+        if ((q < lo - 1e-9) | (q > hi + 1e-9)).any():
+            raise DeviceError(f"{self.name}: target outside the joint limits refused")
+        travel = float(np.max(np.abs(q - self.cell.q)))
+        self.clock.sleep(travel / (self.cell.joint_speed * speed) + SETTLE_S)
+        self.cell.set_q(q)
+        self.moves += 1
+
+    def actual_joints(self) -> Array:
+        return self.cell.q
+
+    def stop(self) -> None:
+        pass
+
+    def close(self) -> None:
+        pass
+
+
+class SimulatedSensor:
+    def __init__(self, cell: SimulatedCell, clock: Clock, name: str) -> None:
+        if name not in cell.sensors:
+            raise DeviceError(f"simulated cell has no sensor {name!r}")
+        self.cell = cell
+        self.clock = clock
+        self.name = name
+        self._device_epoch = 1000.0 + 37.0 * len(name)  # its own clock, not the host's
+
+    def connect(self) -> None:
+        pass
+
+    def measure(self, n: int, rate_hz: float) -> Series:
+        t0 = self.clock.now()
+        xyz = self.cell.sample(self.name, n)
+        # One sleep for the whole series: concurrent sensors overlap on the clock.
+        self.clock.sleep(n / rate_hz)
+        t = t0 + np.arange(n) / rate_hz
+        return Series(self.name, t, t + self._device_epoch, xyz)
+
+    def close(self) -> None:
+        pass
