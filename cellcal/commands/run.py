@@ -109,10 +109,10 @@ def _print_summary(out: CampaignOutcome) -> None:
     click.echo(f"position error at the validation poses ({s.reference}), mm:")
     click.echo("                               mean      RMS      max      p95")
     rows = [("inside the cube", s.inside), ("outside (O1–O5)", s.outside)]
-    for label, r in rows:
-        if r is None:
+    for label, region in rows:
+        if region is None:
             continue
-        for stage, st in (("before", r.before), ("after", r.after)):
+        for stage, st in (("before", region.before), ("after", region.after)):
             first = label if stage == "before" else ""
             numbers = "".join(f"{v:9.4f}" for v in (st.mean, st.rms, st.max, st.p95))
             click.echo(f"  {first:<18}{stage:<8}{numbers}")
