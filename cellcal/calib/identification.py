@@ -75,7 +75,7 @@ class CalibrationResult:
     sigma0: float
     residuals: Array
     residuals_before: Array
-    iterations: int
+    evaluations: int
     weighted: bool
     robust: str | None
     warnings: tuple[str, ...]
@@ -278,6 +278,13 @@ def calibrate(
         f_scale = 2.5 * max(float(np.median(r)) / 1.5382, 1e-12)
         state, Jw, more = _least_squares(state, sel, q, measured, w, robust, f_scale)
         nfev += more
+    lost_tool = [s.name for s in specs if s.kind == "tool" and s.name not in {x.name for x in sel}]
+    if lost_tool:
+        warnings.append(
+            f"the target offset ({', '.join(lost_tool)}) is not identifiable from these poses "
+            "(does the flange orientation never change?); it stays at its nominal value and "
+            "the model holds only at the measured orientations"
+        )
     if ident.condition_number > ILL_CONDITIONED:
         warnings.append(
             f"the identification is ill-conditioned (condition number "
@@ -329,7 +336,7 @@ def calibrate(
         sigma0=sigma0,
         residuals=residuals,
         residuals_before=residuals_before,
-        iterations=nfev,
+        evaluations=nfev,
         weighted=sigma is not None,
         robust=robust,
         warnings=tuple(warnings),

@@ -121,9 +121,9 @@ def _print_summary(out: CampaignOutcome) -> None:
         f"{s.validation_after.rms:.4f} mm, {s.improvement_pct:.1f} % reduction"
     )
     click.echo(
-        f"the paper: {PAPER['before_mm']:.3f} → {PAPER['after_inside_mm']:.3f} mm inside the "
-        f'calibrated region (printed as "45.8 %", a 54 % reduction), '
-        f"{PAPER['after_outside_mm']:.3f} mm outside"
+        f"the paper, after calibration: {PAPER['cl_inside_mm']:.3f} mm in the calibrated region "
+        f"({PAPER['other_method_mm']:.3f} mm with another registration method), "
+        f"{PAPER['cl_outside_mm']:.3f} mm outside it"
     )
     click.echo(f"database: {out.db_path} (campaign {out.campaign_id})")
 

@@ -1,0 +1,141 @@
+"""The campaign database: round trip, atomic poses, migration, refusal of strange files."""
+
+from __future__ import annotations
+
+import sqlite3
+
+import numpy as np
+import pytest
+import sqlite_utils
+
+from cellcal.daemon.store import MIGRATIONS, SCHEMA_VERSION, Store, StoreError
+from cellcal.drivers.base import Series
+from cellcal.errors import CampaignError
+
+
+def _campaign(store, n_poses=3):
+    return store.create_campaign(
+        config_json="{}",
+        config_path=None,
+        mock=True,
+        seed=1,
+        time_scale=0.0,
+        model="kuka-kr5-arc",
+        sensors=["tracker", "rig"],
+        n_poses=n_poses,
+        samples_per_pose=4,
+        dwell_s=7.0,
+        plan_digest="abc",
+    )
+
+
+def _series(name, n=4, offset=0.0):
+    xyz = np.arange(n * 3, dtype=float).reshape(n, 3) + offset
+    t = np.arange(n) * 0.1
+    return Series(name, t, t + 1000.0, xyz)
+
+
+def _pose(store, cid, idx, series):
+    return store.add_pose(
+        cid,
+        idx=idx,
+        role="calibration",
+        region="cube",
+        target_mm=np.array([1.0, 2.0, 3.0]),
+        planned_q=np.radians([0, 10, 20, 30, 40, 50.0]),
+        reached_q=np.radians([0, 10, 20, 30, 40, 50.0]) + 1e-6,
+        t_start=0.0,
+        t_end=9.0,
+        series=series,
+    )
+
+
+def test_round_trip(tmp_path):
+    store = Store(tmp_path / "c.db")
+    assert store.schema_version == SCHEMA_VERSION
+    cid = _campaign(store)
+    _pose(store, cid, 0, [_series("tracker"), _series("rig", offset=5.0)])
+    _pose(store, cid, 1, [_series("tracker", offset=1.0), _series("rig")])
+    assert store.completed_indices(cid) == {0, 1}
+    data = store.pose_data(cid)
+    np.testing.assert_allclose(data.mean["tracker"][1], _series("tracker", offset=1.0).mean)
+    np.testing.assert_allclose(data.std["rig"][0], _series("rig").std)
+    np.testing.assert_allclose(data.q[0], np.radians([0, 10, 20, 30, 40, 50.0]) + 1e-6, atol=1e-9)
+    assert data.role == ("calibration", "calibration")
+    store.close()
+    # Other tools read the core directly.
+    db = sqlite_utils.Database(tmp_path / "c.db")
+    assert db["samples"].count == 16
+    assert {"campaigns", "poses", "samples"} <= set(db.table_names())
+    row = next(
+        db.query("SELECT sensor, host_time, device_time, x FROM samples ORDER BY id LIMIT 1")
+    )
+    assert row == {"sensor": "tracker", "host_time": 0.0, "device_time": 1000.0, "x": 0.0}
+
+
+def test_a_pose_is_stored_once_and_wholly(tmp_path):
+    store = Store(tmp_path / "c.db")
+    cid = _campaign(store)
+    _pose(store, cid, 0, [_series("tracker")])
+    with pytest.raises(CampaignError, match="already stored"):
+        _pose(store, cid, 0, [_series("tracker")])
+
+    class Broken(Series):
+        @property
+        def mean(self):
+            raise RuntimeError("instrument died while its samples were being stored")
+
+    with pytest.raises(RuntimeError):
+        _pose(
+            store,
+            cid,
+            1,
+            [_series("tracker"), Broken("rig", np.zeros(2), np.zeros(2), np.zeros((2, 3)))],
+        )
+    # Nothing of pose 1 remains: no pose row, no samples, no statistics.
+    assert store.completed_indices(cid) == {0}
+    assert store.conn.execute("SELECT COUNT(*) FROM samples").fetchone()[0] == 4
+    assert store.conn.execute("SELECT COUNT(*) FROM pose_stats").fetchone()[0] == 1
+
+
+def test_migration_from_schema_1_keeps_the_data(tmp_path):
+    path = tmp_path / "old.db"
+    conn = sqlite3.connect(path, isolation_level=None)
+    db = sqlite_utils.Database(conn)
+    MIGRATIONS[0](db)
+    conn.execute("PRAGMA user_version = 1")
+    conn.execute(
+        """INSERT INTO campaigns (created, status, mock, seed, time_scale, model, sensors, n_poses,
+        samples_per_pose, dwell_s, plan_digest, config_path, config_json)
+        VALUES ('2026-01-01', 'complete', 1, 1, 0, 'ur10e', '["tracker"]', 5, 20, 7, 'x',
+        NULL, '{}')"""
+    )
+    conn.close()
+    store = Store(path)
+    assert store.schema_version == 2
+    assert store.campaign(1).model == "ur10e"
+    assert {"registrations", "calibrations", "reports"} <= set(store.db.table_names())
+    store.add_report(1, {"ok": True})
+    assert store.latest_report(1) == {"ok": True}
+
+
+def test_refuses_newer_and_foreign_files(tmp_path):
+    newer = tmp_path / "newer.db"
+    conn = sqlite3.connect(newer)
+    conn.execute(f"PRAGMA user_version = {SCHEMA_VERSION + 1}")
+    conn.close()
+    with pytest.raises(StoreError, match="newer"):
+        Store(newer)
+    foreign = tmp_path / "foreign.db"
+    conn = sqlite3.connect(foreign)
+    conn.execute("CREATE TABLE birds (name TEXT)")
+    conn.commit()
+    conn.close()
+    with pytest.raises(StoreError, match="not a cellcal database"):
+        Store(foreign)
+    text = tmp_path / "notes.db"
+    text.write_text("this is not a database, it is a shopping list\n" * 20)
+    with pytest.raises(StoreError, match="not a cellcal database"):
+        Store(text)
+    with pytest.raises(CampaignError, match="no campaign 9"):
+        Store(tmp_path / "fresh.db").campaign(9)
