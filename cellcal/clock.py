@@ -1,16 +1,20 @@
 """Clocks: the engine and the simulated devices take one, so that a 7 s dwell costs 7 s
 on a real cell and no wall time in CI, while the plan still says 7 s.
 
-``SimulatedClock`` keeps virtual time. ``sleep(dt)`` from any thread means "until
-now + dt": virtual time moves to the latest deadline reached, so two instruments that
-each measure for 2 s side by side cost 2 s, not 4. With ``time_scale`` > 0 each sleep
-also waits ``dt × time_scale`` wall seconds (a demo at 1/100 speed).
+``SimulatedClock`` keeps virtual time: ``sleep(dt)`` moves it forward by dt. Work that
+runs side by side (the sensors of one pose, each in its own thread) runs inside
+``branch(start)``: each branch keeps its own time from the common start, and the clock
+moves to the latest time any branch reached — two instruments that each measure for
+2 s side by side cost 2 s, not 4. With ``time_scale`` > 0 every sleep also waits
+``dt × time_scale`` wall seconds (a demo at 1/100 speed).
 """
 
 from __future__ import annotations
 
 import threading
 import time
+from collections.abc import Iterator
+from contextlib import AbstractContextManager, contextmanager
 from typing import Protocol
 
 
@@ -21,9 +25,13 @@ class Clock(Protocol):
 
     def sleep(self, seconds: float) -> None: ...
 
+    def branch(self, start: float) -> AbstractContextManager[None]:
+        """Context for work running concurrently with other branches from ``start``."""
+        ...
+
 
 class WallClock:
-    """Real time."""
+    """Real time; branches need nothing special."""
 
     def now(self) -> float:
         return time.monotonic()
@@ -31,6 +39,10 @@ class WallClock:
     def sleep(self, seconds: float) -> None:
         if seconds > 0:
             time.sleep(seconds)
+
+    @contextmanager
+    def branch(self, start: float) -> Iterator[None]:
+        yield
 
 
 class SimulatedClock:
@@ -42,17 +54,31 @@ class SimulatedClock:
         self.time_scale = time_scale
         self._now = start
         self._lock = threading.Lock()
+        self._local = threading.local()
 
     def now(self) -> float:
+        local = getattr(self._local, "t", None)
+        if local is not None:
+            return float(local)
         with self._lock:
             return self._now
 
     def sleep(self, seconds: float) -> None:
         if seconds <= 0:
             return
-        with self._lock:
-            deadline = self._now + seconds
         if self.time_scale > 0:
             time.sleep(seconds * self.time_scale)
+        local = getattr(self._local, "t", None)
         with self._lock:
+            deadline = (self._now if local is None else local) + seconds
             self._now = max(self._now, deadline)
+        if local is not None:
+            self._local.t = deadline
+
+    @contextmanager
+    def branch(self, start: float) -> Iterator[None]:
+        self._local.t = start
+        try:
+            yield
+        finally:
+            self._local.t = None

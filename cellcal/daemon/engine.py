@@ -20,7 +20,7 @@ import numpy as np
 from cellcal.clock import Clock
 from cellcal.daemon.plan import Plan, PlannedPose
 from cellcal.daemon.store import Store
-from cellcal.drivers.base import PositionSensor, Robot
+from cellcal.drivers.base import PositionSensor, Robot, Series
 from cellcal.errors import DeviceError
 
 #: A reached joint position further than this from the plan (rad) is refused.
@@ -107,8 +107,13 @@ def acquire(
             if stop.is_set():
                 interrupted = True
                 break
-            futures = [pool.submit(s.sensor.measure, samples_per_pose, s.rate_hz) for s in sensors]
-            series = [f.result() for f in futures]
+            start = clock.now()
+
+            def sample(s: SensorSetting, start: float = start) -> Series:
+                with clock.branch(start):
+                    return s.sensor.measure(samples_per_pose, s.rate_hz)
+
+            series = [f.result() for f in [pool.submit(sample, s) for s in sensors]]
             store.add_pose(
                 campaign_id,
                 idx=pose.idx,

@@ -1,0 +1,161 @@
+"""The engine on a simulated clock: time as planned, no wall time, stop and resume."""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from cellcal.clock import SimulatedClock
+from cellcal.config import config_from_dict
+from cellcal.daemon.devices import build_devices
+from cellcal.daemon.engine import acquire
+from cellcal.daemon.plan import make_plan
+from cellcal.daemon.store import Store
+from cellcal.errors import DeviceError
+from cellcal.modelfiles import load_model
+
+CONFIG = config_from_dict(
+    {
+        "sensor": [
+            {
+                "name": "tracker",
+                "kind": "laser-tracker",
+                "reference": True,
+                "target_offset_mm": [25, -40, 130],
+            },
+            {"name": "rig", "kind": "photogrammetry", "target_offset_mm": [-30, 45, 120]},
+        ],
+        "campaign": {"grid": [2, 2, 2], "validation_inside": 2, "validation_per_region": 0},
+    }
+)
+MODEL = load_model("kuka-kr5-arc").model
+
+
+def _setup(tmp_path, clock):
+    plan = make_plan(
+        CONFIG.campaign, MODEL, np.radians(CONFIG.robot.home_deg), np.array([25.0, -40.0, 130.0])
+    )
+    devices = build_devices(CONFIG, MODEL, clock, mock=True, seed=3)
+    store = Store(tmp_path / "c.db")
+    cid = store.create_campaign(
+        config_json=CONFIG.model_dump_json(),
+        config_path=None,
+        mock=True,
+        seed=3,
+        time_scale=0.0,
+        model="kuka-kr5-arc",
+        sensors=["tracker", "rig"],
+        n_poses=len(plan.poses),
+        samples_per_pose=20,
+        dwell_s=7.0,
+        plan_digest=plan.digest,
+    )
+    return plan, devices, store, cid
+
+
+def _acquire(store, cid, plan, devices, clock, **kw):
+    return acquire(
+        store,
+        cid,
+        plan,
+        devices.robot,
+        devices.sensors,
+        clock,
+        dwell_s=7.0,
+        samples_per_pose=20,
+        speed=0.25,
+        **kw,
+    )
+
+
+def test_simulated_clock_sleeps_overlap_and_cost_no_wall_time():
+    clock = SimulatedClock()
+    wall = time.monotonic()
+    clock.sleep(7.0)
+    assert clock.now() == 7.0
+
+    def measure():
+        with clock.branch(7.0):
+            clock.sleep(2.0)
+
+    threads = [threading.Thread(target=measure) for _ in range(2)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(timeout=10)
+    assert clock.now() == pytest.approx(9.0)  # side by side: 2 s, not 4
+    assert time.monotonic() - wall < 1.0  # and no real seven seconds
+
+
+def test_a_pose_takes_dwell_plus_sampling_on_the_clock(tmp_path):
+    clock = SimulatedClock()
+    plan, devices, store, cid = _setup(tmp_path, clock)
+    out = _acquire(store, cid, plan, devices, clock)
+    assert out.stored == out.stored_now == len(plan.poses) == 10
+    rows = store.conn.execute("SELECT t_start, t_end FROM poses ORDER BY idx").fetchall()
+    for t_start, t_end in rows:
+        # move (≥ 0.5 s settle) + 7 s dwell + 20 samples at 10 Hz from both sensors at once (2 s)
+        assert t_end - t_start >= 7.0 + 2.0 + 0.5
+        assert t_end - t_start < 7.0 + 2.0 + 0.5 + 30.0
+    # Both sensors sample the same 2 s: their host timestamps coincide.
+    both = store.conn.execute(
+        "SELECT sensor, MIN(host_time), MAX(host_time) FROM samples WHERE pose_id = 3 "
+        "GROUP BY sensor"
+    ).fetchall()
+    assert both[0][1:] == pytest.approx(both[1][1:])
+    assert out.clock_seconds >= 10 * 9.5
+    n = store.conn.execute("SELECT sensor, COUNT(*) FROM samples GROUP BY sensor").fetchall()
+    assert dict(n) == {"rig": 200, "tracker": 200}
+    # Sensor timestamps: 10 Hz on the host clock, the device's own epoch on its clock.
+    t = np.array(
+        store.conn.execute(
+            "SELECT host_time, device_time FROM samples WHERE sensor='tracker' AND pose_id=1"
+        ).fetchall()
+    )
+    np.testing.assert_allclose(np.diff(t[:, 0]), 0.1)
+    assert (t[:, 1] - t[:, 0] > 100).all()
+
+
+def test_stop_leaves_a_resumable_campaign(tmp_path):
+    clock = SimulatedClock()
+    plan, devices, store, cid = _setup(tmp_path, clock)
+    stop = threading.Event()
+
+    class StopAfter:
+        def start(self, total, done):
+            pass
+
+        def advance(self, pose, done, total):
+            if done == 4:
+                stop.set()
+
+        def finish(self):
+            pass
+
+    out = _acquire(store, cid, plan, devices, clock, stop=stop, progress=StopAfter())
+    assert out.interrupted and out.stored == 4
+    assert store.completed_indices(cid) == {0, 1, 2, 3}
+    again = _acquire(store, cid, plan, devices, clock)
+    assert not again.interrupted and again.stored_now == 6 and again.stored == 10
+    assert store.completed_indices(cid) == set(range(10))
+
+
+def test_a_device_fault_propagates_and_keeps_what_was_stored(tmp_path):
+    clock = SimulatedClock()
+    plan, devices, store, cid = _setup(tmp_path, clock)
+    calls = {"n": 0}
+    original = devices.robot.move_joints
+
+    def flaky(q, speed):
+        calls["n"] += 1
+        if calls["n"] == 3:
+            raise DeviceError("robot: protective stop")
+        original(q, speed)
+
+    devices.robot.move_joints = flaky
+    with pytest.raises(DeviceError, match="protective stop"):
+        _acquire(store, cid, plan, devices, clock)
+    assert store.completed_indices(cid) == {0, 1}

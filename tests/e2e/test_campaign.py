@@ -1,0 +1,230 @@
+"""Whole campaigns in mock mode: through the API, the CLI, and a real process killed
+with SIGKILL at several points and resumed."""
+
+from __future__ import annotations
+
+import json
+import math
+import signal
+import sqlite3
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from cellcal.commands.run import _bundled_mock_cell
+from cellcal.daemon.campaign import resume_campaign, start_campaign
+from cellcal.errors import CampaignError
+from cellcal.mocks.simulated_cell import SimulatedCell
+from cellcal.modelfiles import load_model
+
+
+def test_mock_campaign_recovers_the_injected_errors(tmp_path):
+    config, _ = _bundled_mock_cell()
+    out = start_campaign(config, str(tmp_path / "c.db"), config_path=None, mock=True)
+    s = out.summary
+    assert s is not None and s.n_calibration == 80
+    # Validation poses, measured by the tracker: far better than the nominal model.
+    assert s.validation_after.rms < 0.03
+    assert s.improvement_pct > 90
+    assert s.inside.after.rms < s.inside.before.rms / 10
+    assert s.outside.after.rms < s.outside.before.rms / 10
+    # The identified corrections are the injected ones (d3 carries d2 too: axes 2 ∥ 3).
+    nominal = load_model("kuka-kr5-arc").model
+    truth = SimulatedCell(config, nominal).model
+    checked = 0
+    for p in s.calibration.parameters:
+        if not p.identified or p.kind == "tool":
+            continue
+        j = p.joint - 1
+        true = getattr(truth.joints[j], p.kind) - getattr(nominal.joints[j], p.kind)
+        if p.name == "d3":
+            true += truth.joints[1].d - nominal.joints[1].d
+        true = math.degrees(true) if p.unit == "deg" else true
+        assert abs(p.value - true) < 5 * p.std + 1e-4, p.name
+        checked += 1
+    assert checked == 18
+    # Each sensor registered to the base; the rig's residual is its noise once calibrated.
+    reg = {r.sensor: r for r in s.registrations}
+    assert reg["tracker"].rms_calibrated_mm < 0.01 < reg["tracker"].rms_nominal_mm
+    assert 0.005 < reg["rig"].rms_calibrated_mm < 0.03
+
+
+def test_same_seed_same_campaign_and_resume_refuses_a_complete_one(tmp_path):
+    config, _ = _bundled_mock_cell()
+    a = start_campaign(config, str(tmp_path / "a.db"), config_path=None, mock=True, seed=7)
+    b = start_campaign(config, str(tmp_path / "b.db"), config_path=None, mock=True, seed=7)
+    assert a.summary.validation_after.rms == b.summary.validation_after.rms
+    assert a.plan.digest == b.plan.digest
+    c = start_campaign(config, str(tmp_path / "a.db"), config_path=None, mock=True, seed=8)
+    assert c.campaign_id == 2  # a rerun is a new campaign in the same file
+    assert c.summary.validation_after.rms != a.summary.validation_after.rms
+    with pytest.raises(CampaignError, match="already complete"):
+        resume_campaign(str(tmp_path / "a.db"), 1)
+
+
+def _cli(*args, timeout=120):
+    return subprocess.run(
+        [sys.executable, "-m", "cellcal", *map(str, args)],
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        check=False,
+    )
+
+
+def test_run_json_contract(tmp_path):
+    res = _cli("run", "--mock", "--db", tmp_path / "c.db", "--json")
+    assert res.returncode == 0, res.stderr
+    doc = json.loads(res.stdout)
+    for key in (
+        "campaign_id",
+        "n_poses",
+        "samples_per_pose",
+        "sensors",
+        "rms_before_mm",
+        "rms_after_mm",
+        "improvement_pct",
+    ):
+        assert key in doc
+    assert doc["samples_per_pose"] == 20 and doc["sensors"] == ["tracker", "rig"]
+    assert doc["rms_after_mm"] < doc["rms_before_mm"] / 10
+    assert doc["clock_seconds"] > doc["n_poses"] * 9  # 7 s dwell + 2 s sampling, on the clock
+    human = _cli("run", "--mock", "--db", tmp_path / "c.db")
+    assert human.returncode == 0
+    assert "campaign 2 complete" in human.stdout and "inside the cube" in human.stdout
+
+
+def test_run_user_errors(tmp_path):
+    bad = tmp_path / "bad.toml"
+    bad.write_text(
+        "[campaign]\ndwel_s = 7\n[[sensor]]\nname='t'\nkind='laser-tracker'\nreference=true\n"
+    )
+    for args, match in [
+        (["run"], "--config FILE, or --mock"),
+        (["run", "--config", bad, "--mock"], "campaign.dwel_s: unknown key"),
+        (["run", "--resume", "4", "--db", tmp_path / "none.db"], "no campaign 4"),
+        (["run", "--mock", "--time-scale", "-1"], "--time-scale"),
+        (["run", "--config", tmp_path / "missing.toml"], "no such file"),
+    ]:
+        res = _cli(*args)
+        assert res.returncode == 2, res.stderr
+        assert res.stdout == ""
+        assert len(res.stderr.strip().splitlines()) == 1 and match in res.stderr, res.stderr
+
+
+def _count(db: Path, sql: str) -> int:
+    try:
+        conn = sqlite3.connect(f"file:{db}?mode=ro", uri=True, timeout=5)
+        try:
+            row = conn.execute(sql).fetchone()
+            return int(row[0]) if row and row[0] is not None else 0
+        finally:
+            conn.close()
+    except sqlite3.OperationalError:
+        return 0
+
+
+def _wait_for_poses(db: Path, proc: subprocess.Popen, n: int, timeout: float = 60.0) -> bool:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if _count(db, "SELECT COUNT(*) FROM poses") >= n:
+            return True
+        if proc.poll() is not None:
+            return False
+        time.sleep(0.005)
+    raise AssertionError(f"no {n} poses within {timeout} s")
+
+
+def _check_complete(db: Path, n_poses: int) -> None:
+    assert _count(db, "SELECT COUNT(*) FROM poses") == n_poses
+    assert _count(db, "SELECT COUNT(DISTINCT idx) FROM poses") == n_poses
+    assert _count(db, "SELECT MAX(idx) FROM poses") == n_poses - 1
+    assert _count(db, "SELECT COUNT(*) FROM samples") == n_poses * 2 * 20
+    assert _count(db, "SELECT COUNT(*) FROM pose_stats") == n_poses * 2
+    orphans = "SELECT COUNT(*) FROM samples WHERE pose_id NOT IN (SELECT id FROM poses)"
+    assert _count(db, orphans) == 0
+    assert _count(db, "SELECT COUNT(*) FROM campaigns WHERE status = 'complete'") == 1
+    assert _count(db, "SELECT COUNT(*) FROM reports") == 1
+
+
+@pytest.mark.parametrize("kill_after", [1, 37, 90, "all"])
+def test_sigkill_at_any_moment_then_resume_loses_nothing(tmp_path, kill_after):
+    db = tmp_path / "c.db"
+    cmd = [
+        sys.executable,
+        "-m",
+        "cellcal",
+        "run",
+        "--mock",
+        "--db",
+        str(db),
+        "--time-scale",
+        "0.002",
+        "--json",
+    ]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    try:
+        target = 10**6 if kill_after == "all" else kill_after
+        if kill_after == "all":
+            # Kill as soon as every pose is in: during the analysis, or just after it.
+            n = None
+            while proc.poll() is None:
+                n = n or _count(db, "SELECT n_poses FROM campaigns")
+                if n and _count(db, "SELECT COUNT(*) FROM poses") >= n:
+                    break
+                time.sleep(0.002)
+        else:
+            _wait_for_poses(db, proc, target)
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(timeout=30)
+        proc.stdout.close()
+        proc.stderr.close()
+    n_poses = _count(db, "SELECT n_poses FROM campaigns")
+    stored = _count(db, "SELECT COUNT(*) FROM poses")
+    assert _count(db, "SELECT COUNT(DISTINCT idx) FROM poses") == stored
+    if _count(db, "SELECT COUNT(*) FROM campaigns WHERE status = 'complete'") == 1:
+        _check_complete(db, n_poses)  # it finished before the kill landed
+        return
+    res = _cli("run", "--resume", "1", "--db", db, "--json")
+    assert res.returncode == 0, res.stderr
+    assert json.loads(res.stdout)["campaign_id"] == 1
+    _check_complete(db, n_poses)
+
+
+def test_sigterm_ends_cleanly_and_resumes(tmp_path):
+    db = tmp_path / "c.db"
+    cmd = [
+        sys.executable,
+        "-m",
+        "cellcal",
+        "run",
+        "--mock",
+        "--db",
+        str(db),
+        "--time-scale",
+        "0.002",
+    ]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        assert _wait_for_poses(db, proc, 5)
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate(timeout=30)
+    assert proc.returncode == 130
+    assert "resume with: cellcal run --resume 1" in err
+    assert _count(db, "SELECT COUNT(*) FROM campaigns WHERE status = 'interrupted'") == 1
+    res = _cli("run", "--resume", "1", "--db", db)
+    assert res.returncode == 0, res.stderr
+    _check_complete(db, _count(db, "SELECT n_poses FROM campaigns"))
+    np.testing.assert_equal(_count(db, "SELECT COUNT(*) FROM events WHERE kind = 'resumed'"), 1)
