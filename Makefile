@@ -4,7 +4,7 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: demo test lint types unit bench clean
+.PHONY: demo demo-registration test lint types unit bench clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -15,17 +15,16 @@ $(STAMP): pyproject.toml
 T4 := --src cellcal/data/paper_table4_station1.csv --dst cellcal/data/paper_table4_station2.csv
 
 demo: $(STAMP)
-	@echo "== cellcal demo: the paper's Table 4 (one laser tracker at two stations, 5 common points)"
-	@echo "== least squares (the default):"
+	@echo "== cellcal demo: a whole campaign on the bundled simulated cell (config/mock-cell.toml):"
+	@echo "   KR 5 arc with seeded kinematic errors, laser tracker + photogrammetry rig, the paper's"
+	@echo "   80-pose cube with 7 s dwell and 20 samples per pose, on a simulated clock."
+	$(BIN)/cellcal run --mock --db demo.db
+
+demo-registration: $(STAMP)
+	@echo "== the paper's Table 4 (one laser tracker at two stations, 5 common points)"
 	@$(BIN)/cellcal register $(T4)
-	@echo
-	@echo "== the paper's characteristic-line method, A = P1P2, B = P2P3:"
 	@$(BIN)/cellcal register $(T4) --method line --line-a P1,P2 --line-b P2,P3
-	@echo
-	@echo "== three-point method:"
 	@$(BIN)/cellcal register $(T4) --method three-point
-	@echo
-	@echo "Least squares has the lowest RMS possible on these points; see docs/paper-errata.md."
 
 lint: $(STAMP)
 	$(BIN)/ruff check cellcal tests benchmarks
@@ -43,6 +42,7 @@ bench: $(STAMP)
 	$(BIN)/python -m pip install --quiet -e '.[bench]'
 	$(BIN)/python benchmarks/registration.py
 	$(BIN)/python benchmarks/calibration.py
+	$(BIN)/python benchmarks/campaign.py
 
 clean:
 	rm -rf $(VENV) .pytest_cache .mypy_cache .ruff_cache .hypothesis

@@ -351,21 +351,11 @@ class Store:
                 )
                 pose_id = int(cur.lastrowid or 0)
                 for s in series:
+                    table = np.column_stack([s.host_time, s.device_time, s.xyz]).tolist()
                     self.conn.executemany(
                         """INSERT INTO samples (pose_id, sensor, host_time, device_time, x, y, z)
                         VALUES (?, ?, ?, ?, ?, ?, ?)""",
-                        [
-                            (
-                                pose_id,
-                                s.sensor,
-                                float(h),
-                                float(d),
-                                float(p[0]),
-                                float(p[1]),
-                                float(p[2]),
-                            )
-                            for h, d, p in zip(s.host_time, s.device_time, s.xyz, strict=True)
-                        ],
+                        [(pose_id, s.sensor, *row) for row in table],
                     )
                     m, sd = s.mean, s.std
                     self.conn.execute(
