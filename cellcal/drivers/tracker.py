@@ -1,0 +1,345 @@
+"""A laser tracker that speaks cellcal's tracker line protocol, over any pyserial URL.
+
+Layers, each replaceable without touching the others: transport (bytes; serial, pty,
+TCP) → line framing → protocol (requests, replies, events, error codes as exceptions;
+``tracker_protocol``) → this vendor-neutral API: identify, initialise, environment,
+reflector, status, and ``measure(n, rate)`` returning samples with device and host
+timestamps. A second dialect (Leica emScon, binary on TCP 700) would be another class
+with the same API over the same transport.
+
+Faults, and what the driver does about them:
+
+* every request has a timeout; no answer → reconnect and retry once, then an error;
+* garbled or unexpected lines are counted (``garbage``) and logged, never taken for
+  data; ``EVT`` lines are recorded (``events``) wherever they appear;
+* ``BEAM_BROKEN`` in a series: the points before the break are kept, the driver waits
+  for the beam (``EVT BEAM OK`` or ``STAT?``), measures the rest, and gives up after
+  ``beam_retries`` breaks with a :class:`BeamBrokenError` that says how many it kept;
+* a dropped connection or an unplugged device: reconnect with exponential backoff
+  (``reconnects`` attempts), repeat the handshake, carry on; points already received
+  are kept.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from cellcal.clock import Clock, WallClock
+from cellcal.drivers.base import Series
+from cellcal.drivers.line_framing import LineReader
+from cellcal.drivers.tracker_protocol import (
+    BeamBrokenError,
+    End,
+    Err,
+    Evt,
+    Garbage,
+    Ok,
+    Point,
+    TrackerBadParameterError,
+    TrackerError,
+    TrackerTimeoutError,
+    error_for,
+    parse_line,
+)
+from cellcal.drivers.transport import SerialUrlTransport, Transport, TransportError
+
+log = logging.getLogger("cellcal.tracker")
+
+REFLECTORS = ("RRR15", "RRR05", "RRR0875", "TBR05")
+
+
+@dataclass(frozen=True)
+class TrackerIdentity:
+    maker: str
+    model: str
+    serial: str
+    firmware: str
+
+
+@dataclass(frozen=True)
+class TrackerStatus:
+    ready: bool
+    beam: bool
+    meteo: bool
+    init: bool
+
+
+@dataclass(frozen=True)
+class Environment:
+    """Air temperature (°C), pressure (hPa), relative humidity (%)."""
+
+    temperature_c: float
+    pressure_hpa: float
+    humidity_pct: float
+
+
+@dataclass
+class _Received:
+    host: list[float] = field(default_factory=list)
+    device: list[float] = field(default_factory=list)
+    xyz: list[tuple[float, float, float]] = field(default_factory=list)
+
+
+def _fields(payload: str) -> dict[str, str]:
+    return dict(kv.split("=", 1) for kv in payload.split() if "=" in kv)
+
+
+class LineTracker:
+    """A tracker on ``url``; implements the engine's PositionSensor Protocol."""
+
+    def __init__(
+        self,
+        name: str,
+        url: str,
+        *,
+        clock: Clock | None = None,
+        transport: Transport | None = None,
+        timeout: float = 5.0,
+        beam_retries: int = 3,
+        beam_wait_s: float = 30.0,
+        reconnects: int = 5,
+        backoff_s: float = 0.1,
+        reflector: str | None = None,
+        environment: Environment | None = None,
+    ) -> None:
+        self.name = name
+        self.url = url
+        self.clock = clock or WallClock()
+        self.transport = transport or SerialUrlTransport(url)
+        self.lines = LineReader(self.transport)
+        self.timeout = timeout
+        self.beam_retries = beam_retries
+        self.beam_wait_s = beam_wait_s
+        self.reconnects = reconnects
+        self.backoff_s = backoff_s
+        self.reflector_type = reflector
+        self.env = environment
+        self.identity: TrackerIdentity | None = None
+        self.events: list[tuple[float, Evt]] = []
+        self.garbage = 0
+        self.retries = 0
+        self.reconnections = 0
+
+    # ------------------------------------------------------------------ connection
+
+    def connect(self) -> None:
+        """Open the link, identify and initialise the tracker (and set reflector and
+        environment if configured)."""
+        self._open_with_backoff()
+        self._handshake()
+
+    def close(self) -> None:
+        self.transport.close()
+
+    def _open_with_backoff(self) -> None:
+        delay = self.backoff_s
+        for attempt in range(1, self.reconnects + 2):
+            try:
+                self.transport.open()
+                self.lines.reset()
+                return
+            except TransportError as exc:
+                if attempt > self.reconnects:
+                    raise TransportError(
+                        f"tracker {self.name} at {self.url}: unreachable after {attempt} "
+                        f"attempts ({exc})"
+                    ) from None
+                log.warning("tracker %s: %s; retrying in %.2f s", self.name, exc, delay)
+                time.sleep(delay)
+                delay = min(delay * 2, 5.0)
+
+    def _handshake(self) -> None:
+        self.identity = self.identify()
+        self._request("INIT", timeout=max(self.timeout, 60.0))
+        if self.reflector_type is not None:
+            self.set_reflector(self.reflector_type)
+        if self.env is not None:
+            self.set_environment(self.env)
+
+    def _reconnect(self, why: Exception) -> None:
+        self.reconnections += 1
+        log.warning("tracker %s: %s; reconnecting", self.name, why)
+        self.transport.close()
+        time.sleep(self.backoff_s)
+        self._open_with_backoff()
+        self._handshake()
+
+    # ------------------------------------------------------------------ requests
+
+    def _note(self, msg: Evt | Garbage | Point | End | Ok | Err, context: str) -> None:
+        if isinstance(msg, Evt):
+            self.events.append((self.clock.now(), msg))
+            log.info("tracker %s: event %s %s", self.name, msg.name, msg.payload)
+        else:
+            self.garbage += 1
+            log.warning("tracker %s: ignored %r while %s", self.name, msg, context)
+
+    def _reply(self, request: str, timeout: float) -> Ok:
+        deadline = time.monotonic() + timeout
+        while True:
+            line = self.lines.read_line(max(0.0, deadline - time.monotonic()))
+            if line is None:
+                raise TrackerTimeoutError(
+                    f"tracker {self.name} at {self.url}: no answer to {request!r} "
+                    f"within {timeout:g} s"
+                )
+            if line.overlong:
+                self._note(Garbage(line.raw, "line too long"), f"waiting for {request!r}")
+                continue
+            msg = parse_line(line.raw)
+            if isinstance(msg, Ok):
+                return msg
+            if isinstance(msg, Err):
+                raise error_for(msg, request, f"tracker {self.name}")
+            self._note(msg, f"waiting for {request!r}")
+
+    def _request(self, request: str, timeout: float | None = None) -> Ok:
+        """Send one request and return its OK; reconnect and retry once on a broken link
+        or a timeout."""
+        t = self.timeout if timeout is None else timeout
+        for attempt in (1, 2):
+            try:
+                self.lines.write_line(request)
+                return self._reply(request, t)
+            except (TransportError, TrackerTimeoutError) as exc:
+                if attempt == 2:
+                    raise
+                self._reconnect(exc)
+        raise AssertionError("unreachable")
+
+    def identify(self) -> TrackerIdentity:
+        parts = self._request("*IDN?").payload.split(",")
+        if len(parts) != 4:
+            raise TrackerError(f"tracker {self.name}: malformed *IDN? answer {','.join(parts)!r}")
+        return TrackerIdentity(*(p.strip() for p in parts))
+
+    def initialise(self) -> None:
+        self._request("INIT", timeout=max(self.timeout, 60.0))
+
+    def status(self) -> TrackerStatus:
+        f = _fields(self._request("STAT?").payload)
+        try:
+            return TrackerStatus(*(f[k] == "1" for k in ("ready", "beam", "meteo", "init")))
+        except KeyError as exc:
+            raise TrackerError(f"tracker {self.name}: STAT? answer lacks {exc}") from None
+
+    def environment(self) -> Environment:
+        f = _fields(self._request("ENV?").payload)
+        try:
+            return Environment(float(f["T"]), float(f["P"]), float(f["RH"]))
+        except (KeyError, ValueError) as exc:
+            raise TrackerError(f"tracker {self.name}: malformed ENV? answer ({exc})") from None
+
+    def set_environment(self, env: Environment) -> None:
+        self._request(
+            f"ENV T={env.temperature_c:.2f} P={env.pressure_hpa:.2f} RH={env.humidity_pct:.1f}"
+        )
+        self.env = env
+
+    def reflector(self) -> str:
+        return self._request("SMR?").payload.strip()
+
+    def set_reflector(self, kind: str) -> None:
+        if kind not in REFLECTORS:
+            raise TrackerBadParameterError(f"reflector {kind!r}: one of {', '.join(REFLECTORS)}")
+        self._request(f"SMR {kind}")
+        self.reflector_type = kind
+
+    # ------------------------------------------------------------------ measuring
+
+    def _series(self, k: int, rate_hz: float, got: _Received) -> bool:
+        """One ``MEAS k``: append the points received to ``got``; True when the series
+        completed, False when the tracker ended it early (STOP); raises BeamBrokenError after
+        keeping the points before the break."""
+        request = f"MEAS {k} {rate_hz:g}"
+        self.lines.write_line(request)
+        ok = self._reply(request, self.timeout)
+        if ok.payload.strip() != str(k):
+            raise TrackerError(f"tracker {self.name}: {request!r} answered 'OK {ok.payload}'")
+        expected = 0
+        line_timeout = self.timeout + 2.0 / rate_hz
+        while True:
+            line = self.lines.read_line(line_timeout)
+            if line is None:
+                raise TrackerTimeoutError(
+                    f"tracker {self.name}: series stalled after {expected} of {k} points"
+                )
+            msg = parse_line(line.raw) if not line.overlong else Garbage(line.raw, "too long")
+            if isinstance(msg, Point) and msg.i == expected:
+                got.host.append(self.clock.now())
+                got.device.append(msg.t)
+                got.xyz.append((msg.x, msg.y, msg.z))
+                expected += 1
+            elif isinstance(msg, End):
+                if msg.count != expected:
+                    raise TrackerError(
+                        f"tracker {self.name}: END {msg.count} after {expected} points"
+                    )
+                return expected == k
+            elif isinstance(msg, Err):
+                raise error_for(msg, request, f"tracker {self.name}")
+            else:
+                self._note(msg, f"measuring ({expected} of {k})")
+
+    def _drain(self, timeout: float) -> None:
+        """Read what the tracker sends unasked (events) for up to ``timeout`` seconds."""
+        deadline = time.monotonic() + timeout
+        while (left := deadline - time.monotonic()) > 0:
+            line = self.lines.read_line(left)
+            if line is None:
+                return
+            self._note(parse_line(line.raw), "waiting")
+
+    def _wait_for_beam(self, since: int) -> None:
+        deadline = time.monotonic() + self.beam_wait_s
+        while time.monotonic() < deadline:
+            if any(e.name == "BEAM" and e.payload.strip() == "OK" for _, e in self.events[since:]):
+                return
+            if self.status().beam:
+                return
+            self._drain(0.05)
+        raise BeamBrokenError(f"tracker {self.name}: no beam for {self.beam_wait_s:g} s", 40)
+
+    def measure(self, n: int, rate_hz: float) -> Series:
+        """``n`` points at ``rate_hz``, surviving beam breaks and dropped links."""
+        if not 1 <= n <= 10000 or not 0 < rate_hz <= 1000:
+            raise TrackerBadParameterError(
+                f"measure: n in 1..10000 and rate in (0, 1000] Hz, got {n}, {rate_hz}"
+            )
+        got = _Received()
+        breaks = 0
+        links = 0
+        while len(got.xyz) < n:
+            mark = len(self.events)
+            try:
+                self._series(n - len(got.xyz), rate_hz, got)
+            except BeamBrokenError as exc:
+                breaks += 1
+                self.retries += 1
+                if breaks > self.beam_retries:
+                    raise BeamBrokenError(
+                        f"tracker {self.name}: beam broken {breaks} times; {len(got.xyz)} of "
+                        f"{n} points kept ({exc})",
+                        40,
+                    ) from None
+                log.warning(
+                    "tracker %s: beam broken after %d points; waiting", self.name, len(got.xyz)
+                )
+                self._wait_for_beam(mark)
+            except (TransportError, TrackerTimeoutError) as exc:
+                links += 1
+                self.retries += 1
+                if links > self.reconnects:
+                    raise
+                self._reconnect(exc)
+        return Series(
+            self.name,
+            np.array(got.host),
+            np.array(got.device),
+            np.array(got.xyz, dtype=np.float64).reshape(-1, 3),
+            retries=breaks + links,
+        )

@@ -1,0 +1,160 @@
+"""The tracker line protocol, version 1 (``shared/specs/tracker-line-protocol.md``):
+parsing of every line a tracker may send, and the error codes as exceptions.
+
+:func:`parse_line` never raises: whatever bytes arrive become one of the message types,
+and anything that is not a valid line of the protocol becomes :class:`Garbage` — counted
+and logged by the client, never taken for data.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from dataclasses import dataclass
+
+from cellcal.errors import DeviceError
+
+
+@dataclass(frozen=True)
+class Ok:
+    payload: str
+
+
+@dataclass(frozen=True)
+class Err:
+    code: int
+    text: str
+    detail: str
+
+
+@dataclass(frozen=True)
+class Evt:
+    name: str
+    payload: str
+
+
+@dataclass(frozen=True)
+class Point:
+    i: int
+    t: float
+    x: float
+    y: float
+    z: float
+
+
+@dataclass(frozen=True)
+class End:
+    count: int
+
+
+@dataclass(frozen=True)
+class Garbage:
+    raw: bytes
+    reason: str
+
+
+Message = Ok | Err | Evt | Point | End | Garbage
+
+_NUMBER = r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?"
+_ERR = re.compile(r"ERR (\d+) ([A-Z_]+)(?: (.*))?")
+_EVT = re.compile(r"EVT ([A-Z_]+)(?: (.*))?")
+_PT = re.compile(rf"PT (\d+) ({_NUMBER}) ({_NUMBER}) ({_NUMBER}) ({_NUMBER})")
+_END = re.compile(r"END (\d+)")
+
+
+def parse_line(raw: bytes) -> Message:
+    """One received line (terminator removed) as a protocol message."""
+    try:
+        text = raw.decode("ascii")
+    except UnicodeDecodeError:
+        return Garbage(raw, "not ASCII")
+    if any(ord(c) < 32 and c != "\t" for c in text):
+        return Garbage(raw, "control characters")
+    if text == "OK":
+        return Ok("")
+    if text.startswith("OK "):
+        return Ok(text[3:])
+    m = _ERR.fullmatch(text)
+    if m:
+        return Err(int(m.group(1)), m.group(2), m.group(3) or "")
+    m = _EVT.fullmatch(text)
+    if m:
+        return Evt(m.group(1), m.group(2) or "")
+    m = _PT.fullmatch(text)
+    if m:
+        values = [float(v) for v in m.groups()[1:]]
+        if not all(math.isfinite(v) for v in values):
+            return Garbage(raw, "non-finite point")
+        return Point(int(m.group(1)), *values)
+    m = _END.fullmatch(text)
+    if m:
+        return End(int(m.group(1)))
+    return Garbage(raw, "not a line of the protocol")
+
+
+class TrackerError(DeviceError):
+    """A tracker answered ``ERR <code> <TEXT>``."""
+
+    code = 0
+
+    def __init__(self, message: str, code: int | None = None) -> None:
+        super().__init__(message)
+        if code is not None:
+            self.code = code
+
+
+class TrackerBusyError(TrackerError):
+    code = 1
+
+
+class TrackerNotImplementedError(TrackerError):
+    code = 2
+
+
+class TrackerBadParameterError(TrackerError):
+    code = 3
+
+
+class TrackerUnknownCommandError(TrackerError):
+    code = 4
+
+
+class TrackerLostError(TrackerError):
+    code = 38
+
+
+class TrackerNotInitializedError(TrackerError):
+    code = 39
+
+
+class BeamBrokenError(TrackerError):
+    code = 40
+
+
+class MeteoOutOfRangeError(TrackerError):
+    code = 57
+
+
+class TrackerTimeoutError(DeviceError):
+    """No answer within the request's timeout."""
+
+
+ERRORS: dict[int, type[TrackerError]] = {
+    cls.code: cls
+    for cls in (
+        TrackerBusyError,
+        TrackerNotImplementedError,
+        TrackerBadParameterError,
+        TrackerUnknownCommandError,
+        TrackerLostError,
+        TrackerNotInitializedError,
+        BeamBrokenError,
+        MeteoOutOfRangeError,
+    )
+}
+
+
+def error_for(err: Err, request: str, where: str) -> TrackerError:
+    cls = ERRORS.get(err.code, TrackerError)
+    detail = f" {err.detail}" if err.detail else ""
+    return cls(f"{where}: {request!r} answered ERR {err.code} {err.text}{detail}", err.code)
