@@ -6,7 +6,7 @@ runs side by side (the sensors of one pose, each in its own thread) runs inside
 ``branch(start)``: each branch keeps its own time from the common start, and the clock
 moves to the latest time any branch reached — two instruments that each measure for
 2 s side by side cost 2 s, not 4. With ``time_scale`` > 0 every sleep also waits
-``dt × time_scale`` wall seconds (a demo at 1/100 speed).
+``dt × time_scale`` wall seconds (0.01: a hundred times faster than the real cell).
 """
 
 from __future__ import annotations

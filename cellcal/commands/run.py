@@ -81,7 +81,7 @@ def _print_summary(out: CampaignOutcome) -> None:
     plan = out.plan
     sensors = ", ".join(x.name for x in out.config.sensor)
     click.echo(
-        f"campaign {out.campaign_id} complete: {len(plan.poses)} poses ("
+        f"{out.config.name}: campaign {out.campaign_id} complete: {len(plan.poses)} poses ("
         f"{plan.count('calibration')} calibration, {plan.count('validation')} validation), "
         f"{out.config.campaign.samples_per_pose} samples per pose from {sensors}"
     )
@@ -108,7 +108,8 @@ def _print_summary(out: CampaignOutcome) -> None:
         click.echo(f"  warning: {w}")
     click.echo(f"position error at the validation poses ({s.reference}), mm:")
     click.echo("                               mean      RMS      max      p95")
-    rows = [("inside the cube", s.inside), ("outside (O1–O5)", s.outside)]
+    names = ", ".join(r.region for r in s.regions if r.region != "cube")
+    rows = [("inside the cube", s.inside), (f"outside ({names})", s.outside)]
     for label, region in rows:
         if region is None:
             continue

@@ -38,6 +38,8 @@ class SensorRegistration:
     rms_nominal_mm: float
     max_nominal_mm: float
     rms_calibrated_mm: float
+    T_sensor_base_calibrated: Array
+    target_offset_calibrated_mm: Array
 
 
 @dataclass(frozen=True)
@@ -99,6 +101,8 @@ class CampaignSummary:
                     "rms_calibrated_mm": r.rms_calibrated_mm,
                     "T_sensor_base": r.T_sensor_base.tolist(),
                     "target_offset_mm": r.target_offset_mm.tolist(),
+                    "T_sensor_base_calibrated": r.T_sensor_base_calibrated.tolist(),
+                    "target_offset_calibrated_mm": r.target_offset_calibrated_mm.tolist(),
                 }
                 for r in self.registrations
             ],
@@ -140,7 +144,10 @@ def analyse(store: Store, campaign_id: int, nominal: RobotModel, reference: str)
 
     ref_m = data.mean[reference]
     result = calibrate(nominal, q_cal, ref_m[cal], sigma(reference, cal))
+    if not val.any():
+        raise CampaignError(f"campaign {campaign_id}: no validation poses were measured")
     registrations = []
+    writes: list[tuple[str, tuple[Any, ...]]] = []
     for sensor in sorted(data.mean):
         m = data.mean[sensor][cal]
         s = sigma(sensor, cal)
@@ -158,6 +165,8 @@ def analyse(store: Store, campaign_id: int, nominal: RobotModel, reference: str)
                 rms_nominal_mm=_rms(e_nom),
                 max_nominal_mm=float(np.max(np.linalg.norm(e_nom, axis=1))),
                 rms_calibrated_mm=_rms(e_cal),
+                T_sensor_base_calibrated=after.T_instrument_base,
+                target_offset_calibrated_mm=after.tool,
             )
         )
         store.add_registration(
@@ -184,8 +193,6 @@ def analyse(store: Store, campaign_id: int, nominal: RobotModel, reference: str)
     baseline = fit_frames(nominal, q_cal, ref_m[cal], sigma(reference, cal))
     e_before = ref_m[val] - predict(baseline, data.q[val])
     e_after = ref_m[val] - result.predict(data.q[val])
-    if not val.any():
-        raise CampaignError(f"campaign {campaign_id}: no validation poses were measured")
     reg_val = region[val]
 
     def errors(mask: Array, name: str) -> RegionErrors | None:
@@ -211,16 +218,20 @@ def analyse(store: Store, campaign_id: int, nominal: RobotModel, reference: str)
         outside=outside,
         regions=regions,
     )
-    store.add_calibration(
-        campaign_id,
-        reference,
-        n_points=result.n_points,
-        rms_before_mm=result.rms_before,
-        rms_after_mm=result.rms_after,
-        condition_number=result.condition_number,
-        identified=result.identified,
-        unidentifiable=result.unidentifiable,
-        model_toml=calibrated_toml(result, None, f"campaign {campaign_id}"),
-    )
-    store.add_report(campaign_id, summary.to_dict())
+    # All results of one analysis in one transaction: a crash leaves none or all.
+    with store.transaction():
+        for sensor, args in writes:
+            store.add_registration(campaign_id, sensor, *args)
+        store.add_calibration(
+            campaign_id,
+            reference,
+            n_points=result.n_points,
+            rms_before_mm=result.rms_before,
+            rms_after_mm=result.rms_after,
+            condition_number=result.condition_number,
+            identified=result.identified,
+            unidentifiable=result.unidentifiable,
+            model_toml=calibrated_toml(result, None, f"campaign {campaign_id}"),
+        )
+        store.add_report(campaign_id, summary.to_dict())
     return summary

@@ -6,17 +6,22 @@ from __future__ import annotations
 import json
 import threading
 from dataclasses import dataclass
+from pathlib import Path
+from typing import IO
 
 import numpy as np
 
-from cellcal.clock import SimulatedClock, WallClock
+from cellcal.calib.error_model import State, jacobian, parameter_specs
+from cellcal.calib.identifiability import analyse as analyse_identifiability
+from cellcal.calib.robot_model import RobotModel
+from cellcal.clock import Clock, SimulatedClock, WallClock
 from cellcal.config import CellConfig, config_from_dict
 from cellcal.daemon.analysis import CampaignSummary, analyse
-from cellcal.daemon.devices import build_devices
+from cellcal.daemon.devices import Devices, build_devices
 from cellcal.daemon.engine import Acquisition, Progress, acquire
 from cellcal.daemon.plan import CALIBRATION, VALIDATION, Plan, make_plan
 from cellcal.daemon.store import Store
-from cellcal.errors import CampaignError
+from cellcal.errors import CampaignError, UserError
 from cellcal.modelfiles import load_model
 
 
@@ -42,18 +47,56 @@ def with_seed(config: CellConfig, seed: int | None) -> CellConfig:
     )
 
 
-def _plan(config: CellConfig) -> tuple[Plan, object]:
+def _plan(config: CellConfig) -> tuple[Plan, RobotModel]:
     nominal = load_model(config.robot.model).model
     home = np.radians(np.asarray(config.robot.home_deg, dtype=np.float64))
     if len(home) != nominal.dof:
         raise CampaignError(f"robot.home_deg has {len(home)} joints, the model {nominal.dof}")
     tool = np.asarray(config.reference_sensor.target_offset_mm, dtype=np.float64)
     plan = make_plan(config.campaign, nominal, home, tool)
-    if plan.count(CALIBRATION) == 0:
+    n_cal = plan.count(CALIBRATION)
+    if n_cal == 0:
         raise CampaignError("no calibration pose of the plan is reachable; check the cube")
     if plan.count(VALIDATION) == 0:
         raise CampaignError("no validation pose of the plan is reachable")
+    # Refuse before any motion a plan that cannot identify what it will need to.
+    q = np.array([p.q for p in plan.poses if p.role == CALIBRATION])
+    state = State(nominal, tool, np.eye(3), np.zeros(3), np.zeros(3))
+    specs = parameter_specs(nominal)
+    _, J = jacobian(state, q, specs)
+    needed = len(analyse_identifiability(J.reshape(-1, len(specs)), specs).identified)
+    if 3 * n_cal <= needed:
+        raise CampaignError(
+            f"{n_cal} calibration poses give {3 * n_cal} equations for {needed} identifiable "
+            f"parameters; plan at least {needed // 3 + 1} (campaign.grid)"
+        )
     return plan, nominal
+
+
+class _RunLock:
+    """One cellcal run per database file at a time: an advisory lock on ``<db>.lock``,
+    released by the OS if the process dies (SIGKILL included)."""
+
+    def __init__(self, db_path: str) -> None:
+        self.path = f"{db_path}.lock"
+        self.fh: IO[str] | None = None
+
+    def __enter__(self) -> _RunLock:
+        import fcntl
+
+        self.fh = open(self.path, "a+")
+        try:
+            fcntl.flock(self.fh.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            self.fh.close()
+            raise CampaignError(
+                f"{self.path}: another cellcal run is using this database"
+            ) from None
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        if self.fh is not None:
+            self.fh.close()
 
 
 def _run(
@@ -61,15 +104,16 @@ def _run(
     campaign_id: int,
     config: CellConfig,
     plan: Plan,
+    nominal: RobotModel,
+    devices: Devices,
+    clock: Clock,
     *,
-    mock: bool,
-    time_scale: float,
     stop: threading.Event | None,
     progress: Progress | None,
 ) -> CampaignOutcome:
-    nominal = load_model(config.robot.model).model
-    clock = SimulatedClock(time_scale) if mock else WallClock()
-    devices = build_devices(config, nominal, clock, mock=mock, seed=config.simulation.seed)
+    hint = (
+        f"campaign {campaign_id} is resumable: cellcal run --resume {campaign_id} --db {store.path}"
+    )
     try:
         acquisition = acquire(
             store,
@@ -84,6 +128,10 @@ def _run(
             stop=stop,
             progress=progress,
         )
+    except UserError as exc:
+        store.add_event(campaign_id, "error", f"{type(exc).__name__}: {exc}")
+        store.set_status(campaign_id, "interrupted")
+        raise CampaignError(f"{exc}; {hint}") from exc
     except BaseException as exc:
         store.add_event(campaign_id, "error", f"{type(exc).__name__}: {exc}")
         store.set_status(campaign_id, "interrupted")
@@ -96,7 +144,12 @@ def _run(
         store.add_event(campaign_id, "interrupted", f"stopped after {acquisition.stored} poses")
         store.set_status(campaign_id, "interrupted")
         return CampaignOutcome(campaign_id, store.path, config, plan, acquisition, None)
-    summary = analyse(store, campaign_id, nominal, config.reference_sensor.name)
+    try:
+        summary = analyse(store, campaign_id, nominal, config.reference_sensor.name)
+    except UserError as exc:
+        store.add_event(campaign_id, "analysis-failed", str(exc))
+        store.set_status(campaign_id, "interrupted")
+        raise CampaignError(f"analysis failed: {exc}; every pose is stored; {hint}") from exc
     store.set_status(campaign_id, "complete")
     return CampaignOutcome(campaign_id, store.path, config, plan, acquisition, summary)
 
@@ -112,43 +165,48 @@ def start_campaign(
     stop: threading.Event | None = None,
     progress: Progress | None = None,
 ) -> CampaignOutcome:
-    """Plan, create a new campaign in ``db_path``, acquire and analyse it."""
+    """Plan, connect the devices, create a new campaign in ``db_path``, acquire and
+    analyse it. Nothing is written before the plan and the devices are ready."""
     config = with_seed(config, seed)
-    plan, _ = _plan(config)
-    store = Store(db_path)
-    try:
-        campaign_id = store.create_campaign(
-            config_json=config.model_dump_json(),
-            config_path=config_path,
-            mock=mock,
-            seed=config.simulation.seed if mock else None,
-            time_scale=time_scale if mock else None,
-            model=config.robot.model,
-            sensors=[s.name for s in config.sensor],
-            n_poses=len(plan.poses),
-            samples_per_pose=config.campaign.samples_per_pose,
-            dwell_s=config.campaign.dwell_s,
-            plan_digest=plan.digest,
-        )
-        for u in plan.unreachable:
-            store.add_event(
-                campaign_id,
-                "unreachable",
-                f"{u.role} pose in {u.region} at "
-                f"{np.round(u.target_mm, 1).tolist()} mm: {u.reason}",
+    plan, nominal = _plan(config)
+    clock: Clock = SimulatedClock(time_scale) if mock else WallClock()
+    with _RunLock(db_path):
+        devices = build_devices(config, nominal, clock, mock=mock, seed=config.simulation.seed)
+        store = Store(db_path)
+        try:
+            campaign_id = store.create_campaign(
+                config_json=config.model_dump_json(),
+                config_path=config_path,
+                mock=mock,
+                seed=config.simulation.seed if mock else None,
+                time_scale=time_scale if mock else None,
+                model=config.robot.model,
+                sensors=[s.name for s in config.sensor],
+                n_poses=len(plan.poses),
+                samples_per_pose=config.campaign.samples_per_pose,
+                dwell_s=config.campaign.dwell_s,
+                plan_digest=plan.digest,
             )
-        return _run(
-            store,
-            campaign_id,
-            config,
-            plan,
-            mock=mock,
-            time_scale=time_scale,
-            stop=stop,
-            progress=progress,
-        )
-    finally:
-        store.close()
+            for u in plan.unreachable:
+                store.add_event(
+                    campaign_id,
+                    "unreachable",
+                    f"{u.role} pose in {u.region} at "
+                    f"{np.round(u.target_mm, 1).tolist()} mm: {u.reason}",
+                )
+            return _run(
+                store,
+                campaign_id,
+                config,
+                plan,
+                nominal,
+                devices,
+                clock,
+                stop=stop,
+                progress=progress,
+            )
+        finally:
+            store.close()
 
 
 def resume_campaign(
@@ -161,32 +219,49 @@ def resume_campaign(
 ) -> CampaignOutcome:
     """Continue an interrupted campaign from its last stored pose, with its stored
     configuration; the plan must come out the same."""
-    store = Store(db_path)
-    try:
-        row = store.campaign(campaign_id)
-        if row.status == "complete":
-            raise CampaignError(f"campaign {campaign_id} is already complete")
-        config = config_from_dict(json.loads(row.config_json), f"campaign {campaign_id}")
-        plan, _ = _plan(config)
-        if plan.digest != row.plan_digest:
-            raise CampaignError(
-                f"campaign {campaign_id}: the plan computed now differs from the stored one "
-                "(another cellcal version or robot model?); start a new campaign"
+    if not Path(db_path).is_file():
+        raise CampaignError(f"{db_path}: no such database")
+    with _RunLock(db_path):
+        store = Store(db_path)
+        try:
+            row = store.campaign(campaign_id)
+            if row.status == "complete":
+                raise CampaignError(f"campaign {campaign_id} is already complete")
+            config = config_from_dict(json.loads(row.config_json), f"campaign {campaign_id}")
+            plan, nominal = _plan(config)
+            if plan.digest != row.plan_digest:
+                raise CampaignError(
+                    f"campaign {campaign_id}: the plan computed now differs from the stored one "
+                    "(another cellcal version or robot model?); start a new campaign"
+                )
+            stored = len(store.completed_indices(campaign_id))
+            scale = time_scale if time_scale is not None else (row.time_scale or 0.0)
+            # The simulated clock goes on from the last stored pose; the noise is fresh.
+            clock: Clock = (
+                SimulatedClock(scale, start=store.last_pose_time(campaign_id))
+                if row.mock
+                else WallClock()
             )
-        store.add_event(
-            campaign_id, "resumed", f"{len(store.completed_indices(campaign_id))} poses stored"
-        )
-        store.set_status(campaign_id, "running")
-        scale = time_scale if time_scale is not None else (row.time_scale or 0.0)
-        return _run(
-            store,
-            campaign_id,
-            config,
-            plan,
-            mock=row.mock,
-            time_scale=scale,
-            stop=stop,
-            progress=progress,
-        )
-    finally:
-        store.close()
+            devices = build_devices(
+                config,
+                nominal,
+                clock,
+                mock=row.mock,
+                seed=config.simulation.seed,
+                noise_stream=stored,
+            )
+            store.add_event(campaign_id, "resumed", f"{stored} poses stored")
+            store.set_status(campaign_id, "running")
+            return _run(
+                store,
+                campaign_id,
+                config,
+                plan,
+                nominal,
+                devices,
+                clock,
+                stop=stop,
+                progress=progress,
+            )
+        finally:
+            store.close()

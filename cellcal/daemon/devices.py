@@ -25,19 +25,23 @@ class Devices:
 
 
 def build_devices(
-    config: CellConfig, nominal: RobotModel, clock: Clock, *, mock: bool, seed: int | None
+    config: CellConfig,
+    nominal: RobotModel,
+    clock: Clock,
+    *,
+    mock: bool,
+    seed: int | None,
+    noise_stream: int = 0,
 ) -> Devices:
     """Connect the configured devices (or their simulated twins in mock mode)."""
     if not mock:
-        kinds = {config.robot.driver, *(s.driver for s in config.sensor)}
         raise DeviceError(
-            f"driver(s) {', '.join(sorted(kinds))}: only the simulated cell is available in "
-            "this version; run with --mock"
+            'this version drives only the simulated cell (driver = "simulated"); run with --mock'
         )
     from cellcal.mocks.simulated_cell import SimulatedCell
     from cellcal.mocks.simulated_devices import SimulatedRobot, SimulatedSensor
 
-    cell = SimulatedCell(config, nominal, seed)
+    cell = SimulatedCell(config, nominal, seed, noise_stream)
     robot = SimulatedRobot(cell, clock)
     sensors = tuple(
         SensorSetting(SimulatedSensor(cell, clock, s.name), s.rate_hz) for s in config.sensor

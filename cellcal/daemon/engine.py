@@ -92,43 +92,79 @@ def acquire(
             if stop.is_set():
                 interrupted = True
                 break
-            t_start = clock.now()
-            robot.move_joints(pose.q, speed)
-            reached = robot.actual_joints()
-            if float(np.max(np.abs(reached - pose.q))) > IN_POSITION_TOL:
-                raise DeviceError(
-                    f"{robot.name}: reports {np.degrees(reached).round(3).tolist()}° after a "
-                    f"move to {np.degrees(pose.q).round(3).tolist()}° (pose {pose.idx})"
+            try:
+                stored = _visit(
+                    store,
+                    campaign_id,
+                    pose,
+                    robot,
+                    sensors,
+                    clock,
+                    pool,
+                    stop,
+                    dwell_s=dwell_s,
+                    samples_per_pose=samples_per_pose,
+                    speed=speed,
                 )
-            if stop.is_set():
+            except DeviceError as exc:
+                store.add_event(campaign_id, "device-error", str(exc), pose.idx)
+                raise
+            if not stored:
                 interrupted = True
                 break
-            clock.sleep(dwell_s)
-            if stop.is_set():
-                interrupted = True
-                break
-            start = clock.now()
-
-            def sample(s: SensorSetting, start: float = start) -> Series:
-                with clock.branch(start):
-                    return s.sensor.measure(samples_per_pose, s.rate_hz)
-
-            series = [f.result() for f in [pool.submit(sample, s) for s in sensors]]
-            store.add_pose(
-                campaign_id,
-                idx=pose.idx,
-                role=pose.role,
-                region=pose.region,
-                target_mm=pose.target_mm,
-                planned_q=pose.q,
-                reached_q=reached,
-                t_start=t_start,
-                t_end=clock.now(),
-                series=series,
-            )
             stored_now += 1
             progress.advance(pose, len(done) + stored_now, total)
     if interrupted:
         robot.stop()
     progress.finish()
     return Acquisition(len(done) + stored_now, stored_now, interrupted, clock.now() - t0)
+
+
+def _visit(
+    store: Store,
+    campaign_id: int,
+    pose: PlannedPose,
+    robot: Robot,
+    sensors: Sequence[SensorSetting],
+    clock: Clock,
+    pool: ThreadPoolExecutor,
+    stop: threading.Event,
+    *,
+    dwell_s: float,
+    samples_per_pose: int,
+    speed: float,
+) -> int:
+    """One pose: 1 if stored, 0 if a stop request came first."""
+    t_start = clock.now()
+    robot.move_joints(pose.q, speed)
+    reached = robot.actual_joints()
+    if float(np.max(np.abs(reached - pose.q))) > IN_POSITION_TOL:
+        raise DeviceError(
+            f"{robot.name}: reports {np.degrees(reached).round(3).tolist()}° after a "
+            f"move to {np.degrees(pose.q).round(3).tolist()}° (pose {pose.idx})"
+        )
+    if stop.is_set():
+        return 0
+    clock.sleep(dwell_s)
+    if stop.is_set():
+        return 0
+    start = clock.now()
+
+    def sample(s: SensorSetting) -> Series:
+        with clock.branch(start):
+            return s.sensor.measure(samples_per_pose, s.rate_hz)
+
+    series = [f.result() for f in [pool.submit(sample, s) for s in sensors]]
+    store.add_pose(
+        campaign_id,
+        idx=pose.idx,
+        role=pose.role,
+        region=pose.region,
+        target_mm=pose.target_mm,
+        planned_q=pose.q,
+        reached_q=reached,
+        t_start=t_start,
+        t_end=clock.now(),
+        series=series,
+    )
+    return 1

@@ -310,6 +310,14 @@ class Store:
 
     # ------------------------------------------------------------------ poses
 
+    def last_pose_time(self, campaign_id: int) -> float:
+        """The latest ``t_end`` stored (host clock), 0 if none: a resumed simulated clock
+        continues from there."""
+        row = self.conn.execute(
+            "SELECT MAX(t_end) FROM poses WHERE campaign_id = ?", (campaign_id,)
+        ).fetchone()
+        return float(row[0]) if row and row[0] is not None else 0.0
+
     def completed_indices(self, campaign_id: int) -> set[int]:
         rows = self.conn.execute("SELECT idx FROM poses WHERE campaign_id = ?", (campaign_id,))
         return {int(r[0]) for r in rows}
@@ -500,16 +508,22 @@ class Store:
 
 
 class _Transaction:
-    """``BEGIN IMMEDIATE`` … ``COMMIT``, or ``ROLLBACK`` on any exception."""
+    """``BEGIN IMMEDIATE`` … ``COMMIT``, or ``ROLLBACK`` on any exception. Inside an
+    open transaction it does nothing: the outer one commits or rolls back the whole."""
 
     def __init__(self, conn: sqlite3.Connection) -> None:
         self.conn = conn
+        self.outer = False
 
     def __enter__(self) -> sqlite3.Connection:
-        self.conn.execute("BEGIN IMMEDIATE")
+        if not self.conn.in_transaction:
+            self.conn.execute("BEGIN IMMEDIATE")
+            self.outer = True
         return self.conn
 
     def __exit__(self, exc_type: object, exc: object, tb: object) -> None:
+        if not self.outer:
+            return
         if exc_type is None:
             self.conn.execute("COMMIT")
         else:

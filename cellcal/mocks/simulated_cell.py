@@ -51,7 +51,13 @@ def _pose(position_mm: list[float], rotation_deg: list[float]) -> Array:
 class SimulatedCell:
     """The truth, plus the one piece of state the devices share: where the robot is."""
 
-    def __init__(self, config: CellConfig, nominal: RobotModel, seed: int | None = None) -> None:
+    def __init__(
+        self,
+        config: CellConfig,
+        nominal: RobotModel,
+        seed: int | None = None,
+        noise_stream: int = 0,
+    ) -> None:
         sim = config.simulation
         self.seed = sim.seed if seed is None else seed
         rng = np.random.default_rng(self.seed)
@@ -62,7 +68,8 @@ class SimulatedCell:
         self.sensors: dict[str, SensorTruth] = {}
         for s in config.sensor:
             self.sensors[s.name] = self._sensor_truth(s, config, rng)
-        self.noise = np.random.default_rng([self.seed, 1])
+        # A resumed campaign draws fresh noise: its stream is the number of poses stored.
+        self.noise = np.random.default_rng([self.seed, 1, noise_stream])
         self.joint_speed = math.radians(sim.joint_speed_deg_s)
         self._lock = threading.Lock()
         self._q = np.radians(np.asarray(config.robot.home_deg, dtype=np.float64))

@@ -106,7 +106,7 @@ def test_run_user_errors(tmp_path):
     for args, match in [
         (["run"], "--config FILE, or --mock"),
         (["run", "--config", bad, "--mock"], "campaign.dwel_s: unknown key"),
-        (["run", "--resume", "4", "--db", tmp_path / "none.db"], "no campaign 4"),
+        (["run", "--resume", "4", "--db", tmp_path / "none.db"], "no such database"),
         (["run", "--mock", "--time-scale", "-1"], "--time-scale"),
         (["run", "--config", tmp_path / "missing.toml"], "no such file"),
     ]:
@@ -228,3 +228,77 @@ def test_sigterm_ends_cleanly_and_resumes(tmp_path):
     assert res.returncode == 0, res.stderr
     _check_complete(db, _count(db, "SELECT n_poses FROM campaigns"))
     np.testing.assert_equal(_count(db, "SELECT COUNT(*) FROM events WHERE kind = 'resumed'"), 1)
+
+
+def test_refusals_before_anything_is_written(tmp_path):
+    config, _ = _bundled_mock_cell()
+    db = tmp_path / "c.db"
+    small = config.model_copy(
+        update={"campaign": config.campaign.model_copy(update={"grid": [2, 2, 2]})}
+    )
+    with pytest.raises(CampaignError, match=r"8 calibration poses give 24 equations"):
+        start_campaign(small, str(db), config_path=None, mock=True)
+    from cellcal.errors import DeviceError
+
+    with pytest.raises(DeviceError, match="--mock"):
+        start_campaign(config, str(db), config_path=None, mock=False)
+    assert not db.exists() or _count(db, "SELECT COUNT(*) FROM campaigns") == 0
+
+
+def test_one_run_per_database(tmp_path):
+    from cellcal.daemon.campaign import _RunLock
+
+    db = str(tmp_path / "c.db")
+    config, _ = _bundled_mock_cell()
+    with _RunLock(db), pytest.raises(CampaignError, match="another cellcal run"):
+        start_campaign(config, db, config_path=None, mock=True)
+
+
+def test_device_fault_is_one_line_with_a_resume_hint_and_resumes(tmp_path, monkeypatch):
+    from cellcal.mocks import simulated_devices
+
+    config, _ = _bundled_mock_cell()
+    db = str(tmp_path / "c.db")
+    original = simulated_devices.SimulatedRobot.move_joints
+    calls = {"n": 0}
+
+    def faulty(self, q, speed):
+        calls["n"] += 1
+        if calls["n"] == 12:
+            from cellcal.errors import DeviceError
+
+            raise DeviceError("robot: protective stop")
+        original(self, q, speed)
+
+    monkeypatch.setattr(simulated_devices.SimulatedRobot, "move_joints", faulty)
+    with pytest.raises(
+        CampaignError, match=r"protective stop; campaign 1 is resumable: cellcal run --resume 1"
+    ):
+        start_campaign(config, db, config_path=None, mock=True)
+    conn = sqlite3.connect(db)
+    assert conn.execute(
+        "SELECT kind, pose_idx FROM events WHERE kind = 'device-error'"
+    ).fetchall() == [("device-error", 11)]
+    last_t = conn.execute("SELECT MAX(t_end) FROM poses").fetchone()[0]
+    conn.close()
+    monkeypatch.setattr(simulated_devices.SimulatedRobot, "move_joints", original)
+    out = resume_campaign(db, 1)
+    assert out.summary is not None
+    conn = sqlite3.connect(db)
+    t = [r[0] for r in conn.execute("SELECT t_start FROM poses ORDER BY idx")]
+    # The resumed simulated clock goes on from where the campaign stopped.
+    assert t == sorted(t) and t[11] >= last_t
+
+    # Fresh noise after the resume: the first resumed pose does not repeat the noise of
+    # the campaign's first pose (a generator restarted from the seed would).
+    def noise(idx):
+        rows = conn.execute(
+            "SELECT s.x, s.y, s.z FROM samples s JOIN poses p ON p.id = s.pose_id "
+            "WHERE p.idx = ? AND s.sensor = 'rig' ORDER BY s.id",
+            (idx,),
+        ).fetchall()
+        a = np.array(rows)
+        return a - a.mean(axis=0)
+
+    assert not np.allclose(noise(11), noise(0))
+    conn.close()
