@@ -25,7 +25,7 @@ import numpy as np
 import sqlite_utils
 
 from cellcal.clock import SimulatedClock
-from cellcal.commands.run import _bundled_mock_cell
+from cellcal.commands.run import bundled_mock_cell
 from cellcal.daemon.campaign import start_campaign
 from cellcal.daemon.devices import build_devices
 from cellcal.daemon.engine import acquire
@@ -107,7 +107,7 @@ def bench_ingest(folder: Path, poses: int, samples: int) -> tuple[float, float]:
 
 
 def bench_overhead(folder: Path) -> tuple[float, float, int]:
-    config, _ = _bundled_mock_cell()
+    config, _ = bundled_mock_cell()
     nominal = load_model(config.robot.model).model
     plan = make_plan(
         config.campaign,
@@ -158,7 +158,7 @@ def bench_overhead(folder: Path) -> tuple[float, float, int]:
 
 
 def bench_campaign(folder: Path) -> tuple[float, float, int, float]:
-    config, _ = _bundled_mock_cell()
+    config, _ = bundled_mock_cell()
     t0 = time.perf_counter()
     out = start_campaign(config, str(folder / "campaign.db"), config_path=None, mock=True)
     wall = time.perf_counter() - t0

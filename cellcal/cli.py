@@ -7,16 +7,19 @@ exits 2; success exits 0. Anything else is a bug and keeps its traceback.
 
 from __future__ import annotations
 
+import logging
 import sys
 
 import click
 
 from cellcal import __version__
 from cellcal.commands.calibrate import calibrate
+from cellcal.commands.mock import mock
 from cellcal.commands.models import models
 from cellcal.commands.predict import predict
 from cellcal.commands.register import register
 from cellcal.commands.run import run
+from cellcal.commands.tracker import tracker
 from cellcal.errors import UserError
 
 EXIT_USER_ERROR = 2
@@ -24,16 +27,21 @@ EXIT_USER_ERROR = 2
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
 @click.version_option(__version__, "--version", prog_name="cellcal")
-def cli() -> None:
+@click.option(
+    "-v", "--verbose", count=True, help="Log device retries (-v) and events (-vv) on stderr."
+)
+def cli(verbose: int) -> None:
     """cellcal: online calibration of industrial robot cells.
 
     Registers sensor frames to the robot base from common points, and (as the project
     grows) identifies the robot's kinematic errors from laser-tracker and photogrammetry
     campaigns. Lengths are millimetres and angles degrees at every boundary.
     """
+    level = {0: logging.ERROR, 1: logging.WARNING}.get(verbose, logging.INFO)
+    logging.basicConfig(level=level, format="cellcal: %(name)s: %(message)s", force=True)
 
 
-for command in (run, register, calibrate, predict, models):
+for command in (run, register, calibrate, predict, models, tracker, mock):
     cli.add_command(command)
 
 

@@ -70,7 +70,7 @@ class BarProgress:
         self._bar.stop()
 
 
-def _bundled_mock_cell() -> tuple[CellConfig, str]:
+def bundled_mock_cell() -> tuple[CellConfig, str]:
     ref = resources.files("cellcal") / "data" / "mock-cell.toml"
     with resources.as_file(ref) as p:
         return load_config(p), "bundled config/mock-cell.toml"
@@ -106,10 +106,10 @@ def _print_summary(out: CampaignOutcome) -> None:
     )
     for w in c.warnings:
         click.echo(f"  warning: {w}")
-    click.echo(f"position error at the validation poses ({s.reference}), mm:")
+    outside = ", ".join(r.region for r in s.regions if r.region != "cube") or "none"
+    click.echo(f"position error at the validation poses ({s.reference}; outside: {outside}), mm:")
     click.echo("                               mean      RMS      max      p95")
-    names = ", ".join(r.region for r in s.regions if r.region != "cube")
-    rows = [("inside the cube", s.inside), (f"outside ({names})", s.outside)]
+    rows = [("inside the cube", s.inside), ("outside the cube", s.outside)]
     for label, region in rows:
         if region is None:
             continue
@@ -182,7 +182,7 @@ def run(
             if config_path is not None:
                 config, source = load_config(config_path), config_path
             elif mock:
-                config, source = _bundled_mock_cell()
+                config, source = bundled_mock_cell()
             else:
                 raise InputError("give --config FILE, or --mock for the bundled simulated cell")
             if not mock and (seed is not None or time_scale is not None):

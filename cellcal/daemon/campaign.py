@@ -137,9 +137,7 @@ def _run(
         store.set_status(campaign_id, "interrupted")
         raise
     finally:
-        devices.robot.close()
-        for s in devices.sensors:
-            s.sensor.close()
+        devices.close()
     if acquisition.interrupted:
         store.add_event(campaign_id, "interrupted", f"stopped after {acquisition.stored} poses")
         store.set_status(campaign_id, "interrupted")

@@ -68,8 +68,13 @@ class SimulatedCell:
         self.sensors: dict[str, SensorTruth] = {}
         for s in config.sensor:
             self.sensors[s.name] = self._sensor_truth(s, config, rng)
-        # A resumed campaign draws fresh noise: its stream is the number of poses stored.
-        self.noise = np.random.default_rng([self.seed, 1, noise_stream])
+        # One generator per sensor: sensors sample concurrently, and the same seed must
+        # give the same campaign whatever the threads' order. A resumed campaign draws
+        # fresh noise: its stream is the number of poses already stored.
+        self.noise = {
+            name: np.random.default_rng([self.seed, 1, noise_stream, k])
+            for k, name in enumerate(self.sensors)
+        }
         self.joint_speed = math.radians(sim.joint_speed_deg_s)
         self._lock = threading.Lock()
         self._q = np.radians(np.asarray(config.robot.home_deg, dtype=np.float64))
@@ -101,6 +106,10 @@ class SimulatedCell:
         with self._lock:
             self._q = np.asarray(q, dtype=np.float64).copy()
 
+    def target(self, sensor: str) -> CellTarget:
+        """The source a protocol-level mock of ``sensor`` serves."""
+        return CellTarget(self, sensor)
+
     def true_position(self, sensor: str, q: Array | None = None) -> Array:
         """Noise-free target position of ``sensor`` in its frame (mm)."""
         s = self.sensors[sensor]
@@ -114,7 +123,7 @@ class SimulatedCell:
         s = self.sensors[sensor]
         p = self.true_position(sensor)
         with self._lock:
-            z = self.noise.normal(size=(n, 3))
+            z = self.noise[sensor].normal(size=(n, 3))
         if s.kind != "laser-tracker":
             out: Array = p + s.sigma_isotropic * z
             return out
@@ -127,3 +136,14 @@ class SimulatedCell:
         out = p + np.outer(z[:, 0] * s.sigma_radial, u) + np.outer(z[:, 1] * st, a)
         out += np.outer(z[:, 2] * st, b)
         return out
+
+
+class CellTarget:
+    """One sensor's target as the simulated cell sees it now (a tracker server's source)."""
+
+    def __init__(self, cell: SimulatedCell, sensor: str) -> None:
+        self.cell = cell
+        self.sensor = sensor
+
+    def sample(self, n: int) -> Array:
+        return self.cell.sample(self.sensor, n)

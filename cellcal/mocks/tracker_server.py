@@ -52,6 +52,7 @@ import threading
 import time
 import tty
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -129,11 +130,11 @@ class TrackerFaults:
                 raise ValueError(f"TrackerFaults.{name} must be finite and >= 0, got {value}")
 
 
-class _Closed(Exception):
+class _LinkClosedError(Exception):
     """The link is gone (peer closed, error) or the server is stopping."""
 
 
-class _Dropped(Exception):
+class _DropLinkError(Exception):
     """Fault injection: the connection is to be dropped now."""
 
 
@@ -156,7 +157,7 @@ class _Link:
         self.poller.register(fd, select.POLLIN)
 
     def wait(self, timeout: float) -> bool:
-        return bool(self.poller.poll(max(0, int(math.ceil(timeout * 1000)))))
+        return bool(self.poller.poll(max(0, math.ceil(timeout * 1000))))
 
     def read(self) -> bytes | None:
         raise NotImplementedError
@@ -173,14 +174,14 @@ class _Link:
         out.register(self.fd, select.POLLOUT)
         while view:
             if self.stop.is_set():
-                raise _Closed
+                raise _LinkClosedError
             self.check_open()
             try:
                 sent = self._send(view)
             except BlockingIOError:
                 sent = 0
             except OSError as exc:
-                raise _Closed from exc
+                raise _LinkClosedError from exc
             view = view[sent:]
             if view:
                 out.poll(int(_POLL_S * 1000))
@@ -214,7 +215,7 @@ class _PtyLink(_Link):
 
     def check_open(self) -> None:
         if _pty_hung_up(self.fd):
-            raise _Closed
+            raise _LinkClosedError
 
     def _send(self, data: memoryview) -> int:
         return os.write(self.fd, data)
@@ -259,10 +260,10 @@ class _Session:
     # -- loop
 
     def run(self) -> None:
-        """Serve until the client closes (returns) or a fault drops the link (_Dropped)."""
+        """Serve until the client closes (returns) or a fault drops the link (_DropLinkError)."""
         stop = self.tracker._stop
         if self.faults.drop_after_lines == 0:
-            raise _Dropped
+            raise _DropLinkError
         while not stop.is_set():
             if self.link.wait(self._timeout()):
                 data = self.link.read()
@@ -309,7 +310,7 @@ class _Session:
         drop = self.faults.drop_after_lines
         if drop is not None and self.lines_sent >= drop:
             self._flush()
-            raise _Dropped
+            raise _DropLinkError
 
     def _event(self, line: str) -> None:
         self.tracker._count_event()
@@ -321,7 +322,7 @@ class _Session:
         if delay > 0:
             self._flush()
             if self.tracker._stop.wait(delay):
-                raise _Closed
+                raise _LinkClosedError
         self.replies += 1
         every = self.faults.event_every
         if every and self.replies % every == 0:
@@ -369,7 +370,7 @@ class _Session:
             return
         try:
             answer = self._answer(cmd, args)
-        except (_Closed, _Dropped):
+        except (_LinkClosedError, _DropLinkError):
             raise
         except Exception:
             log.exception("mock tracker: request %r failed", raw)
@@ -377,7 +378,7 @@ class _Session:
         self._reply(answer)
         if cmd == b"MEAS" and answer.startswith("OK"):
             self._stream()  # with time_scale 0 the points follow at once
-        elif cmd == b"STOP" and self.series is not None:
+        elif cmd == b"STOP" and answer == "OK" and self.series is not None:
             self._end_series(f"END {self.series.sent}")
 
     def _answer(self, cmd: bytes, args: list[bytes]) -> str:
@@ -427,6 +428,8 @@ class _Session:
         if not (1 <= n <= MAX_POINTS and MIN_RATE_HZ <= rate <= MAX_RATE_HZ):
             return _BAD
         with t._lock:
+            if t._owner is not None:
+                return _BUSY
             if not t._initialized:
                 return _NOT_INIT
             if not t._beam:
@@ -502,7 +505,7 @@ class MockTracker:
         self,
         source: TargetSource,
         *,
-        faults: TrackerFaults = TrackerFaults(),  # noqa: B008 (frozen, so shared safely)
+        faults: TrackerFaults = TrackerFaults(),
         serial: str = "SIM-0001",
         time_scale: float = 0.0,
         clock_start: float = 12.0,
@@ -624,8 +627,8 @@ class MockTracker:
 
     # -- threads
 
-    def _spawn(self, target: object, *args: object, name: str) -> None:
-        thread = threading.Thread(target=target, args=args, name=name, daemon=True)  # type: ignore[arg-type]
+    def _spawn(self, target: Callable[..., None], *args: object, name: str) -> None:
+        thread = threading.Thread(target=target, args=args, name=name, daemon=True)
         with self._lock:
             self._threads.append(thread)
         thread.start()
@@ -654,7 +657,7 @@ class MockTracker:
             with contextlib.suppress(OSError):
                 conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
             self._run_session(_SocketLink(conn, self._stop))
-        except _Dropped:
+        except _DropLinkError:
             log.info("mock tracker: dropping the connection (fault injection)")
             with contextlib.suppress(OSError):
                 conn.shutdown(socket.SHUT_RDWR)
@@ -671,7 +674,7 @@ class MockTracker:
                     self._connections += 1
                 try:
                     self._run_session(link)
-                except _Dropped:
+                except _DropLinkError:
                     log.info("mock tracker: pty stops answering until reopened (fault)")
                     self._mute_until_hangup(link)
                 except Exception:
@@ -687,7 +690,7 @@ class MockTracker:
             self._sessions.add(session)
         try:
             session.run()
-        except _Closed:
+        except _LinkClosedError:
             pass
         finally:
             with self._lock:
@@ -703,7 +706,7 @@ class MockTracker:
             self._stop.wait(0.01)
         return False
 
-    def _mute_until_hangup(self, link: _PtyLink | _Link) -> None:
+    def _mute_until_hangup(self, link: _Link) -> None:
         while not self._stop.is_set():
             if link.wait(_POLL_S) and link.read() == b"":
                 return

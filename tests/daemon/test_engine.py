@@ -100,23 +100,31 @@ def test_a_pose_takes_dwell_plus_sampling_on_the_clock(tmp_path):
         # move (≥ 0.5 s settle) + 7 s dwell + 20 samples at 10 Hz from both sensors at once (2 s)
         assert t_end - t_start >= 7.0 + 2.0 + 0.5
         assert t_end - t_start < 7.0 + 2.0 + 0.5 + 30.0
-    # Both sensors sample the same 2 s: their host timestamps coincide.
-    both = store.conn.execute(
-        "SELECT sensor, MIN(host_time), MAX(host_time) FROM samples WHERE pose_id = 3 "
-        "GROUP BY sensor"
-    ).fetchall()
-    assert both[0][1:] == pytest.approx(both[1][1:])
+    # Both sensors start sampling together, after the dwell, on the host clock.
+    both = dict(
+        store.conn.execute(
+            "SELECT sensor, MIN(host_time) FROM samples WHERE pose_id = 3 GROUP BY sensor"
+        ).fetchall()
+    )
+    assert both["rig"] == pytest.approx(both["tracker"])
     assert out.clock_seconds >= 10 * 9.5
     n = store.conn.execute("SELECT sensor, COUNT(*) FROM samples GROUP BY sensor").fetchall()
     assert dict(n) == {"rig": 200, "tracker": 200}
-    # Sensor timestamps: 10 Hz on the host clock, the device's own epoch on its clock.
-    t = np.array(
-        store.conn.execute(
-            "SELECT host_time, device_time FROM samples WHERE sensor='tracker' AND pose_id=1"
-        ).fetchall()
-    )
-    np.testing.assert_allclose(np.diff(t[:, 0]), 0.1)
-    assert (t[:, 1] - t[:, 0] > 100).all()
+
+    def times(sensor):
+        return np.array(
+            store.conn.execute(
+                "SELECT host_time, device_time FROM samples WHERE sensor = ? AND pose_id = 1",
+                (sensor,),
+            ).fetchall()
+        )
+
+    # The tracker (real driver over TCP to the mock) stamps 10 Hz on its own clock and
+    # the receipt on the host's; the in-process rig spends its 2 s on the host clock.
+    tracker, rig = times("tracker"), times("rig")
+    np.testing.assert_allclose(np.diff(tracker[:, 1]), 0.1, atol=1e-6)
+    np.testing.assert_allclose(np.diff(rig[:, 0]), 0.1)
+    assert (np.diff(tracker[:, 0]) >= 0).all()
 
 
 def test_stop_leaves_a_resumable_campaign(tmp_path):

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cellcal.commands.run import _bundled_mock_cell
+from cellcal.commands.run import bundled_mock_cell
 from cellcal.daemon.campaign import resume_campaign, start_campaign
 from cellcal.errors import CampaignError
 from cellcal.mocks.simulated_cell import SimulatedCell
@@ -23,7 +23,7 @@ from cellcal.modelfiles import load_model
 
 
 def test_mock_campaign_recovers_the_injected_errors(tmp_path):
-    config, _ = _bundled_mock_cell()
+    config, _ = bundled_mock_cell()
     out = start_campaign(config, str(tmp_path / "c.db"), config_path=None, mock=True)
     s = out.summary
     assert s is not None and s.n_calibration == 80
@@ -54,7 +54,7 @@ def test_mock_campaign_recovers_the_injected_errors(tmp_path):
 
 
 def test_same_seed_same_campaign_and_resume_refuses_a_complete_one(tmp_path):
-    config, _ = _bundled_mock_cell()
+    config, _ = bundled_mock_cell()
     a = start_campaign(config, str(tmp_path / "a.db"), config_path=None, mock=True, seed=7)
     b = start_campaign(config, str(tmp_path / "b.db"), config_path=None, mock=True, seed=7)
     assert a.summary.validation_after.rms == b.summary.validation_after.rms
@@ -231,7 +231,7 @@ def test_sigterm_ends_cleanly_and_resumes(tmp_path):
 
 
 def test_refusals_before_anything_is_written(tmp_path):
-    config, _ = _bundled_mock_cell()
+    config, _ = bundled_mock_cell()
     db = tmp_path / "c.db"
     small = config.model_copy(
         update={"campaign": config.campaign.model_copy(update={"grid": [2, 2, 2]})}
@@ -249,7 +249,7 @@ def test_one_run_per_database(tmp_path):
     from cellcal.daemon.campaign import _RunLock
 
     db = str(tmp_path / "c.db")
-    config, _ = _bundled_mock_cell()
+    config, _ = bundled_mock_cell()
     with _RunLock(db), pytest.raises(CampaignError, match="another cellcal run"):
         start_campaign(config, db, config_path=None, mock=True)
 
@@ -257,7 +257,7 @@ def test_one_run_per_database(tmp_path):
 def test_device_fault_is_one_line_with_a_resume_hint_and_resumes(tmp_path, monkeypatch):
     from cellcal.mocks import simulated_devices
 
-    config, _ = _bundled_mock_cell()
+    config, _ = bundled_mock_cell()
     db = str(tmp_path / "c.db")
     original = simulated_devices.SimulatedRobot.move_joints
     calls = {"n": 0}
