@@ -25,6 +25,8 @@ from cellcal.errors import DeviceError
 
 #: A reached joint position further than this from the plan (rad) is refused.
 IN_POSITION_TOL = 1e-3
+#: A sensor that fails at a pose (after its own driver's retries) is asked again this often.
+SAMPLE_RETRIES = 2
 
 
 class Progress(Protocol):
@@ -154,7 +156,16 @@ def _visit(
         with clock.branch(start):
             return s.sensor.measure(samples_per_pose, s.rate_hz)
 
-    series = [f.result() for f in [pool.submit(sample, s) for s in sensors]]
+    for attempt in range(SAMPLE_RETRIES + 1):
+        try:
+            series = [f.result() for f in [pool.submit(sample, s) for s in sensors]]
+            break
+        except DeviceError as exc:
+            if attempt == SAMPLE_RETRIES:
+                raise
+            # The pose is still where it should be: measure it again, once or twice.
+            store.add_event(campaign_id, "sensor-retry", str(exc), pose.idx)
+            start = clock.now()
     store.add_pose(
         campaign_id,
         idx=pose.idx,

@@ -130,7 +130,10 @@ class LineTracker:
         """Open the link, identify and initialise the tracker (and set reflector and
         environment if configured)."""
         self._open_with_backoff()
-        self._handshake()
+        try:
+            self._handshake()
+        except (TransportError, TrackerTimeoutError) as exc:
+            self._reconnect(exc)
 
     def close(self) -> None:
         self.transport.close()
@@ -153,20 +156,35 @@ class LineTracker:
                 delay = min(delay * 2, 5.0)
 
     def _handshake(self) -> None:
-        self.identity = self.identify()
-        self._request("INIT", timeout=max(self.timeout, 60.0))
+        self.identity = self._identify(retry=False)
+        self._request("INIT", timeout=max(self.timeout, 60.0), retry=False)
         if self.reflector_type is not None:
-            self.set_reflector(self.reflector_type)
+            self._request(f"SMR {self.reflector_type}", retry=False)
         if self.env is not None:
-            self.set_environment(self.env)
+            self._request(self._env_request(self.env), retry=False)
 
     def _reconnect(self, why: Exception) -> None:
-        self.reconnections += 1
-        log.warning("tracker %s: %s; reconnecting", self.name, why)
-        self.transport.close()
-        time.sleep(self.backoff_s)
-        self._open_with_backoff()
-        self._handshake()
+        """Close, wait, reopen and repeat the handshake, with exponential backoff;
+        ``reconnects`` attempts, then one clear error."""
+        delay = self.backoff_s
+        last: Exception = why
+        for attempt in range(1, self.reconnects + 1):
+            self.reconnections += 1
+            log.warning("tracker %s: %s; reconnecting (%d)", self.name, last, attempt)
+            self.transport.close()
+            time.sleep(delay)
+            delay = min(delay * 2, 5.0)
+            try:
+                self.transport.open()
+                self.lines.reset()
+                self._handshake()
+                return
+            except (TransportError, TrackerTimeoutError) as exc:
+                last = exc
+        raise TransportError(
+            f"tracker {self.name} at {self.url}: unreachable after {self.reconnects} "
+            f"reconnection attempts ({last})"
+        )
 
     # ------------------------------------------------------------------ requests
 
@@ -197,22 +215,25 @@ class LineTracker:
                 raise error_for(msg, request, f"tracker {self.name}")
             self._note(msg, f"waiting for {request!r}")
 
-    def _request(self, request: str, timeout: float | None = None) -> Ok:
-        """Send one request and return its OK; reconnect and retry once on a broken link
-        or a timeout."""
+    def _request(self, request: str, timeout: float | None = None, *, retry: bool = True) -> Ok:
+        """Send one request and return its OK; on a broken link or a timeout reconnect
+        and retry once (not inside the handshake of a reconnection)."""
         t = self.timeout if timeout is None else timeout
-        for attempt in (1, 2):
-            try:
-                self.lines.write_line(request)
-                return self._reply(request, t)
-            except (TransportError, TrackerTimeoutError) as exc:
-                if attempt == 2:
-                    raise
-                self._reconnect(exc)
-        raise AssertionError("unreachable")
+        try:
+            self.lines.write_line(request)
+            return self._reply(request, t)
+        except (TransportError, TrackerTimeoutError) as exc:
+            if not retry:
+                raise
+            self._reconnect(exc)
+        self.lines.write_line(request)
+        return self._reply(request, t)
 
     def identify(self) -> TrackerIdentity:
-        parts = self._request("*IDN?").payload.split(",")
+        return self._identify(retry=True)
+
+    def _identify(self, *, retry: bool) -> TrackerIdentity:
+        parts = self._request("*IDN?", retry=retry).payload.split(",")
         if len(parts) != 4:
             raise TrackerError(f"tracker {self.name}: malformed *IDN? answer {','.join(parts)!r}")
         return TrackerIdentity(*(p.strip() for p in parts))
@@ -234,10 +255,12 @@ class LineTracker:
         except (KeyError, ValueError) as exc:
             raise TrackerError(f"tracker {self.name}: malformed ENV? answer ({exc})") from None
 
+    @staticmethod
+    def _env_request(env: Environment) -> str:
+        return f"ENV T={env.temperature_c:.2f} P={env.pressure_hpa:.2f} RH={env.humidity_pct:.1f}"
+
     def set_environment(self, env: Environment) -> None:
-        self._request(
-            f"ENV T={env.temperature_c:.2f} P={env.pressure_hpa:.2f} RH={env.humidity_pct:.1f}"
-        )
+        self._request(self._env_request(env))
         self.env = env
 
     def reflector(self) -> str:

@@ -41,12 +41,14 @@ Choices where the spec leaves room (the protocol spec is the contract; these fil
 from __future__ import annotations
 
 import contextlib
+import ctypes
 import logging
 import math
 import os
 import re
 import select
 import socket
+import struct
 import termios
 import threading
 import time
@@ -205,7 +207,112 @@ class _SocketLink(_Link):
 
 
 class _PtyLink(_Link):
+    """The master side of a pty, and who has its slave open.
+
+    With inotify (Linux) the server keeps the slave open itself, so the master never
+    hangs up, and follows the clients' opens and closes of the slave path: a close and
+    an immediate reopen are two events, never missed. Elsewhere a client closing shows as
+    a hang-up on the master (best effort: a reopen faster than the server looks is seen
+    as the same connection).
+    """
+
+    def __init__(self, master: int, slave: int, path: str, stop: threading.Event) -> None:
+        super().__init__(master, stop)
+        self.path = path
+        self.watch = _inotify_watch(path)  # after the slave was opened: ours is no event
+        self.keeper: int | None = slave
+        if self.watch is None:
+            os.close(slave)
+            self.keeper = None
+        else:
+            self.poller.register(self.watch, select.POLLIN)
+        self.clients = 0
+        self.opens = 0
+        self.pending: deque[int] = deque()
+
+    def close(self) -> None:
+        for fd in (self.watch, self.keeper, self.fd):
+            if fd is not None:
+                with contextlib.suppress(OSError):
+                    os.close(fd)
+
+    def connected(self) -> bool:
+        """Whether a client has the slave open. With inotify, events after the last
+        client's close stay queued for the next call (the next connection)."""
+        if self.watch is None:
+            return not _pty_hung_up(self.fd)
+        self.pending.extend(_inotify_events(self.watch))
+        while self.pending:
+            mask = self.pending.popleft()
+            if mask & _IN_OPEN:
+                self.clients += 1
+                self.opens += 1
+            elif mask & _IN_CLOSE and self.clients > 0:
+                self.clients -= 1
+                if self.clients == 0:
+                    return False
+        return self.clients > 0
+
+    def wait_open(self, carry: bytes = b"") -> bytes | None:
+        """Wait until a client has the slave open. Returns the bytes already read that may
+        be its first request (``carry`` included), or None when the server stops."""
+        if self.watch is None:
+            while not self.stop.is_set():
+                if not _pty_hung_up(self.fd):
+                    return carry
+                self.stop.wait(0.01)
+            return None
+        return self._wait_for(self.connected, carry)
+
+    def mute_until_reopened(self) -> bytes | None:
+        """Read and drop everything until the client closes the slave and opens it again
+        (without inotify: until it closes). Returns as ``wait_open`` does."""
+        if self.watch is None:
+            while not self.stop.is_set():
+                if self.wait(_POLL_S) and self.read() == b"":
+                    return b""
+            return None
+        opens = self.opens
+
+        def reopened() -> bool:
+            self.connected()
+            return self.opens > opens
+
+        return self._wait_for(reopened)
+
+    def _wait_for(self, condition: Callable[[], bool], carry: bytes = b"") -> bytes | None:
+        """Drop input until ``condition`` holds. An open is reported before the opener can
+        write, so bytes read before the condition turned true may be a new client's
+        request: those are handed back, not dropped."""
+        while not self.stop.is_set():
+            if condition():
+                return carry
+            carry = b""
+            if self.wait(_POLL_S):
+                with contextlib.suppress(OSError):
+                    carry = os.read(self.fd, _READ)
+        return None
+
+    def flush_stale(self) -> None:
+        """Drop what the server wrote and no client read: a pty keeps unread output for
+        the next opener, who must not see replies meant for the last one."""
+        fd = self.keeper
+        if fd is None:
+            try:
+                fd = os.open(self.path, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
+            except OSError:
+                return
+        try:
+            termios.tcflush(fd, termios.TCIFLUSH)
+        except termios.error:
+            pass
+        finally:
+            if fd != self.keeper:
+                os.close(fd)
+
     def read(self) -> bytes | None:
+        if not self.connected():
+            return b""
         try:
             return os.read(self.fd, _READ)
         except BlockingIOError:
@@ -214,7 +321,7 @@ class _PtyLink(_Link):
             return b""
 
     def check_open(self) -> None:
-        if _pty_hung_up(self.fd):
+        if not self.connected():
             raise _LinkClosedError
 
     def _send(self, data: memoryview) -> int:
@@ -225,6 +332,43 @@ def _pty_hung_up(master: int) -> bool:
     poller = select.poll()
     poller.register(master, select.POLLIN)
     return any(ev & select.POLLHUP for _, ev in poller.poll(0))
+
+
+_IN_OPEN = 0x20
+_IN_CLOSE = 0x08 | 0x10  # IN_CLOSE_WRITE | IN_CLOSE_NOWRITE
+_INOTIFY_EVENT = struct.Struct("iIII")  # wd, mask, cookie, len (then len bytes of name)
+
+
+def _inotify_watch(path: str) -> int | None:
+    """An inotify descriptor reporting opens and closes of ``path``, or None where there is
+    no inotify."""
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        fd = int(libc.inotify_init1(os.O_NONBLOCK | os.O_CLOEXEC))
+    except (OSError, AttributeError):
+        return None
+    if fd < 0:
+        return None
+    if libc.inotify_add_watch(fd, os.fsencode(path), _IN_OPEN | _IN_CLOSE) < 0:
+        os.close(fd)
+        return None
+    return fd
+
+
+def _inotify_events(fd: int) -> list[int]:
+    masks: list[int] = []
+    while True:
+        try:
+            data = os.read(fd, 4096)
+        except BlockingIOError:
+            return masks
+        except OSError:
+            return masks
+        offset = 0
+        while offset + _INOTIFY_EVENT.size <= len(data):
+            _, mask, _, name_len = _INOTIFY_EVENT.unpack_from(data, offset)
+            masks.append(mask)
+            offset += _INOTIFY_EVENT.size + name_len
 
 
 # ---------------------------------------------------------------------------- sessions
@@ -259,11 +403,15 @@ class _Session:
 
     # -- loop
 
-    def run(self) -> None:
-        """Serve until the client closes (returns) or a fault drops the link (_DropLinkError)."""
+    def run(self, first: bytes = b"") -> None:
+        """Serve until the client closes (returns) or a fault drops the link
+        (_DropLinkError); ``first``: bytes from this client read before the session began."""
         stop = self.tracker._stop
         if self.faults.drop_after_lines == 0:
             raise _DropLinkError
+        if first:
+            self._feed(first)
+            self._flush()
         while not stop.is_set():
             if self.link.wait(self._timeout()):
                 data = self.link.read()
@@ -591,13 +739,13 @@ class MockTracker:
             tty.setraw(slave)  # no echo, no line discipline: bytes pass untouched
             path = os.ttyname(slave)
             os.set_blocking(master, False)
+            link = _PtyLink(master, slave, path, self._stop)
         except OSError:
             os.close(master)
-            raise
-        finally:
             os.close(slave)
+            raise
         self._pty_path = path
-        self._spawn(self._serve_pty, master, path, name="mock-tracker-pty")
+        self._spawn(self._serve_pty, link, name="mock-tracker-pty")
         return path
 
     def stop(self) -> None:
@@ -666,30 +814,33 @@ class MockTracker:
         finally:
             conn.close()
 
-    def _serve_pty(self, master: int, path: str) -> None:
-        link = _PtyLink(master, self._stop)
+    def _serve_pty(self, link: _PtyLink) -> None:
         try:
-            while self._wait_pty_open(master):
+            carry = link.wait_open()
+            while carry is not None:
                 with self._lock:
                     self._connections += 1
                 try:
-                    self._run_session(link)
+                    self._run_session(link, carry)
+                    carry = b""
                 except _DropLinkError:
                     log.info("mock tracker: pty stops answering until reopened (fault)")
-                    self._mute_until_hangup(link)
+                    carry = link.mute_until_reopened()
                 except Exception:
                     log.exception("mock tracker: pty session failed")
-                    self._mute_until_hangup(link)
-                _flush_stale(path)
+                    carry = link.mute_until_reopened()
+                link.flush_stale()
+                if carry is not None:
+                    carry = link.wait_open(carry)
         finally:
-            os.close(master)
+            link.close()
 
-    def _run_session(self, link: _Link) -> None:
+    def _run_session(self, link: _Link, first: bytes = b"") -> None:
         session = _Session(self, link)
         with self._lock:
             self._sessions.add(session)
         try:
-            session.run()
+            session.run(first)
         except _LinkClosedError:
             pass
         finally:
@@ -697,19 +848,6 @@ class MockTracker:
                 self._sessions.discard(session)
                 if self._owner is session:
                     self._owner = None
-
-    def _wait_pty_open(self, master: int) -> bool:
-        """Wait until a client has the slave open; False when stopping."""
-        while not self._stop.is_set():
-            if not _pty_hung_up(master):
-                return True
-            self._stop.wait(0.01)
-        return False
-
-    def _mute_until_hangup(self, link: _Link) -> None:
-        while not self._stop.is_set():
-            if link.wait(_POLL_S) and link.read() == b"":
-                return
 
     # -- state shared by the sessions
 
@@ -817,18 +955,3 @@ class MockTracker:
                 f"PT -{i} {t} {x} {y} {z}",
             )
             return forms[int(rng.integers(0, len(forms)))].encode("ascii")
-
-
-def _flush_stale(path: str) -> None:
-    """Discard what the server wrote that no client read: a pty keeps unread output for
-    the next opener, and a new client must not see replies meant for the last one."""
-    try:
-        fd = os.open(path, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
-    except OSError:
-        return
-    try:
-        termios.tcflush(fd, termios.TCIFLUSH)
-    except termios.error:
-        pass
-    finally:
-        os.close(fd)

@@ -167,3 +167,24 @@ def test_a_device_fault_propagates_and_keeps_what_was_stored(tmp_path):
     with pytest.raises(DeviceError, match="protective stop"):
         _acquire(store, cid, plan, devices, clock)
     assert store.completed_indices(cid) == {0, 1}
+
+
+def test_a_failing_sensor_is_asked_again_and_the_event_kept(tmp_path):
+    clock = SimulatedClock()
+    plan, devices, store, cid = _setup(tmp_path, clock)
+    rig = next(s.sensor for s in devices.sensors if s.sensor.name == "rig")
+    original = rig.measure
+    calls = {"n": 0}
+
+    def flaky(n, rate):
+        calls["n"] += 1
+        if calls["n"] == 4:
+            raise DeviceError("rig: camera 2 timed out")
+        return original(n, rate)
+
+    rig.measure = flaky
+    out = _acquire(store, cid, plan, devices, clock)
+    assert out.stored == 10
+    events = store.events(cid)
+    assert [(e["kind"], e["pose_idx"]) for e in events] == [("sensor-retry", 3)]
+    devices.close()
