@@ -35,8 +35,15 @@ class RobotConfig(_Strict):
     driver: Literal["simulated"] = "simulated"
     address: str = ""
     speed: Annotated[float, Field(gt=0, le=1)] = 0.25
+    max_speed: Annotated[float, Field(gt=0, le=1)] = 0.5
     home_deg: list[float] = Field(default_factory=lambda: [0.0, -30.0, 40.0, 0.0, -20.0, 0.0])
     settle_timeout_s: Positive = 60.0
+
+    @model_validator(mode="after")
+    def _speed(self) -> RobotConfig:
+        if self.speed > self.max_speed:
+            raise ValueError(f"speed {self.speed} exceeds max_speed {self.max_speed}")
+        return self
 
 
 class SensorConfig(_Strict):

@@ -10,14 +10,18 @@ issue; until then a configuration without --mock is refused here with a clear li
 
 from __future__ import annotations
 
+import contextlib
 from dataclasses import dataclass
 from typing import Protocol
+
+import numpy as np
 
 from cellcal.calib.robot_model import RobotModel
 from cellcal.clock import Clock
 from cellcal.config import CellConfig
 from cellcal.daemon.engine import SensorSetting
 from cellcal.drivers.base import PositionSensor, Robot
+from cellcal.drivers.safety import GuardedRobot
 from cellcal.drivers.tracker import LineTracker
 from cellcal.errors import DeviceError
 
@@ -30,6 +34,8 @@ class Devices:
     servers: tuple[Closeable, ...] = ()  # protocol-level mock servers (mock mode)
 
     def close(self) -> None:
+        with contextlib.suppress(Exception):
+            self.robot.stop()
         self.robot.close()
         for s in self.sensors:
             s.sensor.close()
@@ -64,7 +70,7 @@ def build_devices(
     from cellcal.mocks.tracker_server import MockTracker
 
     cell = SimulatedCell(config, nominal, seed, noise_stream)
-    robot = SimulatedRobot(cell, clock)
+    robot = _guarded(SimulatedRobot(cell, clock), config, nominal)
     sensors: list[SensorSetting] = []
     servers: list[Closeable] = []
     try:
@@ -89,3 +95,16 @@ def build_devices(
             srv.stop()
         raise
     return Devices(robot, tuple(sensors), cell, tuple(servers))
+
+
+def _guarded(robot: Robot, config: CellConfig, nominal: RobotModel) -> GuardedRobot:
+    """Every robot, simulated or real, behind the safety gate."""
+    c = config.campaign
+    return GuardedRobot(
+        robot,
+        nominal,
+        np.asarray(config.reference_sensor.target_offset_mm, dtype=np.float64),
+        np.asarray(c.workspace_min_mm, dtype=np.float64),
+        np.asarray(c.workspace_max_mm, dtype=np.float64),
+        config.robot.max_speed,
+    )

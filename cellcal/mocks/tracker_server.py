@@ -237,10 +237,15 @@ class _PtyLink(_Link):
                     os.close(fd)
 
     def connected(self) -> bool:
-        """Whether a client has the slave open. With inotify, events after the last
-        client's close stay queued for the next call (the next connection)."""
+        """Whether the client of the session has the slave open. With inotify, the events
+        after the last client's close stay queued: they belong to the next connection."""
         if self.watch is None:
             return not _pty_hung_up(self.fd)
+        return self._follow(to_hangup=True)
+
+    def _follow(self, *, to_hangup: bool) -> bool:
+        """Count the opens and closes reported so far; whether a client has it open."""
+        assert self.watch is not None
         self.pending.extend(_inotify_events(self.watch))
         while self.pending:
             mask = self.pending.popleft()
@@ -249,7 +254,7 @@ class _PtyLink(_Link):
                 self.opens += 1
             elif mask & _IN_CLOSE and self.clients > 0:
                 self.clients -= 1
-                if self.clients == 0:
+                if self.clients == 0 and to_hangup:
                     return False
         return self.clients > 0
 
@@ -262,7 +267,7 @@ class _PtyLink(_Link):
                     return carry
                 self.stop.wait(0.01)
             return None
-        return self._wait_for(self.connected, carry)
+        return self._wait_for(lambda: self._follow(to_hangup=False), carry)
 
     def mute_until_reopened(self) -> bytes | None:
         """Read and drop everything until the client closes the slave and opens it again
@@ -275,7 +280,7 @@ class _PtyLink(_Link):
         opens = self.opens
 
         def reopened() -> bool:
-            self.connected()
+            self._follow(to_hangup=False)
             return self.opens > opens
 
         return self._wait_for(reopened)
