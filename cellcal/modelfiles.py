@@ -8,7 +8,6 @@ the same folder, renamed over the target only once it is complete.
 
 from __future__ import annotations
 
-import math
 import os
 import tempfile
 import tomllib
@@ -27,6 +26,7 @@ from cellcal.calib.identification import CalibrationResult
 from cellcal.calib.robot_model import RobotModel, model_from_dict, model_to_dict
 from cellcal.calib.validation import Validation
 from cellcal.errors import FileFormatError
+from cellcal.plainvalues import plain
 
 CALIBRATED_FORMAT = "cellcal-calibrated-model"
 FORMAT_VERSION = 1
@@ -93,21 +93,16 @@ def load_model(spec: str) -> LoadedModel:
 
 
 def _clean(value: Any) -> Any:
-    """TOML has no null and no numpy: floats, lists, and NaN written as strings."""
-    if isinstance(value, dict):
-        return {k: _clean(v) for k, v in value.items() if v is not None}
-    if isinstance(value, list | tuple):
-        return [_clean(v) for v in value]
-    if isinstance(value, np.ndarray):
-        return _clean(value.tolist())
-    if isinstance(value, np.bool_ | bool):
-        return bool(value)
-    if isinstance(value, np.integer):
-        return int(value)
-    if isinstance(value, float | np.floating):
-        f = float(value)
-        return f if math.isfinite(f) else str(f)
-    return value
+    """TOML has no null and no NaN: None values are dropped, NaN written as a string."""
+
+    def drop_none(v: Any) -> Any:
+        if isinstance(v, dict):
+            return {k: drop_none(x) for k, x in v.items() if x is not None}
+        if isinstance(v, list | tuple):
+            return [drop_none(x) for x in v]
+        return v
+
+    return plain(drop_none(value), str)
 
 
 def calibrated_document(
