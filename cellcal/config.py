@@ -28,16 +28,38 @@ class _Strict(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True, strict=True)
 
 
+class ModbusConfig(_Strict):
+    """A robot behind Modbus TCP: where its handshake registers are (holding registers,
+    0-based) and how its float32 words are ordered (``shared/specs/modbus-robot-notes.md``)."""
+
+    port: Annotated[int, Field(ge=1, le=65535)] = 502
+    device_id: Annotated[int, Field(ge=0, le=255)] = 1
+    word_order: Literal["big", "little"] = "big"
+    heartbeat: Annotated[int, Field(ge=0, le=65535)] = 0
+    status: Annotated[int, Field(ge=0, le=65535)] = 1
+    error: Annotated[int, Field(ge=0, le=65535)] = 2
+    ack: Annotated[int, Field(ge=0, le=65535)] = 3
+    actual_joints: Annotated[int, Field(ge=0, le=65535)] = 10
+    actual_pose: Annotated[int, Field(ge=0, le=65535)] = 30
+    target_joints: Annotated[int, Field(ge=0, le=65535)] = 100
+    target_pose: Annotated[int, Field(ge=0, le=65535)] = 112
+    speed: Annotated[int, Field(ge=0, le=65535)] = 124
+    command: Annotated[int, Field(ge=0, le=65535)] = 130
+    sequence: Annotated[int, Field(ge=0, le=65535)] = 131
+    timeout_s: Positive = 60.0
+
+
 class RobotConfig(_Strict):
     """The robot: its model (built-in name or TOML file), its driver and address."""
 
     model: str = "kuka-kr5-arc"
-    driver: Literal["simulated"] = "simulated"
+    driver: Literal["simulated", "modbus", "ur"] = "simulated"
     address: str = ""
     speed: Annotated[float, Field(gt=0, le=1)] = 0.25
     max_speed: Annotated[float, Field(gt=0, le=1)] = 0.5
     home_deg: list[float] = Field(default_factory=lambda: [0.0, -30.0, 40.0, 0.0, -20.0, 0.0])
     settle_timeout_s: Positive = 60.0
+    modbus: ModbusConfig = Field(default_factory=ModbusConfig)
 
     @model_validator(mode="after")
     def _speed(self) -> RobotConfig:
@@ -51,7 +73,7 @@ class SensorConfig(_Strict):
 
     name: Annotated[str, Field(min_length=1, pattern=r"^[A-Za-z0-9_.-]+$")]
     kind: Literal["laser-tracker", "photogrammetry"]
-    driver: Literal["simulated"] = "simulated"
+    driver: Literal["simulated", "line-protocol"] = "simulated"
     url: str = ""
     rate_hz: Annotated[float, Field(gt=0, le=1000)] = 10.0
     target_offset_mm: Vec3 = Field(default_factory=lambda: [0.0, 0.0, 0.0])

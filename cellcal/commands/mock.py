@@ -5,12 +5,16 @@ from __future__ import annotations
 import signal
 import threading
 from types import FrameType
+from typing import TYPE_CHECKING
 
 import click
 
-from cellcal.config import load_config
+from cellcal.config import CellConfig, load_config
 from cellcal.errors import InputError
 from cellcal.modelfiles import load_model
+
+if TYPE_CHECKING:
+    from cellcal.mocks.simulated_cell import SimulatedCell
 
 
 def _host_port(text: str) -> tuple[str, int]:
@@ -121,3 +125,119 @@ def mock_tracker(
         click.echo(f"mock tracker {name!r} of {config.name!r} serving on {where}", err=True)
         click.echo(where)
         _wait_for_signal()
+
+
+def _cell(config_path: str | None, seed: int | None) -> tuple[CellConfig, SimulatedCell]:
+    from cellcal.commands.run import bundled_mock_cell
+    from cellcal.mocks.simulated_cell import SimulatedCell
+
+    config = load_config(config_path) if config_path else bundled_mock_cell()[0]
+    return config, SimulatedCell(config, load_model(config.robot.model).model, seed)
+
+
+@mock.command("modbus-robot")
+@click.option(
+    "--listen", required=True, help="TCP address HOST:PORT (a 127.0.0.x address for tests)."
+)
+@click.option(
+    "--config", "config_path", help="Cell configuration (default: the bundled simulated cell)."
+)
+@click.option("--seed", type=int, help="Seed of the simulated truth.")
+@click.option(
+    "--word-order",
+    type=click.Choice(["big", "little"]),
+    help="Float32 word order (default: the configuration's).",
+)
+@click.option(
+    "--time-scale",
+    type=float,
+    default=1.0,
+    show_default=True,
+    help="Wall seconds per second of motion.",
+)
+@click.option("--no-ack", is_flag=True, help="Fault: never acknowledge commands.")
+@click.option("--error-code", type=int, help="Fault: set the error bit with this code on a move.")
+@click.option("--estop", is_flag=True, help="Fault: e-stop on a move.")
+@click.option("--stale-heartbeat", is_flag=True, help="Fault: the heartbeat stops.")
+def mock_modbus_robot(
+    listen: str,
+    config_path: str | None,
+    seed: int | None,
+    word_order: str | None,
+    time_scale: float,
+    no_ack: bool,
+    error_code: int | None,
+    estop: bool,
+    stale_heartbeat: bool,
+) -> None:
+    """A robot behind Modbus TCP with the handshake map of modbus-robot-notes.md."""
+    import math
+
+    from cellcal.mocks.modbus_robot_server import ModbusRobotFaults, ModbusRobotSimulator
+
+    config, cell = _cell(config_path, seed)
+    lo, hi = cell.model.limits
+    sim = ModbusRobotSimulator(
+        q0_deg=list(config.robot.home_deg),
+        limits_deg=[(math.degrees(a), math.degrees(b)) for a, b in zip(lo, hi, strict=True)],
+        time_scale=time_scale,
+        word_order=word_order or config.robot.modbus.word_order,
+        faults=ModbusRobotFaults(
+            no_ack=no_ack, error_code=error_code, estop=estop, stale_heartbeat=stale_heartbeat
+        ),
+        on_move=cell.set_q,
+        pose_fn=cell.flange_pose,
+    )
+    host, port = sim.start(*_host_port(listen))
+    try:
+        click.echo(f"mock Modbus robot serving on {host}:{port}", err=True)
+        click.echo(f"{host}:{port}")
+        _wait_for_signal()
+    finally:
+        sim.stop()
+
+
+@mock.command("ur")
+@click.option(
+    "--host",
+    required=True,
+    help="Loopback address to bind (RTDE 30004, dashboard 29999, script 30003).",
+)
+@click.option(
+    "--config", "config_path", help="Cell configuration (default: the bundled UR10e cell)."
+)
+@click.option("--seed", type=int, help="Seed of the simulated truth.")
+@click.option(
+    "--time-scale",
+    type=float,
+    default=1.0,
+    show_default=True,
+    help="Wall seconds per second of motion.",
+)
+def mock_ur(host: str, config_path: str | None, seed: int | None, time_scale: float) -> None:
+    """A Universal Robots controller that the unmodified ur_rtde library can drive."""
+    from importlib import resources
+
+    import numpy as np
+
+    from cellcal.mocks.ur_server import URSimulator
+
+    ref = resources.files("cellcal") / "data" / "mock-cell-ur10e.toml"
+    with resources.as_file(ref) as bundled:
+        config, cell = _cell(config_path or str(bundled), seed)
+    sim = URSimulator(
+        cell.ur_kinematics(),
+        q0=np.radians(config.robot.home_deg),
+        time_scale=time_scale,
+        on_move=cell.set_q,
+    )
+    try:
+        sim.start(host)
+    except OSError as exc:
+        raise InputError(f"--host {host}: cannot bind the UR ports ({exc})") from None
+    try:
+        click.echo(f"mock UR controller serving on {host} (30004, 29999, 30003)", err=True)
+        click.echo(host)
+        _wait_for_signal()
+    finally:
+        sim.stop()

@@ -1,0 +1,453 @@
+"""A robot controller reached over Modbus TCP through a handshake register map
+(``shared/specs/modbus-robot-notes.md``): KUKA, Fanuc or ABB behind a PLC or gateway,
+xArm and Lebai natively. pymodbus 3.16's synchronous ``ModbusTcpClient``.
+
+The handshake, and what the driver does about faults:
+
+* ``connect`` reads the status block and refuses (``DeviceError``) a controller whose
+  e-stop or error bit is set or whose remote bit is clear, then reads the actual joints
+  and refuses implausible values (not finite, beyond ±10 000°, or a nonzero magnitude
+  below 1e-20° — what a word-order mismatch gives).
+* ``move_joints`` checks the status again, writes the target joints (deg, float32) and
+  the speed, then the command and a new sequence number in ONE write request, and polls
+  the status block every ``poll_s`` until ack == sequence AND in_position AND NOT busy
+  (busy clear alone may mean "not started yet"). The error bit or the e-stop end the
+  wait at once; a heartbeat that does not change for ``heartbeat_timeout_s`` is a comms
+  fault; after ``timeout_s`` the move has failed; an acknowledgement of another sequence
+  number (a stop from elsewhere) interrupts it. On a comms fault or a timeout a stop is
+  sent (best effort). Finally the actual joints must be within 1e-3 rad of the target.
+* Sequence numbers are 1..65535, chosen from the controller's last acknowledgement (and
+  never the one this driver sent last), so a restarted driver never repeats the ack
+  the controller already holds.
+* Every pymodbus exception and every Modbus exception response becomes a one-line
+  ``DeviceError`` that names the robot and host:port. After a comms exception the
+  socket is dropped (a late reply must not be taken for the next one); the next request
+  reconnects.
+* ``heartbeat_timeout_s`` is also the timeout of one request: a device that does not
+  answer that long is as good as one whose heartbeat stopped.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import dataclass, fields
+from typing import Literal
+
+import numpy as np
+from pymodbus.client import ModbusTcpClient
+from pymodbus.constants import ExcCodes
+from pymodbus.exceptions import ModbusException
+
+from cellcal.calib.geometry import Array
+from cellcal.errors import DeviceError, InputError
+
+log = logging.getLogger("cellcal.modbus_robot")
+# pymodbus logs through "pymodbus.logging" without a handler, so Python's last-resort
+# handler would print e.g. "Connection to (...) failed" on stderr next to our one-line
+# error; a NullHandler stops that and leaves the records to the application's logging.
+logging.getLogger("pymodbus").addHandler(logging.NullHandler())
+
+N_JOINTS = 6
+
+# status bits
+READY = 1 << 0
+BUSY = 1 << 1
+IN_POSITION = 1 << 2
+ERROR = 1 << 3
+ESTOP = 1 << 4
+REMOTE = 1 << 5
+_BIT_NAMES = ("ready", "busy", "in_position", "error", "e-stop", "remote")
+
+# commands
+CMD_NONE = 0
+CMD_MOVE_JOINTS = 1
+CMD_MOVE_LINEAR = 2
+CMD_STOP = 3
+CMD_RESET_ERROR = 4
+
+POSITION_TOLERANCE_RAD = 1e-3
+MAX_JOINT_DEG = 1e4  # beyond this a joint reading is taken for garbage
+MIN_NONZERO_DEG = 1e-20  # a word-swapped float32 of a round value lands below this
+MAX_READ = 125  # registers in one read request (Modbus limit)
+_F32 = ModbusTcpClient.DATATYPE.FLOAT32
+
+
+@dataclass(frozen=True)
+class ModbusMap:
+    """Where things are (holding registers, 0-based) and how floats are laid out."""
+
+    heartbeat: int = 0
+    status: int = 1
+    error_code: int = 2
+    ack: int = 3
+    actual_joints: int = 10  # 12 registers: q1..q6, float32, deg
+    actual_pose: int = 30  # 12 registers: x, y, z (mm), a, b, c (deg)
+    target_joints: int = 100  # 12 registers
+    target_pose: int = 112  # 12 registers
+    speed: int = 124  # 2 registers, fraction of maximum
+    command: int = 130
+    sequence: int = 131  # must follow command: both are written in one request
+    word_order: Literal["big", "little"] = "big"
+    device_id: int = 1
+
+    def __post_init__(self) -> None:
+        for f in fields(self):
+            if f.name in ("word_order", "device_id"):
+                continue
+            value = getattr(self, f.name)
+            if not isinstance(value, int) or not 0 <= value <= 0xFFFF - 12:
+                raise InputError(f"ModbusMap.{f.name}: address {value!r} out of range")
+        if self.word_order not in ("big", "little"):
+            raise InputError(
+                f"ModbusMap.word_order must be 'big' or 'little', got {self.word_order!r}"
+            )
+        if not isinstance(self.device_id, int) or not 0 <= self.device_id <= 255:
+            raise InputError(f"ModbusMap.device_id must be 0..255, got {self.device_id!r}")
+        if self.sequence != self.command + 1:
+            raise InputError(
+                "ModbusMap: sequence must be the register after command (one write request)"
+            )
+        lo, hi = self.status_block
+        if hi - lo + 1 > MAX_READ:
+            raise InputError("ModbusMap: heartbeat, status, error code and ack must span <= 125")
+
+    @property
+    def status_block(self) -> tuple[int, int]:
+        """First and last address of the block read at every poll."""
+        addrs = (self.heartbeat, self.status, self.error_code, self.ack)
+        return min(addrs), max(addrs)
+
+
+@dataclass(frozen=True)
+class ModbusRobotStatus:
+    """One reading of the status block."""
+
+    heartbeat: int
+    bits: int
+    error_code: int
+    ack: int
+
+    @property
+    def ready(self) -> bool:
+        return bool(self.bits & READY)
+
+    @property
+    def busy(self) -> bool:
+        return bool(self.bits & BUSY)
+
+    @property
+    def in_position(self) -> bool:
+        return bool(self.bits & IN_POSITION)
+
+    @property
+    def error(self) -> bool:
+        return bool(self.bits & ERROR)
+
+    @property
+    def estop(self) -> bool:
+        return bool(self.bits & ESTOP)
+
+    @property
+    def remote(self) -> bool:
+        return bool(self.bits & REMOTE)
+
+    def describe(self) -> str:
+        names = [n for i, n in enumerate(_BIT_NAMES) if self.bits & (1 << i)] or ["none"]
+        return (
+            f"status 0x{self.bits:04x} ({', '.join(names)}), error code {self.error_code}, "
+            f"ack {self.ack}"
+        )
+
+
+def _one_line(text: str) -> str:
+    return " ".join(str(text).split())
+
+
+def _exception_name(code: int) -> str:
+    try:
+        return ExcCodes(code).name
+    except ValueError:
+        return "unknown"
+
+
+class ModbusRobot:
+    """A :class:`~cellcal.drivers.base.Robot` behind Modbus TCP; see the module docstring."""
+
+    def __init__(
+        self,
+        host: str,
+        port: int = 502,
+        *,
+        name: str = "modbus-robot",
+        map: ModbusMap = ModbusMap(),
+        timeout_s: float = 60.0,
+        poll_s: float = 0.01,
+        heartbeat_timeout_s: float = 2.0,
+    ) -> None:
+        for label, value in (
+            ("timeout_s", timeout_s),
+            ("poll_s", poll_s),
+            ("heartbeat_timeout_s", heartbeat_timeout_s),
+        ):
+            if not (math.isfinite(value) and value > 0):
+                raise InputError(f"{name}: {label} must be a positive number, got {value!r}")
+        if not 0 < port <= 0xFFFF:
+            raise InputError(f"{name}: port must be 1..65535, got {port!r}")
+        self.host = host
+        self.port = port
+        self.name = name
+        self.map = map
+        self.timeout_s = float(timeout_s)
+        self.poll_s = float(poll_s)
+        self.heartbeat_timeout_s = float(heartbeat_timeout_s)
+        self._client = ModbusTcpClient(
+            host, port=port, timeout=self.heartbeat_timeout_s, retries=0, name=name
+        )
+        self._last_seq: int | None = None
+
+    # ------------------------------------------------------------------ Robot
+
+    def connect(self) -> None:
+        """Open the connection and refuse a controller that cannot take commands."""
+        if not self._client.connect():  # type: ignore[no-untyped-call]
+            raise self._error("cannot connect (nothing listening, or unreachable)")
+        try:
+            status = self.status()
+            self._refuse_unless_ready(status, "connect")
+            self.actual_joints()
+        except DeviceError:
+            self._drop()
+            raise
+        log.info("%s: connected to %s (%s)", self.name, self.where, status.describe())
+
+    def move_joints(self, q: Array, speed: float) -> None:
+        """Move to ``q`` (rad) at ``speed`` (fraction of maximum, 0 < speed <= 1); return
+        once the controller reports the move done and the joints at the target."""
+        target = np.asarray(q, dtype=np.float64)
+        if target.shape != (N_JOINTS,) or not np.isfinite(target).all():
+            raise InputError(f"{self.name}: target must be {N_JOINTS} finite joint angles (rad)")
+        target_deg = np.degrees(target)
+        if (np.abs(target_deg) > MAX_JOINT_DEG).any():
+            raise InputError(f"{self.name}: target beyond ±{MAX_JOINT_DEG:g} deg")
+        if not (math.isfinite(speed) and 0.0 < speed <= 1.0):
+            raise InputError(f"{self.name}: speed must be in (0, 1], got {speed!r}")
+
+        before = self.status()
+        self._refuse_unless_ready(before, "move")
+        m = self.map
+        self._write(m.target_joints, self._encode(target_deg), "target joints")
+        self._write(m.speed, self._encode([speed]), "speed")
+        seq = self._command(CMD_MOVE_JOINTS, before.ack)
+        self._wait_done(seq, before)
+
+        actual = self.actual_joints()
+        err = np.abs(actual - target)
+        worst = int(np.argmax(err))
+        if err[worst] > POSITION_TOLERANCE_RAD:
+            raise self._error(
+                f"reports the move done but joint {worst + 1} is at "
+                f"{np.degrees(actual[worst]):.4f} deg, target {target_deg[worst]:.4f} deg "
+                f"(off by {err[worst]:.2e} rad)"
+            )
+
+    def actual_joints(self) -> Array:
+        """The joint positions the controller reports (rad)."""
+        values = self._decode(self._read(self.map.actual_joints, 2 * N_JOINTS, "actual joints"))
+        bad = (
+            ~np.isfinite(values)
+            | (np.abs(values) > MAX_JOINT_DEG)
+            | ((values != 0.0) & (np.abs(values) < MIN_NONZERO_DEG))
+        )
+        if bad.any():
+            shown = ", ".join(f"{v:.6g}" for v in values)
+            raise self._error(
+                f"implausible actual joints [{shown}] deg; is the word order "
+                f"({self.map.word_order!r}) the controller's?"
+            )
+        out: Array = np.radians(values)
+        return out
+
+    def stop(self) -> None:
+        """Command a stop and return once the controller acknowledged it."""
+        seq = self._command(CMD_STOP)
+        self._wait_ack(seq, "stop")
+
+    def close(self) -> None:
+        self._drop()
+
+    # ------------------------------------------------------------------ extras
+
+    @property
+    def where(self) -> str:
+        return f"{self.host}:{self.port}"
+
+    def status(self) -> ModbusRobotStatus:
+        """Read heartbeat, status bits, error code and acknowledgement in one request."""
+        lo, hi = self.map.status_block
+        regs = self._read(lo, hi - lo + 1, "status")
+        m = self.map
+        return ModbusRobotStatus(
+            heartbeat=regs[m.heartbeat - lo],
+            bits=regs[m.status - lo],
+            error_code=regs[m.error_code - lo],
+            ack=regs[m.ack - lo],
+        )
+
+    def actual_pose(self) -> Array:
+        """The flange pose the controller reports: x, y, z (mm), a, b, c (rad)."""
+        values = self._decode(self._read(self.map.actual_pose, 12, "actual pose"))
+        if not np.isfinite(values).all():
+            raise self._error("implausible actual pose (not finite)")
+        values[3:] = np.radians(values[3:])
+        return values
+
+    def reset_error(self) -> None:
+        """Command an error reset; DeviceError if the error or the e-stop stays."""
+        seq = self._command(CMD_RESET_ERROR)
+        status = self._wait_ack(seq, "error reset")
+        if status.error or status.estop:
+            raise self._error(f"error reset did not clear the fault: {status.describe()}")
+
+    def __enter__(self) -> ModbusRobot:
+        self.connect()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # ------------------------------------------------------------------ handshake
+
+    def _refuse_unless_ready(self, status: ModbusRobotStatus, action: str) -> None:
+        if status.estop:
+            raise self._error(f"{action} refused: e-stop is set ({status.describe()})")
+        if status.error:
+            raise self._error(
+                f"{action} refused: controller reports error code {status.error_code} "
+                f"({status.describe()})"
+            )
+        if not status.remote:
+            raise self._error(f"{action} refused: not in remote mode ({status.describe()})")
+
+    def _next_seq(self, ack: int) -> int:
+        seq = ack % 0xFFFF + 1
+        if seq == self._last_seq:
+            seq = seq % 0xFFFF + 1
+        return seq
+
+    def _command(self, command: int, ack: int | None = None) -> int:
+        """Write command and a new sequence number in one request; the sequence number."""
+        if ack is None:
+            ack = self.status().ack
+        seq = self._next_seq(ack)
+        self._write(self.map.command, [command, seq], f"command {command}")
+        self._last_seq = seq
+        return seq
+
+    def _wait_ack(self, seq: int, what: str) -> ModbusRobotStatus:
+        deadline = time.monotonic() + min(self.timeout_s, max(self.heartbeat_timeout_s, 1.0))
+        while True:
+            status = self.status()
+            if status.ack == seq:
+                return status
+            if time.monotonic() > deadline:
+                raise self._error(f"{what} not acknowledged (sequence {seq}; {status.describe()})")
+            time.sleep(self.poll_s)
+
+    def _wait_done(self, seq: int, before: ModbusRobotStatus) -> None:
+        start = time.monotonic()
+        deadline = start + self.timeout_s
+        heartbeat, heartbeat_at = before.heartbeat, start
+        while True:
+            status = self.status()
+            now = time.monotonic()
+            if status.heartbeat != heartbeat:
+                heartbeat, heartbeat_at = status.heartbeat, now
+            elif now - heartbeat_at > self.heartbeat_timeout_s:
+                self._stop_quietly()
+                raise self._error(
+                    f"comms fault: heartbeat stuck at {heartbeat} for "
+                    f"{now - heartbeat_at:.1f} s during a move ({status.describe()})"
+                )
+            if status.estop:
+                raise self._error(f"e-stop during the move ({status.describe()})")
+            if status.error:
+                raise self._error(
+                    f"move failed: controller reports error code {status.error_code} "
+                    f"({status.describe()})"
+                )
+            if status.ack not in (seq, before.ack):
+                raise self._error(
+                    f"move interrupted: the controller acknowledged sequence {status.ack}, "
+                    f"not {seq} (another command, such as a stop; {status.describe()})"
+                )
+            if status.ack == seq and status.in_position and not status.busy:
+                return
+            if now > deadline:
+                self._stop_quietly()
+                raise self._error(
+                    f"move not done after {self.timeout_s:g} s (sequence {seq}; "
+                    f"{status.describe()})"
+                )
+            time.sleep(self.poll_s)
+
+    def _stop_quietly(self) -> None:
+        """A stop on the way out of a failed move; its own failure is only logged."""
+        try:
+            self._command(CMD_STOP)
+        except DeviceError as exc:
+            log.warning("%s: stop after a failed move failed too: %s", self.name, exc)
+
+    # ------------------------------------------------------------------ registers
+
+    def _drop(self) -> None:
+        """Close the socket; the next request reconnects."""
+        self._client.close()  # type: ignore[no-untyped-call]
+
+    def _error(self, message: str) -> DeviceError:
+        return DeviceError(_one_line(f"{self.name} at {self.where}: {message}"))
+
+    def _encode(self, values: Array | list[float]) -> list[int]:
+        floats = [float(v) for v in values]
+        return ModbusTcpClient.convert_to_registers(floats, _F32, word_order=self.map.word_order)
+
+    def _decode(self, registers: list[int]) -> Array:
+        values = ModbusTcpClient.convert_from_registers(
+            registers, _F32, word_order=self.map.word_order
+        )
+        # one float32 comes back as a scalar, several as a list
+        out: Array = np.atleast_1d(np.asarray(values, dtype=np.float64))
+        return out
+
+    def _read(self, address: int, count: int, what: str) -> list[int]:
+        span = f"{what} (registers {address}..{address + count - 1})"
+        try:
+            rr = self._client.read_holding_registers(
+                address, count=count, device_id=self.map.device_id
+            )
+        except (ModbusException, OSError) as exc:
+            self._drop()
+            raise self._error(f"reading {span} failed: {exc}") from exc
+        if rr.isError():
+            code = getattr(rr, "exception_code", 0)
+            raise self._error(
+                f"reading {span}: Modbus exception code {code} ({_exception_name(code)})"
+            )
+        registers = list(rr.registers)
+        if len(registers) != count:
+            raise self._error(f"reading {span}: {len(registers)} registers in the reply")
+        return registers
+
+    def _write(self, address: int, registers: list[int], what: str) -> None:
+        span = f"{what} (registers {address}..{address + len(registers) - 1})"
+        try:
+            rr = self._client.write_registers(address, registers, device_id=self.map.device_id)
+        except (ModbusException, OSError) as exc:
+            self._drop()
+            raise self._error(f"writing {span} failed: {exc}") from exc
+        if rr.isError():
+            code = getattr(rr, "exception_code", 0)
+            raise self._error(
+                f"writing {span}: Modbus exception code {code} ({_exception_name(code)})"
+            )
