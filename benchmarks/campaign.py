@@ -106,8 +106,12 @@ def bench_ingest(folder: Path, poses: int, samples: int) -> tuple[float, float]:
     return total / ours, total / peer
 
 
-def bench_overhead(folder: Path) -> tuple[float, float, int]:
+def bench_overhead(folder: Path, driver: str) -> tuple[float, float, int]:
+    """Per-pose wall time of acquire() with the robot ``driver`` ("simulated": in-process;
+    "modbus": the Modbus driver against its mock over TCP) and the tracker over TCP,
+    against bare storage of the same poses."""
     config, _ = bundled_mock_cell()
+    config = config.model_copy(update={"robot": config.robot.model_copy(update={"driver": driver})})
     nominal = load_model(config.robot.model).model
     plan = make_plan(
         config.campaign,
@@ -117,7 +121,7 @@ def bench_overhead(folder: Path) -> tuple[float, float, int]:
     )
     clock = SimulatedClock()
     devices = build_devices(config, nominal, clock, mock=True, seed=1)
-    store = Store(folder / "engine.db")
+    store = Store(folder / f"engine-{driver}.db")
     cid = _new_campaign(store, len(plan.poses))
     t0 = time.perf_counter()
     acquire(
@@ -132,10 +136,11 @@ def bench_overhead(folder: Path) -> tuple[float, float, int]:
         speed=0.25,
     )
     engine = (time.perf_counter() - t0) / len(plan.poses)
+    devices.close()
     store.close()
     # Peer: the same poses and the same number of samples, stored without the engine.
     rng = np.random.default_rng(1)
-    store = Store(folder / "bare.db")
+    store = Store(folder / f"bare-{driver}.db")
     cid = _new_campaign(store, len(plan.poses))
     batches = [_series(rng, 2, 20) for _ in plan.poses]
     t0 = time.perf_counter()
@@ -188,16 +193,20 @@ def main(argv: list[str] | None = None) -> int:
             f"   ratio cellcal / peer {ours / peer:.2f}×   (target ≥ 50,000 samples/s: {verdict})"
         )
 
-        engine, bare, n = bench_overhead(folder)
+        engine, bare, n = bench_overhead(folder, "simulated")
+        wired, _, _ = bench_overhead(folder, "modbus")
         overhead = engine - bare
         print(f"== 2. Engine overhead: {n} poses of the bundled mock campaign, simulated clock")
         print(
-            f"   acquire() per pose (motion, dwell, sampling: no wall time) {engine * 1e3:8.2f} ms"
+            f"   acquire() per pose, in-process robot (tracker over TCP)    {engine * 1e3:8.2f} ms"
         )
         print(f"   storing the same poses without the engine (peer)          {bare * 1e3:8.2f} ms")
         verdict = "met" if overhead < 0.020 else "NOT met"
         print(f"   engine overhead {overhead * 1e3:.2f} ms per pose, {engine / bare:.2f}× the bare")
         print(f"   storage   (target < 20 ms: {verdict})")
+        print(f"   acquire() per pose, Modbus robot + tracker over TCP mocks {wired * 1e3:8.2f} ms")
+        print(f"   (the {1e3 * (wired - engine):.1f} ms more are the robot's handshake polling on")
+        print("   loopback; the target is about the engine, motion and devices excluded)")
 
         wall, sim, n, rms = bench_campaign(folder)
         print(f"== 3. Whole mock campaign: bundled cell, {n} poses, 7 s dwell, 20 samples × 2")

@@ -26,6 +26,7 @@ from cellcal.drivers.tracker import LineTracker
 from cellcal.errors import DeviceError
 
 if TYPE_CHECKING:
+    from cellcal.drivers.modbus_robot import ModbusMap
     from cellcal.mocks.simulated_cell import SimulatedCell
 
 
@@ -65,7 +66,7 @@ def _host_port(address: str, default_port: int) -> tuple[str, int]:
     return address, default_port
 
 
-def _modbus_map(config: CellConfig) -> object:
+def _modbus_map(config: CellConfig) -> ModbusMap:
     from cellcal.drivers.modbus_robot import ModbusMap
 
     m = config.robot.modbus
@@ -97,7 +98,7 @@ def _real_devices(config: CellConfig, nominal: RobotModel, clock: Clock) -> Devi
         from cellcal.drivers.modbus_robot import ModbusRobot
 
         host, port = _host_port(r.address, r.modbus.port)
-        robot = ModbusRobot(host, port, map=_modbus_map(config), timeout_s=r.modbus.timeout_s)  # type: ignore[arg-type]
+        robot = ModbusRobot(host, port, map=_modbus_map(config), timeout_s=r.modbus.timeout_s)
     elif r.driver == "ur":
         from cellcal.drivers.ur import URRobot
 
@@ -207,7 +208,14 @@ def _mock_robot(
         )
         servers.append(sim)
         host, port = sim.start(MOCK_MODBUS_HOST, 0)
-        return ModbusRobot(host, port, map=_modbus_map(config), timeout_s=r.modbus.timeout_s)  # type: ignore[arg-type]
+        # On loopback the status can be polled faster than a PLC cycle.
+        return ModbusRobot(
+            host,
+            port,
+            map=_modbus_map(config),
+            timeout_s=r.modbus.timeout_s,
+            poll_s=0.002,
+        )
     from cellcal.drivers.ur import URRobot
     from cellcal.mocks.ur_server import URSimulator
 
