@@ -39,6 +39,9 @@ ROBUST_LOSSES = ("huber", "soft_l1", "cauchy")
 #: says the poses are poorly chosen; well-spread poses with varied wrist orientation
 #: give tens to a few hundred, the paper's fixed-orientation cube about 5e3.
 ILL_CONDITIONED = 1e3
+#: Corrections larger than these are not manufacturing errors (a wrong model, units, signs).
+IMPLAUSIBLE_MM = 5.0
+IMPLAUSIBLE_DEG = 1.0
 
 
 @dataclass(frozen=True)
@@ -285,6 +288,18 @@ def calibrate(
             "(does the flange orientation never change?); it stays at its nominal value and "
             "the model holds only at the measured orientations"
         )
+    big = [
+        e
+        for e in estimates_preview(state, nominal, sel)
+        if (e[1] == "mm" and abs(e[2]) > IMPLAUSIBLE_MM)
+        or (e[1] == "deg" and abs(e[2]) > IMPLAUSIBLE_DEG)
+    ]
+    if big:
+        shown = ", ".join(f"{n} {v:+.3g} {u}" for n, u, v in big[:4])
+        warnings.append(
+            f"corrections far beyond manufacturing tolerances ({shown}): check the model "
+            "(--model), the joint order and signs, and the units of the data"
+        )
     if ident.condition_number > ILL_CONDITIONED:
         warnings.append(
             f"the identification is ill-conditioned (condition number "
@@ -358,4 +373,17 @@ def _frame_std(state: State, sel: tuple[ParameterSpec, ...], cov: Array) -> Arra
     G = np.eye(6)
     G[3:6, 0:3] = -skew(state.t - state.pivot)
     out: Array = np.sqrt(np.clip(np.diag(G @ C @ G.T), 0.0, None))
+    return out
+
+
+def estimates_preview(
+    state: State, nominal: RobotModel, sel: tuple[ParameterSpec, ...]
+) -> list[tuple[str, str, float]]:
+    """(name, unit, correction) of the identified kinematic parameters, display units."""
+    out = []
+    for sp in sel:
+        if sp.kind in KINEMATIC_KINDS:
+            j = sp.joint - 1
+            delta = getattr(state.model.joints[j], sp.kind) - getattr(nominal.joints[j], sp.kind)
+            out.append((sp.name, sp.unit, sp.to_display(delta)))
     return out

@@ -16,7 +16,7 @@ from cellcal.calib.identification import (
     calibrate as run_calibration,
 )
 from cellcal.calib.validation import Validation, cross_validate, validate_on
-from cellcal.commands.output import print_json, warn
+from cellcal.commands.output import SEED, print_json, warn
 from cellcal.errors import InputError, UserError
 from cellcal.measurementfiles import read_measurements
 from cellcal.modelfiles import load_model, write_calibrated
@@ -106,7 +106,7 @@ def _report(res: CalibrationResult, v: Validation | None, data_path: str) -> Non
 @click.option(
     "--paper-parameters", is_flag=True, help="The paper's θ, d, a, α on every row (no Hayati β)."
 )
-@click.option("--seed", type=int, default=0, show_default=True, help="Seed of the k-fold split.")
+@click.option("--seed", type=SEED, default=0, show_default=True, help="Seed of the k-fold split.")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout.")
 def calibrate(
     model_spec: str,

@@ -9,6 +9,7 @@ from typing import TYPE_CHECKING
 
 import click
 
+from cellcal.commands.output import NON_NEGATIVE, SEED
 from cellcal.config import CellConfig, load_config
 from cellcal.errors import InputError
 from cellcal.modelfiles import load_model
@@ -48,7 +49,7 @@ def mock() -> None:
     "--config", "config_path", help="Cell configuration (default: the bundled simulated cell)."
 )
 @click.option("--sensor", default=None, help="Which laser-tracker sensor of the configuration.")
-@click.option("--seed", type=int, help="Seed of the simulated truth and noise.")
+@click.option("--seed", type=SEED, help="Seed of the simulated truth and noise.")
 @click.option(
     "--beam-break-after", type=int, help="Fault: break the beam after N points of a series."
 )
@@ -68,11 +69,13 @@ def mock() -> None:
     default=0,
     help="Fault: an unsolicited event before every k-th reply.",
 )
-@click.option("--reply-delay", type=float, default=0.0, help="Fault: seconds before every reply.")
+@click.option(
+    "--reply-delay", type=NON_NEGATIVE, default=0.0, help="Fault: seconds before every reply."
+)
 @click.option("--drop-after", type=int, help="Fault: drop the connection after N lines.")
 @click.option(
     "--time-scale",
-    type=float,
+    type=NON_NEGATIVE,
     default=1.0,
     show_default=True,
     help="Wall seconds per tracker second (pacing of points).",
@@ -120,7 +123,10 @@ def mock_tracker(
             where = server.start_pty()
         else:
             assert listen is not None
-            host, port = server.start_tcp(*_host_port(listen))
+            try:
+                host, port = server.start_tcp(*_host_port(listen))
+            except OSError as exc:
+                raise InputError(f"--listen {listen}: cannot listen ({exc.strerror})") from None
             where = f"socket://{host}:{port}"
         click.echo(f"mock tracker {name!r} of {config.name!r} serving on {where}", err=True)
         click.echo(where)
@@ -142,7 +148,7 @@ def _cell(config_path: str | None, seed: int | None) -> tuple[CellConfig, Simula
 @click.option(
     "--config", "config_path", help="Cell configuration (default: the bundled simulated cell)."
 )
-@click.option("--seed", type=int, help="Seed of the simulated truth.")
+@click.option("--seed", type=SEED, help="Seed of the simulated truth.")
 @click.option(
     "--word-order",
     type=click.Choice(["big", "little"]),
@@ -150,7 +156,7 @@ def _cell(config_path: str | None, seed: int | None) -> tuple[CellConfig, Simula
 )
 @click.option(
     "--time-scale",
-    type=float,
+    type=NON_NEGATIVE,
     default=1.0,
     show_default=True,
     help="Wall seconds per second of motion.",
@@ -188,7 +194,10 @@ def mock_modbus_robot(
         on_move=cell.set_q,
         pose_fn=cell.flange_pose,
     )
-    host, port = sim.start(*_host_port(listen))
+    try:
+        host, port = sim.start(*_host_port(listen))
+    except (OSError, RuntimeError) as exc:
+        raise InputError(f"--listen {listen}: cannot listen ({exc})") from None
     try:
         click.echo(f"mock Modbus robot serving on {host}:{port}", err=True)
         click.echo(f"{host}:{port}")
@@ -206,10 +215,10 @@ def mock_modbus_robot(
 @click.option(
     "--config", "config_path", help="Cell configuration (default: the bundled UR10e cell)."
 )
-@click.option("--seed", type=int, help="Seed of the simulated truth.")
+@click.option("--seed", type=SEED, help="Seed of the simulated truth.")
 @click.option(
     "--time-scale",
-    type=float,
+    type=NON_NEGATIVE,
     default=1.0,
     show_default=True,
     help="Wall seconds per second of motion.",

@@ -25,7 +25,10 @@ def models(as_json: bool) -> None:
                 "convention": m.convention,
                 "joints": m.dof,
                 "beta_rows": beta_rows,
-                "limits_deg": [[math.degrees(j.q_min), math.degrees(j.q_max)] for j in m.joints],
+                "limits_deg": [
+                    [round(math.degrees(j.q_min), 9), round(math.degrees(j.q_max), 9)]
+                    for j in m.joints
+                ],
             }
         )
     if as_json:

@@ -16,7 +16,7 @@ from cellcal.calib.registration import (
     fit_rigid,
     leave_one_out,
 )
-from cellcal.commands.output import print_json, warn
+from cellcal.commands.output import POSITIVE, SEED, print_json, warn
 from cellcal.errors import InputError
 from cellcal.pointfiles import MatchedPoints, match_points, read_points
 
@@ -96,13 +96,13 @@ def _report(fit: RigidFit, m: MatchedPoints, loo: LeaveOneOut | None) -> None:
 @click.option("--points", "three", help="three-point method: the three names to use.")
 @click.option("--scale", is_flag=True, help="Also fit a uniform scale (least-squares methods).")
 @click.option("--robust", type=click.Choice(ROBUST), help="Down-weight or reject outliers.")
-@click.option("--ransac-threshold", type=float, help="RANSAC inlier distance (mm).")
+@click.option("--ransac-threshold", type=POSITIVE, help="RANSAC inlier distance (mm).")
 @click.option(
     "--weighted",
     is_flag=True,
     help="Weight points by the sx,sy,sz columns (1σ, mm) of either or both files.",
 )
-@click.option("--seed", type=int, default=0, show_default=True, help="Seed for RANSAC.")
+@click.option("--seed", type=SEED, default=0, show_default=True, help="Seed for RANSAC.")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout.")
 def register(
     src_path: str,
@@ -119,27 +119,29 @@ def register(
     as_json: bool,
 ) -> None:
     """Fit T_dst_src from common points matched by name."""
-    m = match_points(read_points(src_path), read_points(dst_path))
-    for w in m.warnings:
-        warn(w)
-    opts: dict[str, Any] = {"scale": scale, "robust": robust, "seed": seed}
-    if ransac_threshold is not None:
-        if robust != "ransac":
-            raise InputError("--ransac-threshold needs --robust ransac")
-        opts["ransac_threshold"] = ransac_threshold
+    # Options that contradict each other are refused before any file is read.
+    if ransac_threshold is not None and robust != "ransac":
+        raise InputError("--ransac-threshold needs --robust ransac")
     if (line_a is None) != (line_b is None):
         raise InputError("give both --line-a and --line-b, or neither")
+    if line_a is not None and method != "line":
+        raise InputError("--line-a/--line-b need --method line")
+    if three is not None and method != "three-point":
+        raise InputError("--points needs --method three-point")
+    m = match_points(read_points(src_path), read_points(dst_path))
+    opts: dict[str, Any] = {"scale": scale, "robust": robust, "seed": seed}
+    if ransac_threshold is not None:
+        opts["ransac_threshold"] = ransac_threshold
     if line_a is not None and line_b is not None:
-        if method != "line":
-            raise InputError("--line-a/--line-b need --method line")
         opts["lines"] = (
             _names_to_indices(line_a, m.names, "--line-a"),
             _names_to_indices(line_b, m.names, "--line-b"),
         )
     if three is not None:
-        if method != "three-point":
-            raise InputError("--points needs --method three-point")
-        opts["three_points"] = _names_to_indices(three, m.names, "--points")
+        picked = _names_to_indices(three, m.names, "--points")
+        if len(picked) != 3 or len(set(picked)) != 3:
+            raise InputError("--points: give three different point names, e.g. P1,P2,P3")
+        opts["three_points"] = picked
     if weighted:
         if m.src_sigma is None and m.dst_sigma is None:
             raise InputError("--weighted: neither file has sx,sy,sz columns")
@@ -149,7 +151,8 @@ def register(
     loo = None
     if m.src.shape[0] >= 4 and robust is None:
         loo = leave_one_out(m.src, m.dst, method=method, **opts)
-    for w in fit.warnings:
+    # Warnings only once the fit stands: an error is always the one line on stderr.
+    for w in (*m.warnings, *fit.warnings):
         warn(w)
     if as_json:
         cov = fit.covariance

@@ -6,12 +6,13 @@ import signal
 import sys
 import threading
 from importlib import resources
+from pathlib import Path
 from types import FrameType
 from typing import Any
 
 import click
 
-from cellcal.commands.output import print_json
+from cellcal.commands.output import NON_NEGATIVE, SEED, print_json
 from cellcal.config import CellConfig, load_config
 from cellcal.daemon.analysis import PAPER, CampaignSummary
 from cellcal.daemon.campaign import CampaignOutcome, resume_campaign, start_campaign
@@ -136,11 +137,11 @@ def _print_summary(out: CampaignOutcome) -> None:
     "--db", "db_path", help="Campaign database (default: storage.database of the config)."
 )
 @click.option(
-    "--seed", type=int, help="Mock mode: one seed for the simulated truth, noise and plan."
+    "--seed", type=SEED, help="Mock mode: one seed for the simulated truth, noise and plan."
 )
 @click.option(
     "--time-scale",
-    type=float,
+    type=NON_NEGATIVE,
     help="Mock mode: wall seconds per simulated second (0, the default: as fast as possible).",
 )
 @click.option(
@@ -157,8 +158,8 @@ def run(
     as_json: bool,
 ) -> None:
     """Run a whole campaign: plan, acquire, store, register, calibrate, validate, report."""
-    if time_scale is not None and time_scale < 0:
-        raise InputError("--time-scale must be 0 or more")
+    if db_path is not None and not Path(db_path).resolve().parent.is_dir():
+        raise InputError(f"--db {db_path}: folder {Path(db_path).parent} does not exist")
     stop = threading.Event()
 
     def on_signal(signum: int, frame: FrameType | None) -> None:

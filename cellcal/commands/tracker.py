@@ -5,7 +5,7 @@ from __future__ import annotations
 import click
 import numpy as np
 
-from cellcal.commands.output import print_json
+from cellcal.commands.output import POSITIVE, FiniteFloat, print_json
 from cellcal.drivers.tracker import LineTracker
 
 
@@ -17,13 +17,13 @@ from cellcal.drivers.tracker import LineTracker
 @click.option(
     "--rate",
     "rate_hz",
-    type=click.FloatRange(0, 1000, min_open=True),
+    type=FiniteFloat(0.0, open_min=True),
     default=10.0,
     show_default=True,
 )
 @click.option(
     "--timeout",
-    type=click.FloatRange(0, min_open=True),
+    type=POSITIVE,
     default=5.0,
     show_default=True,
     help="Seconds per request.",

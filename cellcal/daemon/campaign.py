@@ -84,7 +84,10 @@ class _RunLock:
     def __enter__(self) -> _RunLock:
         import fcntl
 
-        self.fh = open(self.path, "a+")
+        try:
+            self.fh = open(self.path, "a+")  # held for the whole run
+        except OSError as exc:
+            raise CampaignError(f"{self.path}: cannot create ({exc.strerror})") from None
         try:
             fcntl.flock(self.fh.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
         except OSError:

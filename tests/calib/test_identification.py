@@ -204,3 +204,11 @@ def test_measure_is_reproducible():
     np.testing.assert_array_equal(
         measure(a, q, np.random.default_rng(9), 0.01), measure(b, q, np.random.default_rng(9), 0.01)
     )
+
+
+def test_the_wrong_model_is_flagged():
+    d = well_spread("kuka-kr5-arc")
+    res = calibrate(load_model("ur5e").model, d.q % (2 * np.pi) - np.pi, d.m)
+    assert any("beyond manufacturing tolerances" in w for w in res.warnings)
+    ok = calibrate(load_model("kuka-kr5-arc").model, d.q, d.m)
+    assert not any("tolerances" in w for w in ok.warnings)

@@ -138,6 +138,8 @@ def test_user_errors_write_nothing(capsys, tmp_path, data_csv):
     for args, match in cases:
         _one_line(*run(capsys, "calibrate", *args, "--out", out), match)
         assert not out.exists()
+    directory = ["--model", "kuka-kr5-arc", "--data", path, "--folds", "0", "--out", tmp_path]
+    _one_line(*run(capsys, "calibrate", *directory), "is a directory")
 
 
 def test_models_and_predict_nominal(capsys, tmp_path):

@@ -220,3 +220,19 @@ def test_version_and_help(capsys):
     assert code == 0 and "register" in out
     code, out, _ = run(capsys, "register", "--help")
     assert code == 0 and "--method" in out
+
+
+def test_an_error_is_the_only_line_even_when_names_differ(tmp_path, capsys):
+    P, Q, _, _ = rigid_problem(5, n=6)
+    src = write_points(
+        tmp_path / "s.csv", [f"p{i}" for i in range(6)] + ["ONLYSRC"], np.vstack([P, [[0, 0, 0]]])
+    )
+    dst = write_points(tmp_path / "d.csv", [f"p{i}" for i in range(6)], Q)
+    for args, match in [
+        (["--method", "line", "--line-a", "p0"], "both --line-a and --line-b"),
+        (["--method", "three-point", "--points", "p0,p1"], "three different point names"),
+        (["--scale", "--method", "three-point"], "least-squares"),
+    ]:
+        _one_line_error(*run(capsys, "register", "--src", src, "--dst", dst, *args), match)
+    code, _, err = run(capsys, "register", "--src", src, "--dst", dst)
+    assert code == 0 and "ONLYSRC" in err

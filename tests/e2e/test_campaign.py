@@ -108,6 +108,9 @@ def test_run_user_errors(tmp_path):
         (["run", "--config", bad, "--mock"], "campaign.dwel_s: unknown key"),
         (["run", "--resume", "4", "--db", tmp_path / "none.db"], "no such database"),
         (["run", "--mock", "--time-scale", "-1"], "--time-scale"),
+        (["run", "--mock", "--time-scale", "nan"], "not a finite number"),
+        (["run", "--mock", "--seed", "-1"], "--seed"),
+        (["run", "--mock", "--db", tmp_path / "no" / "such" / "c.db"], "does not exist"),
         (["run", "--config", tmp_path / "missing.toml"], "no such file"),
     ]:
         res = _cli(*args)
