@@ -107,6 +107,8 @@ class LineTracker:
         environment: Environment | None = None,
     ) -> None:
         self.name = name
+        # "tracker t1", but not "tracker tracker" when the sensor is called so.
+        self.label = name if "tracker" in name.lower() else f"tracker {name}"
         self.url = url
         self.clock = clock or WallClock()
         self.transport = transport or SerialUrlTransport(url)
@@ -148,10 +150,9 @@ class LineTracker:
             except TransportError as exc:
                 if attempt > self.reconnects:
                     raise TransportError(
-                        f"tracker {self.name} at {self.url}: unreachable after {attempt} "
-                        f"attempts ({exc})"
+                        f"{self.label} at {self.url}: unreachable after {attempt} attempts ({exc})"
                     ) from None
-                log.warning("tracker %s: %s; retrying in %.2f s", self.name, exc, delay)
+                log.warning("%s: %s; retrying in %.2f s", self.label, exc, delay)
                 time.sleep(delay)
                 delay = min(delay * 2, 5.0)
 
@@ -170,7 +171,7 @@ class LineTracker:
         last: Exception = why
         for attempt in range(1, self.reconnects + 1):
             self.reconnections += 1
-            log.warning("tracker %s: %s; reconnecting (%d)", self.name, last, attempt)
+            log.warning("%s: %s; reconnecting (%d)", self.label, last, attempt)
             self.transport.close()
             time.sleep(delay)
             delay = min(delay * 2, 5.0)
@@ -182,7 +183,7 @@ class LineTracker:
             except (TransportError, TrackerTimeoutError) as exc:
                 last = exc
         raise TransportError(
-            f"tracker {self.name} at {self.url}: unreachable after {self.reconnects} "
+            f"{self.label} at {self.url}: unreachable after {self.reconnects} "
             f"reconnection attempts ({last})"
         )
 
@@ -191,10 +192,10 @@ class LineTracker:
     def _note(self, msg: Evt | Garbage | Point | End | Ok | Err, context: str) -> None:
         if isinstance(msg, Evt):
             self.events.append((self.clock.now(), msg))
-            log.info("tracker %s: event %s %s", self.name, msg.name, msg.payload)
+            log.info("%s: event %s %s", self.label, msg.name, msg.payload)
         else:
             self.garbage += 1
-            log.warning("tracker %s: ignored %r while %s", self.name, msg, context)
+            log.warning("%s: ignored %r while %s", self.label, msg, context)
 
     def _reply(self, request: str, timeout: float) -> Ok:
         deadline = time.monotonic() + timeout
@@ -202,8 +203,7 @@ class LineTracker:
             line = self.lines.read_line(max(0.0, deadline - time.monotonic()))
             if line is None:
                 raise TrackerTimeoutError(
-                    f"tracker {self.name} at {self.url}: no answer to {request!r} "
-                    f"within {timeout:g} s"
+                    f"{self.label} at {self.url}: no answer to {request!r} within {timeout:g} s"
                 )
             if line.overlong:
                 self._note(Garbage(line.raw, "line too long"), f"waiting for {request!r}")
@@ -212,7 +212,7 @@ class LineTracker:
             if isinstance(msg, Ok):
                 return msg
             if isinstance(msg, Err):
-                raise error_for(msg, request, f"tracker {self.name}")
+                raise error_for(msg, request, f"{self.label}")
             self._note(msg, f"waiting for {request!r}")
 
     def _request(self, request: str, timeout: float | None = None, *, retry: bool = True) -> Ok:
@@ -235,7 +235,7 @@ class LineTracker:
     def _identify(self, *, retry: bool) -> TrackerIdentity:
         parts = self._request("*IDN?", retry=retry).payload.split(",")
         if len(parts) != 4:
-            raise TrackerError(f"tracker {self.name}: malformed *IDN? answer {','.join(parts)!r}")
+            raise TrackerError(f"{self.label}: malformed *IDN? answer {','.join(parts)!r}")
         return TrackerIdentity(*(p.strip() for p in parts))
 
     def initialise(self) -> None:
@@ -246,14 +246,14 @@ class LineTracker:
         try:
             return TrackerStatus(*(f[k] == "1" for k in ("ready", "beam", "meteo", "init")))
         except KeyError as exc:
-            raise TrackerError(f"tracker {self.name}: STAT? answer lacks {exc}") from None
+            raise TrackerError(f"{self.label}: STAT? answer lacks {exc}") from None
 
     def environment(self) -> Environment:
         f = _fields(self._request("ENV?").payload)
         try:
             return Environment(float(f["T"]), float(f["P"]), float(f["RH"]))
         except (KeyError, ValueError) as exc:
-            raise TrackerError(f"tracker {self.name}: malformed ENV? answer ({exc})") from None
+            raise TrackerError(f"{self.label}: malformed ENV? answer ({exc})") from None
 
     @staticmethod
     def _env_request(env: Environment) -> str:
@@ -282,14 +282,14 @@ class LineTracker:
         self.lines.write_line(request)
         ok = self._reply(request, self.timeout)
         if ok.payload.strip() != str(k):
-            raise TrackerError(f"tracker {self.name}: {request!r} answered 'OK {ok.payload}'")
+            raise TrackerError(f"{self.label}: {request!r} answered 'OK {ok.payload}'")
         expected = 0
         line_timeout = self.timeout + 2.0 / rate_hz
         while True:
             line = self.lines.read_line(line_timeout)
             if line is None:
                 raise TrackerTimeoutError(
-                    f"tracker {self.name}: series stalled after {expected} of {k} points"
+                    f"{self.label}: series stalled after {expected} of {k} points"
                 )
             msg = parse_line(line.raw) if not line.overlong else Garbage(line.raw, "too long")
             if isinstance(msg, Point) and msg.i == expected:
@@ -299,12 +299,10 @@ class LineTracker:
                 expected += 1
             elif isinstance(msg, End):
                 if msg.count != expected:
-                    raise TrackerError(
-                        f"tracker {self.name}: END {msg.count} after {expected} points"
-                    )
+                    raise TrackerError(f"{self.label}: END {msg.count} after {expected} points")
                 return expected == k
             elif isinstance(msg, Err):
-                raise error_for(msg, request, f"tracker {self.name}")
+                raise error_for(msg, request, f"{self.label}")
             else:
                 self._note(msg, f"measuring ({expected} of {k})")
 
@@ -325,7 +323,7 @@ class LineTracker:
             if self.status().beam:
                 return
             self._drain(0.05)
-        raise BeamBrokenError(f"tracker {self.name}: no beam for {self.beam_wait_s:g} s", 40)
+        raise BeamBrokenError(f"{self.label}: no beam for {self.beam_wait_s:g} s", 40)
 
     def measure(self, n: int, rate_hz: float) -> Series:
         """``n`` points at ``rate_hz``, surviving beam breaks and dropped links."""
@@ -345,13 +343,11 @@ class LineTracker:
                 self.retries += 1
                 if breaks > self.beam_retries:
                     raise BeamBrokenError(
-                        f"tracker {self.name}: beam broken {breaks} times; {len(got.xyz)} of "
+                        f"{self.label}: beam broken {breaks} times; {len(got.xyz)} of "
                         f"{n} points kept ({exc})",
                         40,
                     ) from None
-                log.warning(
-                    "tracker %s: beam broken after %d points; waiting", self.name, len(got.xyz)
-                )
+                log.warning("%s: beam broken after %d points; waiting", self.label, len(got.xyz))
                 self._wait_for_beam(mark)
             except (TransportError, TrackerTimeoutError) as exc:
                 links += 1
