@@ -2,7 +2,9 @@
 
 Each subcommand lives in its own module under ``cellcal.commands``. A user error
 (:class:`cellcal.errors.UserError`, or a usage error) prints one line on stderr and
-exits 2; success exits 0. Anything else is a bug and keeps its traceback.
+exits 2; a result refused by an acceptance check (:class:`cellcal.errors.AcceptanceError`)
+prints one line naming the check and exits 3; success exits 0. Anything else is a bug
+and keeps its traceback.
 """
 
 from __future__ import annotations
@@ -20,9 +22,10 @@ from cellcal.commands.predict import predict
 from cellcal.commands.register import register
 from cellcal.commands.run import run
 from cellcal.commands.tracker import tracker
-from cellcal.errors import UserError
+from cellcal.errors import AcceptanceError, UserError
 
 EXIT_USER_ERROR = 2
+EXIT_REFUSED = 3
 
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
@@ -52,6 +55,9 @@ def main(argv: list[str] | None = None) -> None:
     except UserError as exc:
         click.echo(f"cellcal: error: {exc}", err=True)
         sys.exit(EXIT_USER_ERROR)
+    except AcceptanceError as exc:
+        click.echo(f"cellcal: refused: {exc}", err=True)
+        sys.exit(EXIT_REFUSED)
     except click.exceptions.NoArgsIsHelpError as exc:
         click.echo(exc.ctx.get_help() if exc.ctx else "", err=False)
         sys.exit(0)

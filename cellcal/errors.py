@@ -43,3 +43,15 @@ class DeviceError(UserError):
 
 class CampaignError(UserError):
     """A campaign that cannot be started or resumed as asked (unknown id, changed plan)."""
+
+
+class AcceptanceError(CellcalError):
+    """The work was done but its result failed an acceptance check (the target does not
+    follow the robot, units that do not fit, corrections beyond manufacturing tolerances,
+    no convergence). The CLI prints one line naming the check and exits 3; nothing that
+    claims to be a calibrated model is written unless ``--accept`` is given."""
+
+    def __init__(self, check: str, message: str) -> None:
+        super().__init__(f"{check}: {message}")
+        self.check = check
+        self.message = message

@@ -11,6 +11,7 @@ from __future__ import annotations
 import os
 import tempfile
 import tomllib
+from collections.abc import Sequence
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from importlib import resources
@@ -23,6 +24,7 @@ import tomli_w
 from cellcal import __version__
 from cellcal.calib.geometry import Array, so3_log
 from cellcal.calib.identification import CalibrationResult
+from cellcal.calib.outliers import PointResidual, point_residuals
 from cellcal.calib.robot_model import RobotModel, model_from_dict, model_to_dict
 from cellcal.calib.validation import Validation
 from cellcal.errors import FileFormatError
@@ -106,9 +108,13 @@ def _clean(value: Any) -> Any:
 
 
 def calibrated_document(
-    result: CalibrationResult, validation: Validation | None, data_path: str
+    result: CalibrationResult,
+    validation: Validation | None,
+    data_path: str,
+    points: Sequence[PointResidual] = (),
 ) -> dict[str, Any]:
-    """The calibrated-model TOML document (mm, deg)."""
+    """The calibrated-model TOML document (mm, deg); ``points``: the per-point residuals
+    of the fit (default: computed from the result, named by row number)."""
     geometry = model_to_dict(result.calibrated)
     T = result.T_instrument_base
     doc: dict[str, Any] = {
@@ -138,6 +144,7 @@ def calibrated_document(
                 "identified": p.identified,
                 "error" if p.kind != "tool" else "value": p.value,
                 "std": p.std,
+                "at_nominal": p.at_nominal or None,
             }
             for p in result.parameters
         ],
@@ -155,7 +162,17 @@ def calibrated_document(
             "unidentifiable": list(result.unidentifiable),
             "correlated": [list(c) for c in result.identifiability.correlated],
             "warnings": list(result.warnings),
+            "accepted_despite": [
+                w.split("'")[1] for w in result.warnings if w.startswith("accepted despite")
+            ],
         },
+        "point": [
+            p.as_dict()
+            for p in (
+                points
+                or point_residuals([str(k + 1) for k in range(result.n_points)], result.residuals)
+            )
+        ],
     }
     if validation is not None:
         doc["validation"] = {
@@ -200,15 +217,22 @@ def write_atomically(path: str | Path, text: str) -> None:
 
 
 def calibrated_toml(
-    result: CalibrationResult, validation: Validation | None, data_path: str
+    result: CalibrationResult,
+    validation: Validation | None,
+    data_path: str,
+    points: Sequence[PointResidual] = (),
 ) -> str:
     """The calibrated-model file's text."""
     text = "# cellcal calibrated robot model: read by `cellcal predict --model FILE`.\n"
     text += "# Top-level name/convention/[[joint]]/[tool] are the calibrated geometry (mm, deg).\n"
-    return text + tomli_w.dumps(calibrated_document(result, validation, data_path))
+    return text + tomli_w.dumps(calibrated_document(result, validation, data_path, points))
 
 
 def write_calibrated(
-    path: str | Path, result: CalibrationResult, validation: Validation | None, data_path: str
+    path: str | Path,
+    result: CalibrationResult,
+    validation: Validation | None,
+    data_path: str,
+    points: Sequence[PointResidual] = (),
 ) -> None:
-    write_atomically(path, calibrated_toml(result, validation, data_path))
+    write_atomically(path, calibrated_toml(result, validation, data_path, points))

@@ -69,3 +69,15 @@ def invert(T: Array) -> Array:
     out[:3, :3] = Ai
     out[:3, 3] = -Ai @ T[:3, 3]
     return out
+
+
+def wrap_deg(angle: float) -> float:
+    """An angle in degrees wrapped to (−180°, 180°]."""
+    out = -((-angle + 180.0) % 360.0 - 180.0)
+    return out + 0.0
+
+
+def wrap_rad(angle: float) -> float:
+    """An angle in radians wrapped to (−π, π]."""
+    out = -((-angle + np.pi) % (2 * np.pi) - np.pi)
+    return float(out) + 0.0

@@ -8,10 +8,21 @@ directions already chosen projected out. A column whose remaining length is belo
 ``tol`` adds nothing the chosen ones cannot explain: it is not identifiable from these
 poses and stays at nominal. This is the "base parameter" selection of FIGAROH and of
 Khalil & Dombre, computed from the actual poses rather than assumed.
+
+That test is exact rank, and rank is not enough: a column that is *nearly* a
+combination of others passes it, and the fit then "identifies" an absurd value that
+happens to absorb noise and unmodelled errors (on a real UR5, α5 −24° and a5 −41 mm).
+Identifiability is a matter of degree, set by the singular values a parameter
+contributes and by the measurement noise: its standard uncertainty
+σ₀·√((JᵀJ)⁻¹)ᵢᵢ. :func:`weakly_determined` leaves at nominal, worst first, every
+kinematic parameter and target-offset component whose uncertainty exceeds
+:data:`DETERMINED_MM` or :data:`DETERMINED_DEG` — a correction the data cannot tell
+from zero to better than a manufacturing tolerance is not worth estimating.
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -26,6 +37,9 @@ from cellcal.errors import DegenerateGeometryError
 IDENTIFIABLE_TOL = 1e-6
 #: Pairs of identified parameters more correlated than this are reported.
 CORRELATION_WARN = 0.9
+#: A correction is estimated only if the data determine it to within these (1σ).
+DETERMINED_MM = 1.0
+DETERMINED_DEG = 0.1
 
 
 @dataclass(frozen=True)
@@ -33,7 +47,9 @@ class Identifiability:
     """``identified``/``unidentifiable``: indices into ``specs``; ``condition_number`` of
     the unit-scaled Jacobian of the identified set; ``correlated``: (name, name, ρ) with
     |ρ| > 0.9; ``remaining``: each parameter's remaining column length when it was
-    considered (1 = independent of everything chosen before it, 0 = fully explained)."""
+    considered (1 = independent of everything chosen before it, 0 = fully explained);
+    ``weak``: those left at nominal because the noise hides them (subset of
+    ``unidentifiable``), ``fixed``: those pinned by the user."""
 
     specs: tuple[ParameterSpec, ...]
     identified: tuple[int, ...]
@@ -41,6 +57,8 @@ class Identifiability:
     condition_number: float
     correlated: tuple[tuple[str, str, float], ...]
     remaining: tuple[float, ...]
+    weak: tuple[int, ...] = ()
+    fixed: tuple[int, ...] = ()
 
     @property
     def identified_names(self) -> tuple[str, ...]:
@@ -50,6 +68,12 @@ class Identifiability:
     def unidentifiable_names(self) -> tuple[str, ...]:
         return tuple(self.specs[i].name for i in self.unidentifiable)
 
+    def reason(self, index: int) -> str:
+        """Why a parameter is at nominal: ``fixed``, ``weak`` or ``rank``."""
+        if index in self.fixed:
+            return "fixed"
+        return "weak" if index in self.weak else "rank"
+
 
 def _groups(specs: Sequence[ParameterSpec]) -> list[list[int]]:
     frame = [i for i, s in enumerate(specs) if s.kind.startswith("frame")]
@@ -58,17 +82,39 @@ def _groups(specs: Sequence[ParameterSpec]) -> list[list[int]]:
     return [g for g in (frame, tool, kin) if g]
 
 
-def analyse(
-    J: Array, specs: tuple[ParameterSpec, ...], *, tol: float = IDENTIFIABLE_TOL
-) -> Identifiability:
-    """Identifiable subset of ``specs`` for the (M×P) weighted Jacobian ``J``."""
+#: A column shorter than this fraction of the longest is rounding noise (a parameter with
+#: no effect, like θ of the last joint with the target on its axis), not a direction.
+NEGLIGIBLE_COLUMN = 1e-10
+
+
+def _unit_columns(J: Array) -> Array:
+    """Columns scaled to unit length; negligible ones set to zero (scaling rounding noise
+    to unit length would make it look independent of everything)."""
     norms = np.linalg.norm(J, axis=0)
-    Js = J / np.where(norms > 0, norms, 1.0)
+    live = norms > NEGLIGIBLE_COLUMN * max(float(norms.max(initial=0.0)), 1e-300)
+    out: Array = np.where(live, J / np.where(live, norms, 1.0), 0.0)
+    return out
+
+
+def analyse(
+    J: Array,
+    specs: tuple[ParameterSpec, ...],
+    *,
+    tol: float = IDENTIFIABLE_TOL,
+    fixed: frozenset[str] = frozenset(),
+) -> Identifiability:
+    """Identifiable subset of ``specs`` for the (M×P) weighted Jacobian ``J``; parameters
+    named in ``fixed`` are never chosen."""
+    Js = _unit_columns(J)
     M = J.shape[0]
     basis = np.zeros((M, 0))
     chosen: list[int] = []
     remaining = np.zeros(len(specs))
-    for group in _groups(specs):
+    pinned = tuple(i for i, s in enumerate(specs) if s.name in fixed)
+    for full in _groups(specs):
+        group = [i for i in full if i not in pinned]
+        if not group:
+            continue
         G = Js[:, group]
         G = G - basis @ (basis.T @ G)
         Qg, Rg, piv = qr(G, mode="economic", pivoting=True)
@@ -89,6 +135,18 @@ def analyse(
             Qk, _ = np.linalg.qr(Qk)
             basis = np.hstack([basis, Qk])
     chosen.sort()
+    return _conditioned(Js, specs, chosen, tuple(float(r) for r in remaining), (), pinned)
+
+
+def _conditioned(
+    Js: Array,
+    specs: tuple[ParameterSpec, ...],
+    chosen: list[int],
+    remaining: tuple[float, ...],
+    weak: tuple[int, ...],
+    fixed: tuple[int, ...],
+) -> Identifiability:
+    """The Identifiability of the set ``chosen``: its condition number and correlations."""
     others = tuple(i for i in range(len(specs)) if i not in set(chosen))
     S = np.linalg.svd(Js[:, chosen], compute_uv=False)
     cond = float(S[0] / S[-1]) if S[-1] > 0 else float("inf")
@@ -110,5 +168,42 @@ def analyse(
         unidentifiable=others,
         condition_number=cond,
         correlated=tuple(correlated),
-        remaining=tuple(float(r) for r in remaining),
+        remaining=remaining,
+        weak=weak,
+        fixed=fixed,
     )
+
+
+def _limit(spec: ParameterSpec) -> float:
+    """The uncertainty (internal units: mm, rad) beyond which a parameter is weak."""
+    return math.radians(DETERMINED_DEG) if spec.is_angle else DETERMINED_MM
+
+
+def weakly_determined(J: Array, sigma0: float, ident: Identifiability) -> Identifiability:
+    """``ident`` with every kinematic or target-offset parameter whose standard
+    uncertainty σ₀·√((JᵀJ)⁻¹)ᵢᵢ exceeds its limit moved to nominal, worst first (dropping
+    one lowers the others' uncertainty). ``J``: the weighted Jacobian (M×P over all of
+    ``ident.specs``) at the solution; ``sigma0``: the a-posteriori noise (weighted)."""
+    specs = ident.specs
+    keep = list(ident.identified)
+    weak: list[int] = []
+    while keep:
+        A = J[:, keep]
+        try:
+            C = np.linalg.inv(A.T @ A) * sigma0**2
+        except np.linalg.LinAlgError:
+            C = np.full((len(keep), len(keep)), np.inf)
+        std = np.sqrt(np.clip(np.diag(C), 0.0, None))
+        ratio = np.array(
+            [
+                std[k] / _limit(specs[i]) if not specs[i].kind.startswith("frame") else 0.0
+                for k, i in enumerate(keep)
+            ]
+        )
+        worst = int(np.argmax(ratio))
+        if not ratio[worst] > 1.0:
+            break
+        weak.append(keep.pop(worst))
+    if not weak:
+        return ident
+    return _conditioned(_unit_columns(J), specs, keep, ident.remaining, tuple(weak), ident.fixed)

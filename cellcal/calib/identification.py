@@ -13,11 +13,19 @@ Standard uncertainties come from the a-posteriori covariance σ₀²(JᵀJ)⁻¹
 from __future__ import annotations
 
 import math
+from collections.abc import Collection, Sequence
 from dataclasses import dataclass
 
 import numpy as np
 from scipy.optimize import least_squares
 
+from cellcal.calib.acceptance import (
+    ACCURACY_CLASS_MM,
+    Finding,
+    assess,
+    check_data,
+    diagnose,
+)
 from cellcal.calib.error_model import (
     KINEMATIC_KINDS,
     ParameterSpec,
@@ -27,27 +35,31 @@ from cellcal.calib.error_model import (
     parameter_specs,
     predict,
 )
-from cellcal.calib.geometry import Array, skew
-from cellcal.calib.identifiability import Identifiability, analyse
+from cellcal.calib.geometry import Array, skew, wrap_deg
+from cellcal.calib.identifiability import Identifiability, analyse, weakly_determined
 from cellcal.calib.kinematics import target_kinematics
 from cellcal.calib.registration import fit_rigid
 from cellcal.calib.robot_model import RobotModel
-from cellcal.errors import ConvergenceError, DegenerateGeometryError, InputError
+from cellcal.errors import (
+    AcceptanceError,
+    ConvergenceError,
+    DegenerateGeometryError,
+    InputError,
+    MirroredCorrespondenceError,
+)
 
 ROBUST_LOSSES = ("huber", "soft_l1", "cauchy")
 #: Above this condition number of the (unit-scaled) identification Jacobian a warning
 #: says the poses are poorly chosen; well-spread poses with varied wrist orientation
 #: give tens to a few hundred, the paper's fixed-orientation cube about 5e3.
 ILL_CONDITIONED = 1e3
-#: Corrections larger than these are not manufacturing errors (a wrong model, units, signs).
-IMPLAUSIBLE_MM = 5.0
-IMPLAUSIBLE_DEG = 1.0
 
 
 @dataclass(frozen=True)
 class ParameterEstimate:
     """A parameter's estimate in display units (mm or deg): for a kinematic parameter
-    ``value`` is the correction to nominal, for the target offset the coordinate itself.
+    ``value`` is the correction to nominal (angles wrapped to (−180°, 180°]), for the
+    target offset the coordinate itself.
     ``std`` is its standard uncertainty (0 for a parameter left at nominal)."""
 
     name: str
@@ -57,6 +69,9 @@ class ParameterEstimate:
     identified: bool
     value: float
     std: float
+    #: why a parameter is at nominal: "rank" (not identifiable from these poses), "weak"
+    #: (the noise hides it), "fixed" (pinned by the user); "" when identified.
+    at_nominal: str = ""
 
 
 @dataclass(frozen=True)
@@ -231,8 +246,53 @@ def _fit_frames(model: RobotModel, q: Array, measured: Array, w: Array) -> State
     _, J = jacobian(state, q, specs)
     ident = analyse((J * w[:, :, None]).reshape(-1, len(specs)), specs)
     sel = tuple(specs[i] for i in ident.identified)
+    if any(s.kind == "tool" for s in specs if s not in sel):
+        # The poses do not determine the whole target offset: keep its nominal value
+        # (the closed-form start may have given it any value) and register again.
+        k = target_kinematics(model, q, model.tool, jacobian=False)
+        fit = fit_rigid(k.p, measured)
+        state = State(model, model.tool, fit.R, fit.t, state.pivot)
     state, _, _ = _least_squares(state, sel, q, measured, w)
     return state
+
+
+def frames_rms(model: RobotModel, q: Array, measured: Array) -> float:
+    """RMS residual (mm) of the model with best-fit frames; joint limits not checked (for
+    trying reinterpretations of data that do not fit)."""
+    w = np.ones((len(q), 3))
+    st = _fit_frames(model, q, measured, w)
+    return _rms(measured - predict(st, q))
+
+
+def _expand_fix(specs: tuple[ParameterSpec, ...], fix: Collection[str]) -> frozenset[str]:
+    """Parameter names to pin: names, or the groups ``kinematics``, ``tool``, ``frame``."""
+    names = {s.name for s in specs}
+    out: set[str] = set()
+    for item in fix:
+        if item == "kinematics":
+            out |= {s.name for s in specs if s.kind in KINEMATIC_KINDS}
+        elif item in ("tool", "target_offset"):
+            out |= {s.name for s in specs if s.kind == "tool"}
+        elif item in names:
+            out.add(item)
+        else:
+            raise InputError(
+                f"--fix {item}: no such parameter; choose from kinematics, tool, or "
+                f"{', '.join(s.name for s in specs if not s.kind.startswith('frame'))}"
+            )
+    return frozenset(out)
+
+
+def _refuse_or_note(findings: list[Finding], accept: bool, notes: list[str]) -> None:
+    if not findings:
+        return
+    if not accept:
+        raise findings[0].refusal()
+    notes += [f"accepted despite the check '{f.check}': {f.message}" for f in findings]
+
+
+def _sigma0(residuals: Array, w: Array, dof: int) -> float:
+    return float(np.sqrt(np.sum((residuals * w) ** 2) / max(dof, 1)))
 
 
 def calibrate(
@@ -243,13 +303,20 @@ def calibrate(
     *,
     robust: str | None = None,
     paper_parameters: bool = False,
+    fix: Collection[str] = (),
+    accept: bool = False,
+    alternatives: Sequence[RobotModel] = (),
 ) -> CalibrationResult:
     """Identify kinematic errors, target offset and instrument frame together.
 
     ``q``: joint readings (N×n, rad); ``measured``: target positions in the instrument
     frame (N×3, mm); ``sigma``: their 1σ per axis (N×3, mm) to weight the fit;
     ``robust``: a robust loss (huber, soft_l1, cauchy) after the least-squares fit;
-    ``paper_parameters``: the paper's θ, d, a, α on every row (no β).
+    ``paper_parameters``: the paper's θ, d, a, α on every row (no β); ``fix``: parameter
+    names (or ``kinematics``, ``tool``) pinned at nominal. A result that fails an
+    acceptance check raises :class:`AcceptanceError` unless ``accept`` (then the failures
+    are among the warnings); ``alternatives``: other models to try when diagnosing data
+    that do not fit.
     """
     q, measured, sigma = check_measurements(nominal, q, measured, sigma)
     if robust is not None and robust not in ROBUST_LOSSES:
@@ -261,45 +328,88 @@ def calibrate(
         raise DegenerateGeometryError(f"need at least 3 measurements, got {N}")
     w = _weights(sigma, N)
     warnings: list[str] = []
-
-    baseline = _fit_frames(nominal, q, measured, w)
-    residuals_before = measured - predict(baseline, q)
-
     specs = parameter_specs(nominal, paper_parameters=paper_parameters)
+    pinned = _expand_fix(specs, fix)
+    sv = np.linalg.svd(measured - measured.mean(axis=0), compute_uv=False)
+    if not sv[1] > 1e-9 * sv[0]:
+        raise DegenerateGeometryError(
+            "the measurements do not determine the instrument frame (they lie on a line or "
+            "at one point); spread the poses over a volume"
+        )
+    _refuse_or_note(check_data(nominal, q, measured, nominal.tool), accept, warnings)
+
+    def diagnosis(what: str) -> AcceptanceError:
+        return diagnose(nominal, q, measured, frames_rms, alternatives, what=what).refusal()
+
+    try:
+        baseline = _fit_frames(nominal, q, measured, w)
+    except ConvergenceError:
+        raise diagnosis("the registration of the nominal model did not converge") from None
+    except MirroredCorrespondenceError:
+        raise diagnosis(
+            "the nominal model's positions match the measurements only mirrored"
+        ) from None
+    residuals_before = measured - predict(baseline, q)
+    if _rms(residuals_before) > ACCURACY_CLASS_MM:
+        finding = diagnose(
+            nominal,
+            q,
+            measured,
+            frames_rms,
+            alternatives,
+            what=f"the nominal model with best-fit frames leaves RMS "
+            f"{_rms(residuals_before):.3g} mm, far worse than any robot's accuracy class",
+        )
+        _refuse_or_note([finding], accept, warnings)
+
     _, J = jacobian(baseline, q, specs)
-    ident = analyse((J * w[:, :, None]).reshape(-1, len(specs)), specs)
+    Jw_all = (J * w[:, :, None]).reshape(-1, len(specs))
+    ident = analyse(Jw_all, specs, fixed=pinned)
+    sel = tuple(specs[i] for i in ident.identified)
+    if len(sel) >= 3 * N:
+        raise InputError(
+            f"{N} measurements give {3 * N} equations for {len(sel)} identifiable "
+            f"parameters; measure at least {len(sel) // 3 + 1} poses"
+        )
+    # Identifiability as a matter of degree: fit, estimate the noise, leave at nominal
+    # what the noise hides, and fit again from the baseline without it.
+    try:
+        trial, _, nfev = _least_squares(baseline, sel, q, measured, w)
+        point = trial
+    except ConvergenceError:
+        point, nfev = baseline, 0
+    r_trial = measured - predict(point, q)
+    _, J = jacobian(point, q, specs)
+    ident = weakly_determined(
+        (J * w[:, :, None]).reshape(-1, len(specs)),
+        _sigma0(r_trial, w, 3 * N - len(sel)),
+        ident,
+    )
     sel = tuple(specs[i] for i in ident.identified)
     P = len(sel)
-    if 3 * N <= P:
-        raise InputError(
-            f"{N} measurements give {3 * N} equations for {P} identifiable parameters; "
-            f"measure at least {P // 3 + 1} poses"
-        )
-    state, Jw, nfev = _least_squares(baseline, sel, q, measured, w)
+    try:
+        state, Jw, more = _least_squares(baseline, sel, q, measured, w)
+    except ConvergenceError:
+        raise diagnosis("the identification did not converge") from None
+    nfev += more
     if robust is not None:
         r = np.linalg.norm((measured - predict(state, q)) * w, axis=1)
         f_scale = 2.5 * max(float(np.median(r)) / 1.5382, 1e-12)
-        state, Jw, more = _least_squares(state, sel, q, measured, w, robust, f_scale)
+        try:
+            state, Jw, more = _least_squares(state, sel, q, measured, w, robust, f_scale)
+        except ConvergenceError:
+            raise diagnosis(f"the robust ({robust}) identification did not converge") from None
         nfev += more
-    lost_tool = [s.name for s in specs if s.kind == "tool" and s.name not in {x.name for x in sel}]
+    lost_tool = [s.name for s in specs if s.kind == "tool" and s not in sel]
     if lost_tool:
         warnings.append(
             f"the target offset ({', '.join(lost_tool)}) is not identifiable from these poses "
             "(does the flange orientation never change?); it stays at its nominal value and "
             "the model holds only at the measured orientations"
         )
-    big = [
-        e
-        for e in estimates_preview(state, nominal, sel)
-        if (e[1] == "mm" and abs(e[2]) > IMPLAUSIBLE_MM)
-        or (e[1] == "deg" and abs(e[2]) > IMPLAUSIBLE_DEG)
-    ]
-    if big:
-        shown = ", ".join(f"{n} {v:+.3g} {u}" for n, u, v in big[:4])
-        warnings.append(
-            f"corrections far beyond manufacturing tolerances ({shown}): check the model "
-            "(--model), the joint order and signs, and the units of the data"
-        )
+    _refuse_or_note(
+        assess(nominal, estimates_preview(state, nominal, sel), state.tool), accept, warnings
+    )
     if ident.condition_number > ILL_CONDITIONED:
         warnings.append(
             f"the identification is ill-conditioned (condition number "
@@ -309,7 +419,7 @@ def calibrate(
 
     residuals = measured - predict(state, q)
     dof = 3 * N - P
-    sigma0 = float(np.sqrt(np.sum((residuals * w) ** 2) / dof))
+    sigma0 = _sigma0(residuals, w, dof)
     try:
         cov: Array = np.asarray(sigma0**2 * np.linalg.inv(Jw.T @ Jw), dtype=np.float64)
         std = np.sqrt(np.clip(np.diag(cov), 0.0, None))
@@ -320,7 +430,7 @@ def calibrate(
 
     sel_index = {s.name: k for k, s in enumerate(sel)}
     estimates = []
-    for sp in specs:
+    for i, sp in enumerate(specs):
         if sp.kind.startswith("frame"):
             continue
         k = sel_index.get(sp.name)
@@ -331,9 +441,19 @@ def calibrate(
                 getattr(state.model.joints[sp.joint - 1], sp.kind)
                 - getattr(nominal.joints[sp.joint - 1], sp.kind)
             )
+            value = wrap_deg(value) if sp.is_angle else value
         sd = 0.0 if k is None else sp.to_display(float(std[k]))
         estimates.append(
-            ParameterEstimate(sp.name, sp.kind, sp.joint, sp.unit, k is not None, value, sd)
+            ParameterEstimate(
+                sp.name,
+                sp.kind,
+                sp.joint,
+                sp.unit,
+                k is not None,
+                value,
+                sd,
+                "" if k is not None else ident.reason(i),
+            )
         )
     tool_std = np.array([e.std for e in estimates if e.kind == "tool"])
     frame_std = _frame_std(state, sel, cov)

@@ -27,7 +27,7 @@ from typing import Literal
 
 import numpy as np
 
-from cellcal.calib.geometry import Array
+from cellcal.calib.geometry import Array, wrap_deg
 from cellcal.errors import InputError
 
 Convention = Literal["dh", "mdh"]
@@ -175,19 +175,25 @@ def _deg(rad: float) -> float:
     return round(math.degrees(rad), 12) + 0.0
 
 
+def _angle(rad: float) -> float:
+    """A geometric angle in degrees, wrapped to (−180°, 180°]."""
+    return wrap_deg(_deg(rad))
+
+
 def model_to_dict(model: RobotModel) -> dict[str, object]:
     """The contract's TOML structure (mm, deg) of a model. ``beta`` (an optional key that
-    cellcal adds to the format) is written only where it is not zero."""
+    cellcal adds to the format) is written only where it is not zero; θ, α, β are wrapped
+    to (−180°, 180°]."""
     rows: list[dict[str, float]] = []
     for j in model.joints:
         row = {
             "a": j.a,
-            "alpha": _deg(j.alpha),
+            "alpha": _angle(j.alpha),
             "d": j.d,
-            "theta": _deg(j.theta),
+            "theta": _angle(j.theta),
         }
         if j.beta != 0.0:
-            row["beta"] = _deg(j.beta)
+            row["beta"] = _angle(j.beta)
         if math.isfinite(j.q_min):
             row["min"] = _deg(j.q_min)
         if math.isfinite(j.q_max):

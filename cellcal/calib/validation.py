@@ -7,6 +7,7 @@ points. k-fold cross-validation fits k times, each time holding one fold out.
 
 from __future__ import annotations
 
+from collections.abc import Collection
 from dataclasses import dataclass
 
 import numpy as np
@@ -87,8 +88,12 @@ def cross_validate(
     folds: int = 5,
     seed: int = 0,
     robust: str | None = None,
+    paper_parameters: bool = False,
+    fix: Collection[str] = (),
 ) -> Validation:
-    """k-fold cross-validation: every point is predicted by a calibration without it."""
+    """k-fold cross-validation: every point is predicted by a calibration without it,
+    made with the same options as the calibration it validates (a fold is not refused by
+    the acceptance checks: the calibration on all points was checked)."""
     q, measured, sigma = check_measurements(nominal, q, measured, sigma)
     N = len(q)
     if folds < 2 or folds > N:
@@ -100,7 +105,16 @@ def cross_validate(
         held = order[k::folds]
         train = np.setdiff1d(order, held)
         s = None if sigma is None else sigma[train]
-        res = calibrate(nominal, q[train], measured[train], s, robust=robust)
+        res = calibrate(
+            nominal,
+            q[train],
+            measured[train],
+            s,
+            robust=robust,
+            paper_parameters=paper_parameters,
+            fix=fix,
+            accept=True,
+        )
         base = fit_frames(nominal, q[train], measured[train], s)
         eb[held] = measured[held] - predict(base, q[held])
         ea[held] = measured[held] - res.predict(q[held])

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import Any
 
 import click
@@ -15,11 +16,12 @@ from cellcal.calib.identification import (
 from cellcal.calib.identification import (
     calibrate as run_calibration,
 )
+from cellcal.calib.outliers import OUTLIER_Z, PointResidual, point_residuals
 from cellcal.calib.validation import Validation, cross_validate, validate_on
 from cellcal.commands.output import SEED, print_json, warn
-from cellcal.errors import InputError, UserError
+from cellcal.errors import AcceptanceError, InputError, UserError
 from cellcal.measurementfiles import read_measurements
-from cellcal.modelfiles import load_model, write_calibrated
+from cellcal.modelfiles import builtin_names, load_model, write_calibrated
 
 #: The paper's figures (Liu et al. 2018, Sec. 4.2): position error after calibration with
 #: another registration method (0.436) and with its own (0.200), and outside the region.
@@ -31,13 +33,42 @@ def _stats(v: Validation, which: str) -> dict[str, float]:
     return {"mean_mm": s.mean, "rms_mm": s.rms, "max_mm": s.max, "p95_mm": s.p95, "n": s.n}
 
 
-def _report(res: CalibrationResult, v: Validation | None, data_path: str) -> None:
+def at_nominal_text(res: CalibrationResult) -> str:
+    """Parameters left at nominal, grouped by why."""
+    why = {"rank": "not identifiable", "weak": "hidden by the noise", "fixed": "fixed"}
+    parts = []
+    for reason, label in why.items():
+        names = [p.name for p in res.parameters if p.at_nominal == reason]
+        if names:
+            parts.append(f"{', '.join(names)} ({label})")
+    return "; ".join(parts) or "none"
+
+
+def echo_points(points: tuple[PointResidual, ...], title: str) -> None:
+    """The per-point table: name, residual vector, length, robust z, flag (mm)."""
+    width = max([len(p.name) for p in points] + [5])
+    click.echo(f"{title} (mm; z: robust z-score, outliers above {OUTLIER_Z:g}):")
+    click.echo(f"  {'point':<{width}}{'dx':>11}{'dy':>11}{'dz':>11}{'|e|':>11}{'z':>7}")
+    for p in points:
+        flag = "  outlier" if p.outlier else ""
+        click.echo(
+            f"  {p.name:<{width}}{p.dx:11.4f}{p.dy:11.4f}{p.dz:11.4f}{p.error:11.4f}"
+            f"{p.z:7.1f}{flag}"
+        )
+
+
+def _report(
+    res: CalibrationResult,
+    v: Validation | None,
+    data_path: str,
+    points: tuple[PointResidual, ...],
+) -> None:
     m = res.nominal
     click.echo(f"calibrate: {m.name} ({m.convention}), {res.n_points} points from {data_path}")
     n_all = len(res.parameters)
     click.echo(
         f"identified {len(res.identified)} of {n_all} parameters, plus the instrument frame; "
-        f"left at nominal: {', '.join(res.unidentifiable) or 'none'}"
+        f"left at nominal: {at_nominal_text(res)}"
     )
     line = f"condition number {res.condition_number:.3g}"
     if res.identifiability.correlated:
@@ -51,9 +82,9 @@ def _report(res: CalibrationResult, v: Validation | None, data_path: str) -> Non
     )
     if v is not None:
         click.echo(f"validation ({v.method}, {v.after.n} held-out points), position error in mm:")
-        click.echo("            mean      RMS      max      p95")
+        click.echo(f"  {'':<7}{'mean':>11}{'RMS':>11}{'max':>11}{'p95':>11}")
         for label, s in (("before", v.before), ("after", v.after)):
-            click.echo(f"  {label:<7}{s.mean:9.4f}{s.rms:9.4f}{s.max:9.4f}{s.p95:9.4f}")
+            click.echo(f"  {label:<7}{s.mean:11.4f}{s.rms:11.4f}{s.max:11.4f}{s.p95:11.4f}")
         pct = 100.0 * (1.0 - v.after.rms / v.before.rms)
         click.echo(
             f"  held-out RMS {v.improvement:.1f}× lower ({pct:.1f} % reduction); the paper, "
@@ -64,7 +95,8 @@ def _report(res: CalibrationResult, v: Validation | None, data_path: str) -> Non
     click.echo("parameters (correction to nominal ± 1σ; target offset as estimated):")
     for p in res.parameters:
         if p.identified:
-            click.echo(f"  {p.name:<8}{p.value:+12.5f} ± {p.std:.5f} {p.unit}")
+            click.echo(f"  {p.name:<8}{p.value:+13.5f} ± {p.std:.5f} {p.unit}")
+    echo_points(points, "per-point residuals after the fit")
     T = res.T_instrument_base
     rv = np.degrees(so3_log(T[:3, :3]))
     sd = res.frame_std
@@ -106,6 +138,18 @@ def _report(res: CalibrationResult, v: Validation | None, data_path: str) -> Non
 @click.option(
     "--paper-parameters", is_flag=True, help="The paper's θ, d, a, α on every row (no Hayati β)."
 )
+@click.option(
+    "--fix",
+    "fix",
+    help="Parameters to keep at nominal, comma-separated (e.g. alpha5,a5); 'kinematics' "
+    "holds the whole geometry (re-registers a new set-up with a calibrated --model), "
+    "'tool' the target offset.",
+)
+@click.option(
+    "--accept",
+    is_flag=True,
+    help="Write the model even if an acceptance check fails (the failures are recorded).",
+)
 @click.option("--seed", type=SEED, default=0, show_default=True, help="Seed of the k-fold split.")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout.")
 def calibrate(
@@ -116,33 +160,55 @@ def calibrate(
     folds: int,
     robust: str | None,
     paper_parameters: bool,
+    fix: str | None,
+    accept: bool,
     seed: int,
     as_json: bool,
 ) -> None:
-    """Identify the kinematic errors from measured target positions."""
+    """Identify the kinematic errors from measured target positions.
+
+    The model (--model) is a built-in name or a TOML file of revolute joints (standard
+    or modified DH, any number of joints); a calibrated model written by --out is
+    accepted too, e.g. with --fix kinematics to re-register a new set-up. A result that
+    fails an acceptance check (the target does not follow the robot, units that do not
+    fit, corrections beyond manufacturing tolerances, no convergence) exits 3 and writes
+    nothing unless --accept is given.
+    """
+    if folds and folds < 2:
+        raise InputError("--folds must be 0 (no validation) or at least 2")
     loaded = load_model(model_spec)
-    nominal = loaded.model
+    x, y, z = (float(v) for v in loaded.tool)
+    nominal = replace(loaded.model, tool_xyz=(x, y, z))
+    pinned = tuple(n.strip() for n in (fix or "").split(",") if n.strip())
     data = read_measurements(data_path, nominal.dof)
+    alternatives = tuple(load_model(n).model for n in builtin_names())
+    options: dict[str, Any] = {"robust": robust, "paper_parameters": paper_parameters}
     res = run_calibration(
-        nominal, data.q, data.xyz, data.sigma, robust=robust, paper_parameters=paper_parameters
+        nominal,
+        data.q,
+        data.xyz,
+        data.sigma,
+        fix=pinned,
+        accept=accept,
+        alternatives=alternatives,
+        **options,
     )
     validation: Validation | None = None
     if validate_path is not None:
         val = read_measurements(validate_path, nominal.dof)
         validation = validate_on(res, data.q, data.xyz, val.q, val.xyz, data.sigma)
     elif folds:
-        if folds < 2:
-            raise InputError("--folds must be 0 (no validation) or at least 2")
         try:
             validation = cross_validate(
-                nominal, data.q, data.xyz, data.sigma, folds=folds, seed=seed, robust=robust
+                nominal, data.q, data.xyz, data.sigma, folds=folds, seed=seed, fix=pinned, **options
             )
-        except UserError as exc:
+        except (UserError, AcceptanceError) as exc:
             warn(f"k-fold validation skipped: {exc}")
+    points = point_residuals(data.names, res.residuals)
     for w in res.warnings:
         warn(w)
     if out_path is not None:
-        write_calibrated(out_path, res, validation, data_path)
+        write_calibrated(out_path, res, validation, data_path, points)
     if as_json:
         doc: dict[str, Any] = {
             "n_points": res.n_points,
@@ -180,11 +246,14 @@ def calibrate(
                 "after_mm": PAPER_AFTER_MM,
                 "outside_mm": PAPER_OUTSIDE_MM,
             },
+            "at_nominal": {p.name: p.at_nominal for p in res.parameters if not p.identified},
+            "points": [p.as_dict() for p in points],
+            "outliers": [p.name for p in points if p.outlier],
             "warnings": list(res.warnings),
             "out": out_path,
         }
         print_json(doc)
     else:
-        _report(res, validation, data_path)
+        _report(res, validation, data_path, points)
         if out_path is not None:
             click.echo(f"wrote {out_path}")

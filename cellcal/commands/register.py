@@ -8,6 +8,7 @@ import click
 import numpy as np
 
 from cellcal.calib.geometry import rotation_angle, so3_log
+from cellcal.calib.outliers import PointResidual, dominant, point_residuals
 from cellcal.calib.registration import (
     METHODS,
     ROBUST,
@@ -34,7 +35,9 @@ def _fit(m: MatchedPoints, method: str, **opts: Any) -> RigidFit:
     return fit_rigid(m.src, m.dst, method=method, **opts)
 
 
-def _report(fit: RigidFit, m: MatchedPoints, loo: LeaveOneOut | None) -> None:
+def _report(
+    fit: RigidFit, m: MatchedPoints, loo: LeaveOneOut | None, points: tuple[PointResidual, ...]
+) -> None:
     deg = np.degrees
     rv = so3_log(fit.R)
     angle = rotation_angle(fit.R)
@@ -57,11 +60,17 @@ def _report(fit: RigidFit, m: MatchedPoints, loo: LeaveOneOut | None) -> None:
             f"  step {k}: axis ({a:.5g}, {b:.5g}, {c:.5g})  α {deg(st.alpha):.4f}°  "
             f"β {deg(st.beta):.4f}°  θ {deg(st.theta):.6f}°"
         )
-    click.echo("residuals (mm)        dx        dy        dz      |d|")
-    width = max(len(n) for n in m.names)
-    for name, r, d, ok in zip(m.names, fit.residuals, fit.residual_norms, fit.inliers, strict=True):
-        flag = "" if ok else "  outlier"
-        click.echo(f"  {name:<{width}} {r[0]:9.4f} {r[1]:9.4f} {r[2]:9.4f} {d:8.4f}{flag}")
+    width = max(max(len(n) for n in m.names), len("residuals (mm)"))
+    z_of = "leave-one-out" if loo is not None else "residual"
+    click.echo(
+        f"  {'residuals (mm)':<{width}} {'dx':>11} {'dy':>11} {'dz':>11} {'|d|':>10}  z ({z_of})"
+    )
+    for p, ok in zip(points, fit.inliers, strict=True):
+        flag = "  outlier" if p.outlier else ("  rejected" if not ok else "")
+        click.echo(
+            f"  {p.name:<{width}} {p.dx:11.4f} {p.dy:11.4f} {p.dz:11.4f} {p.error:10.4f}"
+            f"  {p.z:5.1f}{flag}"
+        )
     stats = f"RMS {fit.rms:.4f} mm   max {fit.max:.4f} mm"
     if np.isfinite(fit.sigma0):
         stats += f"   σ₀ {fit.sigma0:.4g} (dof {fit.dof})"
@@ -151,8 +160,19 @@ def register(
     loo = None
     if m.src.shape[0] >= 4 and robust is None:
         loo = leave_one_out(m.src, m.dst, method=method, **opts)
+    points = point_residuals(
+        m.names, fit.residuals, None if loo is None or not np.isfinite(loo.rms) else loo.norms
+    )
+    hints = []
+    top = dominant(points)
+    if top is not None and robust is None:
+        share = 100.0 * top.error**2 / sum(p.error**2 for p in points)
+        hints.append(
+            f"point {top.name} carries {share:.0f} % of the squared error: re-measure it, or "
+            "try --robust huber (or --robust ransac)"
+        )
     # Warnings only once the fit stands: an error is always the one line on stderr.
-    for w in (*m.warnings, *fit.warnings):
+    for w in (*m.warnings, *fit.warnings, *hints):
         warn(w)
     if as_json:
         cov = fit.covariance
@@ -179,8 +199,10 @@ def register(
                 "translation_std_mm": None if sd is None else sd[3:],
                 "condition_number": fit.condition,
                 "support_points": [[m.names[i] for i in g] for g in fit.support_points],
-                "warnings": list(m.warnings) + list(fit.warnings),
+                "points": [p.as_dict() for p in points],
+                "outliers": [p.name for p in points if p.outlier],
+                "warnings": list(m.warnings) + list(fit.warnings) + hints,
             }
         )
     else:
-        _report(fit, m, loo)
+        _report(fit, m, loo, points)

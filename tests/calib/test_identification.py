@@ -11,7 +11,7 @@ from cellcal.calib.error_model import State, jacobian, parameter_specs, predict
 from cellcal.calib.identifiability import analyse
 from cellcal.calib.identification import calibrate, fit_frames
 from cellcal.calib.validation import ErrorStats, cross_validate
-from cellcal.errors import ConvergenceError, DegenerateGeometryError, InputError
+from cellcal.errors import DegenerateGeometryError, InputError
 from cellcal.mocks.robot_truth import measure, random_cell, random_joints
 from cellcal.modelfiles import load_model
 from tests.calib.simulated import NOISE_MM, paper_cube, well_spread
@@ -181,20 +181,6 @@ def test_degenerate_measurements():
         calibrate(nominal, q, line)
 
 
-def test_non_convergence_is_a_clear_error(monkeypatch):
-    import cellcal.calib.identification as ident
-
-    class Failed:
-        success = False
-        x = np.zeros(1)
-        message = "maximum number of function evaluations exceeded"
-
-    monkeypatch.setattr(ident, "least_squares", lambda *a, **k: Failed())
-    d = well_spread("kuka-kr5-arc")
-    with pytest.raises(ConvergenceError, match="did not converge"):
-        calibrate(load_model("kuka-kr5-arc").model, d.q, d.m)
-
-
 def test_measure_is_reproducible():
     nominal = load_model("ur5e").model
     a = random_cell(nominal, np.random.default_rng(7))
@@ -204,11 +190,3 @@ def test_measure_is_reproducible():
     np.testing.assert_array_equal(
         measure(a, q, np.random.default_rng(9), 0.01), measure(b, q, np.random.default_rng(9), 0.01)
     )
-
-
-def test_the_wrong_model_is_flagged():
-    d = well_spread("kuka-kr5-arc")
-    res = calibrate(load_model("ur5e").model, d.q % (2 * np.pi) - np.pi, d.m)
-    assert any("beyond manufacturing tolerances" in w for w in res.warnings)
-    ok = calibrate(load_model("kuka-kr5-arc").model, d.q, d.m)
-    assert not any("tolerances" in w for w in ok.warnings)
