@@ -20,6 +20,7 @@ from cellcal.commands.mock import mock
 from cellcal.commands.models import models
 from cellcal.commands.predict import predict
 from cellcal.commands.register import register
+from cellcal.commands.report import campaign, report
 from cellcal.commands.run import run
 from cellcal.commands.tracker import tracker
 from cellcal.errors import AcceptanceError, UserError
@@ -44,7 +45,7 @@ def cli(verbose: int) -> None:
     logging.basicConfig(level=level, format="cellcal: %(name)s: %(message)s", force=True)
 
 
-for command in (run, register, calibrate, predict, models, tracker, mock):
+for command in (run, register, calibrate, predict, models, tracker, mock, report, campaign):
     cli.add_command(command)
 
 

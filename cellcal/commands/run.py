@@ -12,11 +12,14 @@ from typing import Any
 
 import click
 
+from cellcal.commands.calibrate import at_nominal_text, echo_points
 from cellcal.commands.output import NON_NEGATIVE, SEED, print_json
 from cellcal.config import CellConfig, load_config
 from cellcal.daemon.analysis import PAPER, CampaignSummary
 from cellcal.daemon.campaign import CampaignOutcome, resume_campaign, start_campaign
 from cellcal.daemon.plan import PlannedPose
+from cellcal.daemon.report import write_report
+from cellcal.daemon.store import Store
 from cellcal.errors import InputError
 
 EXIT_INTERRUPTED = 130
@@ -101,22 +104,22 @@ def _print_summary(out: CampaignOutcome) -> None:
         )
     c = s.calibration
     click.echo(
-        f"calibration from {s.reference}: {len(c.identified)} parameters identified, left at "
-        f"nominal: {', '.join(c.unidentifiable) or 'none'}; "
+        f"calibration from {s.reference}: {len(c.identified)} parameters identified; "
         f"condition number {c.condition_number:.3g}"
     )
     for w in c.warnings:
         click.echo(f"  warning: {w}")
+    click.echo(f"  left at nominal: {at_nominal_text(c)}")
     outside = ", ".join(r.region for r in s.regions if r.region != "cube") or "none"
     click.echo(f"position error at the validation poses ({s.reference}; outside: {outside}), mm:")
-    click.echo("                               mean      RMS      max      p95")
+    click.echo(f"  {'':<26}{'mean':>11}{'RMS':>11}{'max':>11}{'p95':>11}")
     rows = [("inside the cube", s.inside), ("outside the cube", s.outside)]
     for label, region in rows:
         if region is None:
             continue
         for stage, st in (("before", region.before), ("after", region.after)):
             first = label if stage == "before" else ""
-            numbers = "".join(f"{v:9.4f}" for v in (st.mean, st.rms, st.max, st.p95))
+            numbers = "".join(f"{v:11.4f}" for v in (st.mean, st.rms, st.max, st.p95))
             click.echo(f"  {first:<18}{stage:<8}{numbers}")
     click.echo(
         f"  all {s.n_validation} poses: RMS {s.validation_before.rms:.4f} → "
@@ -127,6 +130,7 @@ def _print_summary(out: CampaignOutcome) -> None:
         f"({PAPER['other_method_mm']:.3f} mm with another registration method), "
         f"{PAPER['cl_outside_mm']:.3f} mm outside it"
     )
+    echo_points(s.points, f"{s.reference} at the calibration poses (by plan index)")
     click.echo(f"database: {out.db_path} (campaign {out.campaign_id})")
 
 
@@ -147,6 +151,12 @@ def _print_summary(out: CampaignOutcome) -> None:
 @click.option(
     "--resume", "resume_id", type=int, help="Continue campaign ID from its last stored pose."
 )
+@click.option(
+    "--accept",
+    is_flag=True,
+    help="Analyse and store the result even if an acceptance check fails (recorded).",
+)
+@click.option("--report", "report_dir", help="Write the campaign's report folder here at the end.")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout.")
 def run(
     config_path: str | None,
@@ -155,9 +165,18 @@ def run(
     seed: int | None,
     time_scale: float | None,
     resume_id: int | None,
+    accept: bool,
+    report_dir: str | None,
     as_json: bool,
 ) -> None:
-    """Run a whole campaign: plan, acquire, store, register, calibrate, validate, report."""
+    """Run a whole campaign: plan, acquire, store, register, calibrate, validate, report.
+
+    Every sample is stored before the analysis; a result that fails an acceptance check
+    (the target does not follow the robot, units, implausible corrections) exits 3 and
+    leaves the campaign stored with status "refused" (--resume ID --accept analyses it
+    anyway)."""
+    if report_dir is not None and Path(report_dir).exists() and not Path(report_dir).is_dir():
+        raise InputError(f"--report {report_dir}: exists and is not a folder")
     if db_path is not None and not Path(db_path).resolve().parent.is_dir():
         raise InputError(f"--db {db_path}: folder {Path(db_path).parent} does not exist")
     stop = threading.Event()
@@ -171,13 +190,16 @@ def run(
     try:
         if resume_id is not None:
             if config_path or mock or seed is not None:
-                raise InputError("--resume takes only --db, --time-scale and --json")
+                raise InputError(
+                    "--resume takes only --db, --time-scale, --accept, --report and --json"
+                )
             outcome = resume_campaign(
                 db_path or "cellcal.db",
                 resume_id,
                 time_scale=time_scale,
                 stop=stop,
                 progress=progress,
+                accept=accept,
             )
         else:
             if config_path is not None:
@@ -197,6 +219,7 @@ def run(
                 time_scale=time_scale or 0.0,
                 stop=stop,
                 progress=progress,
+                accept=accept,
             )
     finally:
         for signum, handler in previous.items():
@@ -210,6 +233,13 @@ def run(
             err=True,
         )
         sys.exit(EXIT_INTERRUPTED)
+    folder = None
+    if report_dir is not None:
+        store = Store(outcome.db_path, readonly=True)
+        try:
+            folder = write_report(store, outcome.campaign_id, report_dir).folder
+        finally:
+            store.close()
     if as_json:
         s = outcome.summary
         doc: dict[str, Any] = {
@@ -223,8 +253,11 @@ def run(
             "database": outcome.db_path,
             "unreachable": len(outcome.plan.unreachable),
             "clock_seconds": outcome.acquisition.clock_seconds,
+            "report": folder,
             **{k: v for k, v in s.to_dict().items() if k not in ("campaign_id",)},
         }
         print_json(doc)
     else:
         _print_summary(outcome)
+        if folder is not None:
+            click.echo(f"report: {folder}")

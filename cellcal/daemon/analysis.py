@@ -9,15 +9,17 @@ from typing import Any
 
 import numpy as np
 
+from cellcal.calib.acceptance import ACCURACY_CLASS_MM, CHECK_REGISTRATION, check_data
 from cellcal.calib.error_model import predict
 from cellcal.calib.geometry import Array
 from cellcal.calib.identification import CalibrationResult, calibrate, fit_frames
+from cellcal.calib.outliers import PointResidual, point_residuals
 from cellcal.calib.robot_model import RobotModel
 from cellcal.calib.validation import ErrorStats
 from cellcal.daemon.plan import CALIBRATION, VALIDATION
 from cellcal.daemon.store import Store
-from cellcal.errors import CampaignError
-from cellcal.modelfiles import calibrated_toml
+from cellcal.errors import AcceptanceError, CampaignError
+from cellcal.modelfiles import builtin_names, calibrated_toml, load_model
 
 #: Liu et al. 2018, Sec. 4.2 and Table 3 (mm): error after calibration with another
 #: registration method, with the characteristic-line method, and outside the region.
@@ -62,6 +64,8 @@ class CampaignSummary:
     inside: RegionErrors | None
     outside: RegionErrors | None
     regions: tuple[RegionErrors, ...]
+    #: the reference sensor's residual at each calibration pose (named by plan index)
+    points: tuple[PointResidual, ...] = ()
 
     @property
     def improvement_pct(self) -> float:
@@ -116,6 +120,8 @@ class CampaignSummary:
                 "unidentifiable": list(c.unidentifiable),
                 "warnings": list(c.warnings),
             },
+            "points": [p.as_dict() for p in self.points],
+            "outliers": [p.name for p in self.points if p.outlier],
             "paper": PAPER,
         }
 
@@ -124,8 +130,17 @@ def _rms(e: Array) -> float:
     return float(np.sqrt(np.mean(np.sum(e * e, axis=1)))) if len(e) else float("nan")
 
 
-def analyse(store: Store, campaign_id: int, nominal: RobotModel, reference: str) -> CampaignSummary:
-    """Register, calibrate, validate; store the results; return the summary."""
+def analyse(
+    store: Store,
+    campaign_id: int,
+    nominal: RobotModel,
+    reference: str,
+    *,
+    accept: bool = False,
+) -> CampaignSummary:
+    """Register, calibrate, validate; store the results; return the summary. A result
+    that fails an acceptance check raises :class:`AcceptanceError` and stores nothing of
+    the analysis (the samples stay), unless ``accept``."""
     data = store.pose_data(campaign_id)
     role = np.array(data.role)
     region = np.array(data.region)
@@ -143,16 +158,34 @@ def analyse(store: Store, campaign_id: int, nominal: RobotModel, reference: str)
         return out
 
     ref_m = data.mean[reference]
-    result = calibrate(nominal, q_cal, ref_m[cal], sigma(reference, cal))
     if not val.any():
         raise CampaignError(f"campaign {campaign_id}: no validation poses were measured")
+    alternatives = tuple(load_model(n).model for n in builtin_names())
+    result = calibrate(
+        nominal,
+        q_cal,
+        ref_m[cal],
+        sigma(reference, cal),
+        accept=accept,
+        alternatives=alternatives,
+    )
     registrations = []
     writes: list[tuple[str, tuple[Any, ...]]] = []
     for sensor in sorted(data.mean):
         m = data.mean[sensor][cal]
         s = sigma(sensor, cal)
+        check = check_data(nominal, q_cal, m, nominal.tool)
+        if check and not accept:
+            raise AcceptanceError(check[0].check, f"sensor {sensor}: {check[0].message}")
         base = fit_frames(nominal, q_cal, m, s)
         e_nom = m - predict(base, q_cal)
+        if _rms(e_nom) > ACCURACY_CLASS_MM and not accept:
+            raise AcceptanceError(
+                CHECK_REGISTRATION,
+                f"sensor {sensor}: the nominal model with best-fit frames leaves RMS "
+                f"{_rms(e_nom):.3g} mm, far worse than any robot's accuracy class: its samples "
+                "do not belong to this robot's poses (another target, a clock out of step)",
+            )
         after = fit_frames(result.calibrated, q_cal, m, s)
         e_cal = m - predict(after, q_cal)
         T = base.T_instrument_base
@@ -169,25 +202,15 @@ def analyse(store: Store, campaign_id: int, nominal: RobotModel, reference: str)
                 target_offset_calibrated_mm=after.tool,
             )
         )
-        store.add_registration(
-            campaign_id,
-            sensor,
-            "nominal",
-            int(cal.sum()),
-            _rms(e_nom),
-            float(np.max(np.linalg.norm(e_nom, axis=1))),
-            T,
-            base.tool,
-        )
-        store.add_registration(
-            campaign_id,
-            sensor,
-            "calibrated",
-            int(cal.sum()),
-            _rms(e_cal),
-            float(np.max(np.linalg.norm(e_cal, axis=1))),
-            after.T_instrument_base,
-            after.tool,
+        n_cal = int(cal.sum())
+        e_max_nom = float(np.max(np.linalg.norm(e_nom, axis=1)))
+        e_max_cal = float(np.max(np.linalg.norm(e_cal, axis=1)))
+        writes.append((sensor, ("nominal", n_cal, _rms(e_nom), e_max_nom, T, base.tool)))
+        writes.append(
+            (
+                sensor,
+                ("calibrated", n_cal, _rms(e_cal), e_max_cal, after.T_instrument_base, after.tool),
+            )
         )
 
     baseline = fit_frames(nominal, q_cal, ref_m[cal], sigma(reference, cal))
@@ -217,6 +240,7 @@ def analyse(store: Store, campaign_id: int, nominal: RobotModel, reference: str)
         inside=inside,
         outside=outside,
         regions=regions,
+        points=point_residuals([str(int(i)) for i in data.idx[cal]], result.residuals),
     )
     # All results of one analysis in one transaction: a crash leaves none or all.
     with store.transaction():
@@ -231,7 +255,7 @@ def analyse(store: Store, campaign_id: int, nominal: RobotModel, reference: str)
             condition_number=result.condition_number,
             identified=result.identified,
             unidentifiable=result.unidentifiable,
-            model_toml=calibrated_toml(result, None, f"campaign {campaign_id}"),
+            model_toml=calibrated_toml(result, None, f"campaign {campaign_id}", summary.points),
         )
         store.add_report(campaign_id, summary.to_dict())
     return summary

@@ -21,7 +21,7 @@ from cellcal.daemon.devices import Devices, build_devices
 from cellcal.daemon.engine import Acquisition, Progress, acquire
 from cellcal.daemon.plan import CALIBRATION, VALIDATION, Plan, make_plan
 from cellcal.daemon.store import Store
-from cellcal.errors import CampaignError, UserError
+from cellcal.errors import AcceptanceError, CampaignError, UserError
 from cellcal.modelfiles import load_model
 
 
@@ -113,6 +113,7 @@ def _run(
     *,
     stop: threading.Event | None,
     progress: Progress | None,
+    accept: bool = False,
 ) -> CampaignOutcome:
     hint = (
         f"campaign {campaign_id} is resumable: cellcal run --resume {campaign_id} --db {store.path}"
@@ -146,7 +147,15 @@ def _run(
         store.set_status(campaign_id, "interrupted")
         return CampaignOutcome(campaign_id, store.path, config, plan, acquisition, None)
     try:
-        summary = analyse(store, campaign_id, nominal, config.reference_sensor.name)
+        summary = analyse(store, campaign_id, nominal, config.reference_sensor.name, accept=accept)
+    except AcceptanceError as exc:
+        store.add_event(campaign_id, "refused", str(exc))
+        store.set_status(campaign_id, "refused")
+        raise AcceptanceError(
+            exc.check,
+            f"{exc.message}; every sample is stored (campaign {campaign_id} in {store.path}); "
+            f"cellcal run --resume {campaign_id} --accept analyses it anyway",
+        ) from exc
     except UserError as exc:
         store.add_event(campaign_id, "analysis-failed", str(exc))
         store.set_status(campaign_id, "interrupted")
@@ -165,6 +174,7 @@ def start_campaign(
     time_scale: float = 0.0,
     stop: threading.Event | None = None,
     progress: Progress | None = None,
+    accept: bool = False,
 ) -> CampaignOutcome:
     """Plan, connect the devices, create a new campaign in ``db_path``, acquire and
     analyse it. Nothing is written before the plan and the devices are ready."""
@@ -205,6 +215,7 @@ def start_campaign(
                 clock,
                 stop=stop,
                 progress=progress,
+                accept=accept,
             )
         finally:
             store.close()
@@ -217,8 +228,9 @@ def resume_campaign(
     time_scale: float | None = None,
     stop: threading.Event | None = None,
     progress: Progress | None = None,
+    accept: bool = False,
 ) -> CampaignOutcome:
-    """Continue an interrupted campaign from its last stored pose, with its stored
+    """Continue an interrupted (or refused) campaign from its last stored pose, with its stored
     configuration; the plan must come out the same."""
     if not Path(db_path).is_file():
         raise CampaignError(f"{db_path}: no such database")
@@ -263,6 +275,7 @@ def resume_campaign(
                 clock,
                 stop=stop,
                 progress=progress,
+                accept=accept,
             )
         finally:
             store.close()

@@ -27,6 +27,7 @@ tables).
 
 from __future__ import annotations
 
+import contextlib
 import json
 import sqlite3
 from collections.abc import Callable, Iterable
@@ -34,6 +35,7 @@ from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
+from urllib.parse import quote
 
 import numpy as np
 import sqlite_utils
@@ -200,8 +202,13 @@ class PoseData:
 class Store:
     """One campaign database file."""
 
-    def __init__(self, path: str | Path) -> None:
+    def __init__(self, path: str | Path, *, readonly: bool = False) -> None:
         self.path = str(path)
+        self.readonly = readonly
+        if readonly:
+            self.conn = _open_readonly(self.path)
+            self.db = sqlite_utils.Database(self.conn)
+            return
         try:
             conn = sqlite3.connect(self.path, isolation_level=None, timeout=10.0)
             conn.execute("PRAGMA journal_mode=WAL")
@@ -219,6 +226,11 @@ class Store:
             )
         if version == 0 and self.db.table_names():
             raise StoreError(f"{self.path}: an SQLite file that is not a cellcal database")
+        if version >= 1 and not {"campaigns", "poses", "samples"} <= set(self.db.table_names()):
+            raise StoreError(
+                f"{self.path}: an SQLite file of another program (schema version {version} "
+                "but no cellcal tables)"
+            )
         self.migrate(version)
 
     def migrate(self, version: int) -> None:
@@ -231,6 +243,13 @@ class Store:
         return _Transaction(self.conn)
 
     def close(self) -> None:
+        """Close; a writer leaves the file in rollback-journal mode when it is the last
+        connection, so that a user who may not write the folder can still read it (a WAL
+        database needs its -shm file, which such a reader cannot create)."""
+        if not self.readonly:
+            # Another open connection keeps it WAL until the last one closes.
+            with contextlib.suppress(sqlite3.Error):
+                self.conn.execute("PRAGMA journal_mode=DELETE")
         self.conn.close()
 
     @property
@@ -301,7 +320,7 @@ class Store:
         )
 
     def set_status(self, campaign_id: int, status: str) -> None:
-        finished = _utc() if status in ("complete", "failed") else None
+        finished = _utc() if status in ("complete", "failed", "refused") else None
         with self.transaction():
             self.conn.execute(
                 "UPDATE campaigns SET status = ?, finished = ? WHERE id = ?",
@@ -505,6 +524,27 @@ class Store:
             (campaign_id,),
         ).fetchone()
         return None if row is None else dict(json.loads(row[0]))
+
+
+def _open_readonly(path: str) -> sqlite3.Connection:
+    """A read-only connection that needs no write access to the file or its folder."""
+    if not Path(path).is_file():
+        raise StoreError(f"{path}: no such database")
+    uri = f"file:{quote(str(Path(path).resolve()))}"
+    try:
+        conn = sqlite3.connect(f"{uri}?mode=ro", uri=True, isolation_level=None)
+        version = conn.execute("PRAGMA user_version").fetchone()[0]
+    except sqlite3.OperationalError:
+        # A WAL file whose -shm cannot be created here: read it as an immutable file.
+        conn = sqlite3.connect(f"{uri}?immutable=1", uri=True, isolation_level=None)
+        version = conn.execute("PRAGMA user_version").fetchone()[0]
+    except sqlite3.DatabaseError as exc:
+        raise StoreError(f"{path}: not a cellcal database ({exc})") from None
+    tables = {r[0] for r in conn.execute("SELECT name FROM sqlite_master WHERE type='table'")}
+    if not 1 <= version <= SCHEMA_VERSION or not {"campaigns", "poses", "samples"} <= tables:
+        conn.close()
+        raise StoreError(f"{path}: not a cellcal database (or one of another version)")
+    return conn
 
 
 class _Transaction:

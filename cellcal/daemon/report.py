@@ -1,0 +1,244 @@
+"""Campaign results out of the database: the campaign list and the report folder.
+
+The report folder holds ``summary.json`` (the analysis' summary with the campaign's
+facts), ``model.toml`` (the calibrated model, as ``calibrate --out`` writes it),
+``poses.csv`` (every stored pose: plan index, role, region, reached joints, each
+sensor's mean and sample count), one ``measurements-<sensor>.csv`` per sensor (the
+calibration poses in the ``calibrate`` format, with the σ of each mean as the analysis
+weighted it, so that ``cellcal calibrate`` reads it back to the same result), one
+``validation-<sensor>.csv`` (the validation poses, for ``--validate``), and a plain
+``index.html``. Files are written atomically; the database is only read.
+"""
+
+from __future__ import annotations
+
+import html
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from cellcal.calib.geometry import Array
+from cellcal.daemon.plan import CALIBRATION, VALIDATION
+from cellcal.daemon.store import PoseData, Store
+from cellcal.errors import CampaignError, InputError
+from cellcal.modelfiles import write_atomically
+
+#: The floor of a mean's σ (mm) — the analysis' own (daemon.analysis.SIGMA_FLOOR_MM).
+SIGMA_FLOOR_MM = 1e-4
+
+
+@dataclass(frozen=True)
+class CampaignListing:
+    """One line of ``cellcal campaign list``."""
+
+    id: int
+    created: str
+    status: str
+    model: str
+    sensors: tuple[str, ...]
+    n_poses: int
+    stored: int
+    rms_before_mm: float | None
+    rms_after_mm: float | None
+
+    def as_dict(self) -> dict[str, Any]:
+        return {
+            "id": self.id,
+            "created": self.created,
+            "status": self.status,
+            "model": self.model,
+            "sensors": list(self.sensors),
+            "n_poses": self.n_poses,
+            "poses_stored": self.stored,
+            "rms_before_mm": self.rms_before_mm,
+            "rms_after_mm": self.rms_after_mm,
+        }
+
+
+def list_campaigns(store: Store) -> list[CampaignListing]:
+    rows = store.conn.execute(
+        """SELECT c.id, c.created, c.status, c.model, c.sensors, c.n_poses,
+        (SELECT COUNT(*) FROM poses p WHERE p.campaign_id = c.id),
+        (SELECT summary FROM reports r WHERE r.campaign_id = c.id ORDER BY r.id DESC LIMIT 1)
+        FROM campaigns c ORDER BY c.id"""
+    ).fetchall()
+    out = []
+    for r in rows:
+        summary = json.loads(r[7]) if r[7] else {}
+        out.append(
+            CampaignListing(
+                id=int(r[0]),
+                created=str(r[1]),
+                status=str(r[2]),
+                model=str(r[3]),
+                sensors=tuple(json.loads(r[4])),
+                n_poses=int(r[5]),
+                stored=int(r[6]),
+                rms_before_mm=summary.get("rms_before_mm"),
+                rms_after_mm=summary.get("rms_after_mm"),
+            )
+        )
+    return out
+
+
+def latest_campaign(store: Store) -> int:
+    row = store.conn.execute("SELECT MAX(id) FROM campaigns").fetchone()
+    if row is None or row[0] is None:
+        raise CampaignError(f"{store.path}: no campaign in this database")
+    return int(row[0])
+
+
+def _number(v: float) -> str:
+    """Shortest text that reads back to the same float."""
+    return repr(float(v)) if math.isfinite(v) else ""
+
+
+def _sigma(data: PoseData, sensor: str) -> Array:
+    s = data.std[sensor] / np.sqrt(np.maximum(data.n[sensor], 1))[:, None]
+    out: Array = np.maximum(s, SIGMA_FLOOR_MM)
+    return out
+
+
+def measurements_csv(data: PoseData, sensor: str, role: str) -> str:
+    """The ``calibrate`` format: name (plan index), q (deg), x, y, z and sx, sy, sz (mm)."""
+    dof = data.q.shape[1]
+    head = ["name", *(f"q{i}" for i in range(1, dof + 1)), "x", "y", "z", "sx", "sy", "sz"]
+    lines = [",".join(head)]
+    mean, sig = data.mean[sensor], _sigma(data, sensor)
+    for k, idx in enumerate(data.idx):
+        if data.role[k] != role or not np.isfinite(mean[k]).all():
+            continue
+        values = [*np.degrees(data.q[k]), *mean[k], *sig[k]]
+        lines.append(",".join([str(int(idx)), *(_number(v) for v in values)]))
+    return "\n".join(lines) + "\n"
+
+
+def poses_csv(data: PoseData) -> str:
+    dof = data.q.shape[1]
+    sensors = sorted(data.mean)
+    head = ["idx", "role", "region", *(f"q{i}" for i in range(1, dof + 1))]
+    for s in sensors:
+        head += [f"{s}_x", f"{s}_y", f"{s}_z", f"{s}_n"]
+    lines = [",".join(head)]
+    for k, idx in enumerate(data.idx):
+        row = [str(int(idx)), data.role[k], data.region[k]]
+        row += [_number(v) for v in np.degrees(data.q[k])]
+        for s in sensors:
+            row += [_number(v) for v in data.mean[s][k]] + [str(int(data.n[s][k]))]
+        lines.append(",".join(row))
+    return "\n".join(lines) + "\n"
+
+
+def _html(title: str, facts: dict[str, Any], summary: dict[str, Any] | None) -> str:
+    def table(rows: list[tuple[str, str]]) -> str:
+        body = "".join(
+            f"<tr><th>{html.escape(k)}</th><td>{html.escape(v)}</td></tr>" for k, v in rows
+        )
+        return f"<table>{body}</table>"
+
+    parts = [f"<h1>{html.escape(title)}</h1>", table([(k, str(v)) for k, v in facts.items()])]
+    if summary is None:
+        parts.append("<p>No analysis is stored for this campaign (interrupted or refused).</p>")
+    else:
+        parts.append("<h2>Position error at the validation poses (mm)</h2>")
+        rows = []
+        for key in ("inside", "outside"):
+            r = summary.get(key)
+            if r:
+                for stage in ("before", "after"):
+                    st = r[stage]
+                    rows.append(
+                        (
+                            f"{key} the cube, {stage}",
+                            f"mean {st['mean_mm']:.4f}  RMS {st['rms_mm']:.4f}  "
+                            f"max {st['max_mm']:.4f}  p95 {st['p95_mm']:.4f}",
+                        )
+                    )
+        rows.append(("improvement", f"{summary['improvement_pct']:.1f} % (RMS, all poses)"))
+        parts.append(table(rows))
+        c = summary["calibration"]
+        parts.append("<h2>Calibration</h2>")
+        parts.append(
+            table(
+                [
+                    ("reference sensor", str(c["sensor"])),
+                    ("identified", ", ".join(c["identified"])),
+                    ("left at nominal", ", ".join(c["unidentifiable"]) or "none"),
+                    ("condition number", f"{c['condition_number']:.3g}"),
+                    ("warnings", "; ".join(c["warnings"]) or "none"),
+                ]
+            )
+        )
+        parts.append("<h2>Registrations (RMS with nominal / calibrated geometry, mm)</h2>")
+        parts.append(
+            table(
+                [
+                    (r["sensor"], f"{r['rms_nominal_mm']:.4f} / {r['rms_calibrated_mm']:.4f}")
+                    for r in summary["registrations"]
+                ]
+            )
+        )
+        outliers = summary.get("outliers") or []
+        parts.append(f"<p>Outlier poses: {html.escape(', '.join(outliers) or 'none')}</p>")
+    style = "body{font-family:sans-serif;margin:2em}th{text-align:left;padding-right:1em}"
+    return (
+        f'<!doctype html><html lang="en"><head><meta charset="utf-8"><title>'
+        f"{html.escape(title)}</title><style>{style}</style></head><body>"
+        + "".join(parts)
+        + "</body></html>\n"
+    )
+
+
+@dataclass(frozen=True)
+class ReportFolder:
+    campaign_id: int
+    folder: str
+    files: tuple[str, ...]
+    analysed: bool
+
+
+def write_report(store: Store, campaign_id: int | None, out: str | Path) -> ReportFolder:
+    """Write the report folder of a campaign (default: the latest) into ``out``."""
+    folder = Path(out)
+    if folder.exists() and not folder.is_dir():
+        raise InputError(f"--out {folder}: exists and is not a folder")
+    cid = latest_campaign(store) if campaign_id is None else campaign_id
+    row = store.campaign(cid)
+    data = store.pose_data(cid)
+    summary = store.latest_report(cid)
+    model = store.conn.execute(
+        "SELECT model_toml FROM calibrations WHERE campaign_id = ? ORDER BY id DESC LIMIT 1",
+        (cid,),
+    ).fetchone()
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise InputError(f"--out {folder}: cannot create ({exc.strerror})") from None
+    facts: dict[str, Any] = {
+        "campaign_id": cid,
+        "database": store.path,
+        "status": row.status,
+        "model": row.model,
+        "sensors": list(row.sensors),
+        "n_poses": row.n_poses,
+        "poses_stored": len(data.idx),
+        "samples_per_pose": row.samples_per_pose,
+        "mock": row.mock,
+    }
+    files: dict[str, str] = {
+        "summary.json": json.dumps({**facts, "summary": summary}, indent=2) + "\n",
+        "poses.csv": poses_csv(data),
+    }
+    for sensor in sorted(data.mean):
+        files[f"measurements-{sensor}.csv"] = measurements_csv(data, sensor, CALIBRATION)
+        files[f"validation-{sensor}.csv"] = measurements_csv(data, sensor, VALIDATION)
+    if model is not None:
+        files["model.toml"] = str(model[0])
+    files["index.html"] = _html(f"cellcal campaign {cid}", facts, summary)
+    for name, text in files.items():
+        write_atomically(folder / name, text)
+    return ReportFolder(cid, str(folder), tuple(files), summary is not None)

@@ -1,0 +1,161 @@
+"""Campaign results: refused analyses keep every sample and exit 3; the report folder and
+the campaign list read the database (read-only), and calibrate reads the report back."""
+
+from __future__ import annotations
+
+import json
+import os
+import sqlite3
+import stat
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from cellcal.cli import main
+from cellcal.commands.run import bundled_mock_cell
+from cellcal.daemon.campaign import resume_campaign, start_campaign
+from cellcal.errors import AcceptanceError
+from cellcal.mocks.simulated_cell import SimulatedCell
+
+
+def _cli(*args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "cellcal", *args], capture_output=True, text=True, timeout=300
+    )
+
+
+@pytest.fixture
+def static_tracker(monkeypatch):
+    """The tracker twin measures a reflector that never moves (the target does not follow
+    the robot), as a tracker aimed at a fixed nest would."""
+    real = SimulatedCell.true_position
+
+    def fixed(self, sensor, q=None):
+        p = real(self, sensor, q)
+        return np.array([1500.0, 200.0, 300.0]) if sensor == "tracker" else p
+
+    monkeypatch.setattr(SimulatedCell, "true_position", fixed)
+
+
+def test_a_target_that_does_not_follow_the_robot_is_refused_and_kept(tmp_path, static_tracker):
+    config, _ = bundled_mock_cell()
+    db = str(tmp_path / "c.db")
+    with pytest.raises(AcceptanceError) as info:
+        start_campaign(config, db, config_path=None, mock=True)
+    assert info.value.check == "target does not follow the robot"
+    assert "every sample is stored" in str(info.value)
+    conn = sqlite3.connect(db)
+    status, n_poses = conn.execute("SELECT status, n_poses FROM campaigns").fetchone()
+    assert status == "refused"
+    assert conn.execute("SELECT COUNT(*) FROM poses").fetchone()[0] == n_poses
+    assert conn.execute("SELECT COUNT(*) FROM calibrations").fetchone()[0] == 0
+    assert conn.execute("SELECT COUNT(*) FROM registrations").fetchone()[0] == 0
+    conn.close()
+    # --accept analyses it anyway and records why.
+    with pytest.raises(AcceptanceError):
+        resume_campaign(db, 1)
+    out = resume_campaign(db, 1, accept=True)
+    assert out.summary is not None
+    assert any("accepted despite" in w for w in out.summary.calibration.warnings)
+
+
+def test_run_exits_3_with_one_line(tmp_path, static_tracker, capsys):
+    with pytest.raises(SystemExit) as info:
+        main(["run", "--mock", "--db", str(tmp_path / "c.db")])
+    assert info.value.code == 3
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1].startswith("cellcal: refused: target does not follow the robot")
+
+
+@pytest.fixture(scope="module")
+def finished(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("finished")
+    res = _cli(
+        "run", "--mock", "--db", str(folder / "c.db"), "--report", str(folder / "r"), "--json"
+    )
+    assert res.returncode == 0, res.stderr
+    return folder, json.loads(res.stdout)
+
+
+def test_report_folder_reads_back_to_the_same_calibration(finished):
+    folder, run = finished
+    rep = folder / "r"
+    assert run["report"] == str(rep)
+    names = {p.name for p in rep.iterdir()}
+    assert {"summary.json", "model.toml", "poses.csv", "index.html"} <= names
+    assert {"measurements-tracker.csv", "measurements-rig.csv", "validation-tracker.csv"} <= names
+    summary = json.loads((rep / "summary.json").read_text())
+    res = _cli(
+        "calibrate",
+        "--model",
+        "kuka-kr5-arc",
+        "--data",
+        str(rep / "measurements-tracker.csv"),
+        "--validate",
+        str(rep / "validation-tracker.csv"),
+        "--json",
+    )
+    assert res.returncode == 0, res.stderr
+    again = json.loads(res.stdout)
+    cal = summary["summary"]["calibration"]
+    assert again["rms_after_mm"] == pytest.approx(cal["fit_rms_after_mm"], rel=1e-6)
+    assert again["identified"] == cal["identified"]
+    assert again["validation"]["after"]["rms_mm"] == pytest.approx(run["rms_after_mm"], rel=1e-6)
+    # The stored model is the one predict reads.
+    assert "cellcal-calibrated-model" in (rep / "model.toml").read_text()
+    assert len((rep / "poses.csv").read_text().splitlines()) == run["n_poses"] + 1
+    mode = stat.S_IMODE(os.stat(rep / "summary.json").st_mode)
+    assert mode & stat.S_IRGRP  # readable by others, like any file the user writes
+
+
+def test_report_and_list_on_a_read_only_folder(finished, tmp_path):
+    folder, _ = finished
+    db = folder / "c.db"
+    assert not (folder / "c.db-wal").exists()  # a finished database is one file
+    os.chmod(folder, 0o555)
+    try:
+        res = _cli("campaign", "list", "--db", str(db), "--json")
+        assert res.returncode == 0, res.stderr
+        rows = json.loads(res.stdout)["campaigns"]
+        assert rows[0]["status"] == "complete" and rows[0]["poses_stored"] > 0
+        res = _cli("report", "--db", str(db), "--out", str(tmp_path / "r2"))
+        assert res.returncode == 0, res.stderr
+        # Readers leave nothing behind (root may write anyway: this checks they do not).
+        assert sorted(p.name for p in folder.iterdir() if p.name.startswith("c.db")) == [
+            "c.db",
+            "c.db.lock",
+        ]
+    finally:
+        os.chmod(folder, 0o755)
+
+
+def test_campaign_list_text_and_errors(finished, tmp_path):
+    folder, run = finished
+    res = _cli("campaign", "list", "--db", str(folder / "c.db"))
+    assert res.returncode == 0
+    line = res.stdout.splitlines()[1]
+    assert line.split()[0] == "1" and "complete" in line
+    assert f"{run['rms_after_mm']:.4f}" in line
+    res = _cli("campaign", "list")
+    assert res.returncode == 2 and "--db" in res.stderr
+    other = tmp_path / "other.db"
+    conn = sqlite3.connect(other)
+    conn.execute("CREATE TABLE t (x)")
+    conn.execute("PRAGMA user_version = 1")
+    conn.commit()
+    conn.close()
+    for args in (
+        ("campaign", "list", "--db", str(other)),
+        ("report", "--db", str(other), "--out", str(tmp_path / "r")),
+        ("run", "--mock", "--db", str(other)),
+    ):
+        res = _cli(*args)
+        assert res.returncode == 2, (args, res.stderr)
+        assert "not a cellcal database" in res.stderr or "another program" in res.stderr
+        assert len(res.stderr.strip().splitlines()) == 1
+    res = _cli(
+        "report", "--db", str(folder / "c.db"), "--campaign", "9", "--out", str(tmp_path / "x")
+    )
+    assert res.returncode == 2 and "no campaign 9" in res.stderr
