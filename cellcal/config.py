@@ -7,13 +7,13 @@ Lengths are mm and angles degrees in the file, as everywhere a person writes.
 
 from __future__ import annotations
 
-import tomllib
 from pathlib import Path
 from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-from cellcal.errors import UserError
+from cellcal.errors import FileFormatError, UserError
+from cellcal.textfiles import read_toml
 
 
 class ConfigError(UserError):
@@ -24,8 +24,13 @@ Vec3 = Annotated[list[float], Field(min_length=3, max_length=3)]
 Positive = Annotated[float, Field(gt=0)]
 
 
+#: Seeds: what numpy's generators accept and SQLite stores.
+Seed = Annotated[int, Field(ge=0, le=2**32 - 1)]
+
+
 class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True, strict=True)
+    # NaN and inf are refused in every number of the file (they would reach the plan).
+    model_config = ConfigDict(extra="forbid", frozen=True, strict=True, allow_inf_nan=False)
 
 
 class ModbusConfig(_Strict):
@@ -89,7 +94,7 @@ class CampaignConfig(_Strict):
         Field(default_factory=lambda: [4, 4, 5])
     )
     orientation_variation_deg: Annotated[float, Field(ge=0, le=90)] = 30.0
-    dwell_s: Annotated[float, Field(ge=0)] = 7.0
+    dwell_s: Annotated[float, Field(ge=0, le=3600)] = 7.0
     samples_per_pose: Annotated[int, Field(ge=1, le=10000)] = 20
     validation_inside: Annotated[int, Field(ge=0, le=10000)] = 20
     validation_regions_mm: list[Vec3] = Field(
@@ -105,7 +110,7 @@ class CampaignConfig(_Strict):
     validation_region_radius_mm: Positive = 200.0
     workspace_min_mm: Vec3 = Field(default_factory=lambda: [-1500.0, -1500.0, 0.0])
     workspace_max_mm: Vec3 = Field(default_factory=lambda: [1500.0, 1500.0, 2000.0])
-    seed: int = 0
+    seed: Seed = 0
 
     @model_validator(mode="after")
     def _box(self) -> CampaignConfig:
@@ -113,6 +118,12 @@ class CampaignConfig(_Strict):
             lo >= hi for lo, hi in zip(self.workspace_min_mm, self.workspace_max_mm, strict=True)
         ):
             raise ValueError("workspace_min_mm must be below workspace_max_mm on every axis")
+        for key in ("cube_edge_mm", "validation_region_radius_mm"):
+            value = getattr(self, key)
+            if value < 10.0:
+                raise ValueError(
+                    f"{key} = {value:g}: in millimetres, at least 10 (was it typed in metres?)"
+                )
         return self
 
 
@@ -123,7 +134,7 @@ class StorageConfig(_Strict):
 class SimulationConfig(_Strict):
     """The simulated cell's ground truth (mock mode only). Same seed, same campaign."""
 
-    seed: int = 2018
+    seed: Seed = 2018
     length_error_mm: Annotated[float, Field(ge=0)] = 0.3
     angle_error_deg: Annotated[float, Field(ge=0)] = 0.03
     tracker_position_mm: Vec3 = Field(default_factory=lambda: [2800.0, -600.0, 300.0])
@@ -133,7 +144,7 @@ class SimulationConfig(_Strict):
     rig_position_mm: Vec3 = Field(default_factory=lambda: [1900.0, 1200.0, 2200.0])
     rig_rotation_deg: Vec3 = Field(default_factory=lambda: [150.0, 20.0, -120.0])
     rig_noise_mm: Annotated[float, Field(ge=0)] = 0.05
-    joint_speed_deg_s: Positive = 60.0
+    joint_speed_deg_s: Annotated[float, Field(gt=0, le=3600)] = 60.0
 
 
 class CellConfig(_Strict):
@@ -186,14 +197,7 @@ def load_config(path: str | Path) -> CellConfig:
     """Read and validate a cell configuration file."""
     p = Path(path)
     try:
-        with p.open("rb") as fh:
-            data = tomllib.load(fh)
-    except FileNotFoundError:
-        raise ConfigError(f"{p}: no such file") from None
-    except IsADirectoryError:
-        raise ConfigError(f"{p}: is a directory, not a TOML file") from None
-    except UnicodeDecodeError:
-        raise ConfigError(f"{p}: not a UTF-8 text file") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"{p}: not valid TOML ({exc})") from None
+        data = read_toml(p)
+    except FileFormatError as exc:
+        raise ConfigError(str(exc)) from None
     return config_from_dict(data, str(p))

@@ -1,18 +1,34 @@
 """A strict little CSV reader shared by the contract's file formats.
 
 It reads a header and numeric columns by name, and turns every problem into a
-:class:`~cellcal.errors.FileFormatError` that names the file and line: a missing file,
-a missing or repeated column, a short row, a non-numeric or non-finite value.
+:class:`~cellcal.errors.FileFormatError` that names the file and line: a missing,
+unreadable or non-regular file, a missing or repeated column, a row with fewer or more
+fields than the header (more: usually a decimal comma), a non-numeric, non-finite or
+absurdly large value; a semicolon-delimited file gets a hint.
 """
 
 from __future__ import annotations
 
 import csv
+import io
 import math
+import re
 from dataclasses import dataclass
 from pathlib import Path
 
 from cellcal.errors import FileFormatError
+from cellcal.textfiles import read_text
+
+#: No coordinate (mm) or joint reading (deg) of a cell comes near this.
+MAX_ABS = 1e7
+#: A unit in brackets after a column name, as tracker software exports it: "X [mm]".
+_UNIT = re.compile(r"\s*[\[(](mm|deg|°|degrees?|millimet(er|re)s?)[\])]\s*$", re.IGNORECASE)
+
+
+def _column_name(raw: str) -> str:
+    """Header names are case-insensitive, stripped, and may carry their unit in brackets
+    (``X [mm]``, ``q1 (deg)``): the unit must be the one the format takes."""
+    return _UNIT.sub("", raw.strip()).strip().lower()
 
 
 @dataclass(frozen=True)
@@ -43,6 +59,10 @@ class Table:
             raise FileFormatError(f"{self.where(k)}: {name} is not a number: {text!r}") from None
         if not math.isfinite(value):
             raise FileFormatError(f"{self.where(k)}: {name} is not finite: {text!r}")
+        if abs(value) > MAX_ABS:
+            raise FileFormatError(
+                f"{self.where(k)}: {name} = {text} is out of range (|value| ≤ {MAX_ABS:g})"
+            )
         return value
 
 
@@ -50,37 +70,47 @@ def read_table(path: str | Path, required: tuple[str, ...], expected: str) -> Ta
     """Read ``path``; ``required`` columns must be present once each (``expected`` is the
     header to suggest in messages). Blank lines are skipped; a UTF-8 BOM is accepted."""
     p = Path(path)
+    text = read_text(p, "a CSV file")
+    reader = csv.reader(io.StringIO(text, newline=""), strict=True)
+    parsed: list[list[str]] = []
+    numbers: list[int] = []
+    start = 1
     try:
-        text = p.read_text(encoding="utf-8-sig")
-    except FileNotFoundError:
-        raise FileFormatError(f"{p}: no such file") from None
-    except IsADirectoryError:
-        raise FileFormatError(f"{p}: is a directory, not a CSV file") from None
-    except UnicodeDecodeError:
-        raise FileFormatError(f"{p}: not a UTF-8 text file") from None
-    except OSError as exc:
-        raise FileFormatError(f"{p}: cannot be read ({exc.strerror})") from None
-    numbered = [(i + 1, line) for i, line in enumerate(text.splitlines()) if line.strip()]
-    if not numbered:
-        raise FileFormatError(f"{p}: empty file; expected a header {expected}")
-    try:
-        parsed = list(csv.reader([line for _, line in numbered], strict=True))
+        for row in reader:
+            if any(c.strip() for c in row):
+                parsed.append(row)
+                numbers.append(start)
+            start = reader.line_num + 1
     except csv.Error as exc:
-        raise FileFormatError(f"{p}: not valid CSV ({exc})") from None
-    header = tuple(h.strip().lower() for h in parsed[0])
+        raise FileFormatError(f"{p}:{reader.line_num}: not valid CSV ({exc})") from None
+    if not parsed:
+        raise FileFormatError(f"{p}: empty file; expected a header {expected}")
+    if any("\n" in c or "\r" in c for row in parsed for c in row):
+        k = next(i for i, row in enumerate(parsed) if any("\n" in c or "\r" in c for c in row))
+        raise FileFormatError(f"{p}:{numbers[k]}: a quoted field spans lines")
+    header = tuple(_column_name(h) for h in parsed[0])
     missing = [c for c in required if c not in header]
     if missing:
+        hint = ""
+        if len(header) == 1 and ";" in parsed[0][0]:
+            hint = (
+                " (the file is semicolon-delimited: cellcal reads comma-separated values "
+                "with a decimal point; export as CSV with ',' or convert it)"
+            )
         raise FileFormatError(
-            f"{p}: header lacks column(s) {', '.join(missing)}; expected {expected}"
+            f"{p}: header lacks column(s) {', '.join(missing)}; expected {expected}{hint}"
         )
     twice = sorted({h for h in header if h and header.count(h) > 1})
     if twice:
         raise FileFormatError(f"{p}: column {twice[0]} appears twice in the header")
     rows = []
-    for (lineno, _), row in zip(numbered[1:], parsed[1:], strict=True):
-        if len(row) < len(header):
-            raise FileFormatError(f"{p}:{lineno}: {len(row)} fields, the header has {len(header)}")
+    for lineno, row in zip(numbers[1:], parsed[1:], strict=True):
+        if len(row) != len(header):
+            hint = " (a decimal comma?)" if len(row) > len(header) else ""
+            raise FileFormatError(
+                f"{p}:{lineno}: {len(row)} fields, the header has {len(header)}{hint}"
+            )
         rows.append(tuple(c.strip() for c in row))
     if not rows:
         raise FileFormatError(f"{p}: no data rows after the header")
-    return Table(str(p), header, tuple(rows), tuple(n for n, _ in numbered[1:]))
+    return Table(str(p), header, tuple(rows), tuple(numbers[1:]))

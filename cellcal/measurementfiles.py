@@ -17,6 +17,9 @@ from cellcal.calib.geometry import Array
 from cellcal.csvtable import Table, read_table
 from cellcal.errors import FileFormatError
 
+#: More rows than this are refused: the fit's Jacobian would need gigabytes.
+MAX_ROWS = 100_000
+
 
 @dataclass(frozen=True)
 class Measurements:
@@ -51,6 +54,11 @@ def read_measurements(path: str | Path, dof: int = 6) -> Measurements:
     cols = _joint_columns(dof)
     expected = ",".join(cols) + ",x,y,z"
     t = read_table(path, (*cols, "x", "y", "z"), expected)
+    if len(t.rows) > MAX_ROWS:
+        raise FileFormatError(
+            f"{t.path}: {len(t.rows)} rows; a calibration takes at most {MAX_ROWS} "
+            "(a campaign measures hundreds to a few thousand poses)"
+        )
     q = _joints(t, dof)
     xyz = np.array([[t.number(k, c) for c in ("x", "y", "z")] for k in range(len(t.rows))])
     sigma = None

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import os
 import tempfile
-import tomllib
 from collections.abc import Sequence
 from dataclasses import dataclass
 from datetime import UTC, datetime
@@ -29,6 +28,7 @@ from cellcal.calib.robot_model import RobotModel, model_from_dict, model_to_dict
 from cellcal.calib.validation import Validation
 from cellcal.errors import FileFormatError
 from cellcal.plainvalues import plain
+from cellcal.textfiles import read_toml
 
 CALIBRATED_FORMAT = "cellcal-calibrated-model"
 FORMAT_VERSION = 1
@@ -52,19 +52,11 @@ def builtin_names() -> list[str]:
 
 
 def _read_toml(path: Path, label: str) -> dict[str, Any]:
-    try:
-        with path.open("rb") as fh:
-            return tomllib.load(fh)
-    except FileNotFoundError:
+    if not path.exists() and not path.is_symlink():
         raise FileFormatError(
             f"{label}: no such file, and not a built-in model ({', '.join(builtin_names())})"
-        ) from None
-    except IsADirectoryError:
-        raise FileFormatError(f"{label}: is a directory, not a TOML file") from None
-    except UnicodeDecodeError:
-        raise FileFormatError(f"{label}: not a UTF-8 text file") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise FileFormatError(f"{label}: not valid TOML ({exc})") from None
+        )
+    return read_toml(path, label=label)
 
 
 def load_model(spec: str) -> LoadedModel:

@@ -838,6 +838,10 @@ def fit_rigid_batch(src: object, dst: object, *, scale: bool = False) -> RigidFi
     )
 
 
+#: leave_one_out refits once per point (O(n²) memory for the batched SVD path).
+LOO_MAX_POINTS = 5000
+
+
 def leave_one_out(src: object, dst: object, **kwargs: object) -> LeaveOneOut:
     """Predict each point from a fit to all the others (same method and options).
 
@@ -852,6 +856,8 @@ def leave_one_out(src: object, dst: object, **kwargs: object) -> LeaveOneOut:
         raise InputError(f"src has {n} points but dst has {len(Q)}; they must correspond")
     if n < 4:
         raise DegenerateGeometryError(f"leave-one-out needs at least 4 points, got {n}")
+    if n > LOO_MAX_POINTS:
+        raise InputError(f"leave-one-out refits once per point: at most {LOO_MAX_POINTS}, got {n}")
     errors = np.full((n, 3), np.nan)
     keep = ~np.eye(n, dtype=bool)
     options = [v for k, v in kwargs.items() if k not in ("method", "seed")]

@@ -10,6 +10,7 @@ import numpy as np
 from cellcal.calib.geometry import rotation_angle, so3_log
 from cellcal.calib.outliers import PointResidual, dominant, point_residuals
 from cellcal.calib.registration import (
+    LOO_MAX_POINTS,
     METHODS,
     ROBUST,
     LeaveOneOut,
@@ -158,7 +159,7 @@ def register(
         opts["cov_dst"] = m.dst_sigma
     fit = _fit(m, method, **opts)
     loo = None
-    if m.src.shape[0] >= 4 and robust is None:
+    if 4 <= m.src.shape[0] <= LOO_MAX_POINTS and robust is None:
         loo = leave_one_out(m.src, m.dst, method=method, **opts)
     points = point_residuals(
         m.names, fit.residuals, None if loo is None or not np.isfinite(loo.rms) else loo.norms

@@ -285,9 +285,21 @@ class LineTracker:
             raise TrackerError(f"{self.label}: {request!r} answered 'OK {ok.payload}'")
         expected = 0
         line_timeout = self.timeout + 2.0 / rate_hz
+        # An overall deadline too: a peer that keeps the link alive with events or
+        # garbage but never finishes the series must not hold the measurement forever.
+        budget = self.timeout + 1.5 * k / rate_hz + 2.0
+        deadline = time.monotonic() + budget
         while True:
-            line = self.lines.read_line(line_timeout)
+            left = deadline - time.monotonic()
+            if left <= 0:
+                raise TrackerTimeoutError(
+                    f"{self.label}: series of {k} points not finished within {budget:.3g} s "
+                    f"({expected} received; the tracker talks but does not measure)"
+                )
+            line = self.lines.read_line(min(line_timeout, left))
             if line is None:
+                if time.monotonic() >= deadline:
+                    continue
                 raise TrackerTimeoutError(
                     f"{self.label}: series stalled after {expected} of {k} points"
                 )

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -219,3 +221,26 @@ def test_hostile_lines_in_a_series_are_never_data(noise):
     lt, _ = tracker([("MEAS 2 10", [*lines, "PT 1 1.1 4 5 6", "END 2"])])
     s = lt.measure(2, 10.0)
     np.testing.assert_array_equal(s.xyz, [[1, 2, 3], [4, 5, 6]])
+
+
+class _Chatty(ScriptedTransport):
+    """After its script, the peer keeps the link alive with events but never finishes."""
+
+    def read(self, max_bytes, timeout):
+        data = super().read(max_bytes, timeout)
+        if data or self.pairs:
+            return data
+        time.sleep(min(timeout, 0.01))
+        return b"EVT TEMP 20.0\n"
+
+
+@pytest.mark.timeout(60)
+def test_a_peer_that_talks_but_never_finishes_a_series_meets_the_overall_deadline():
+    t = _Chatty([*HANDSHAKE, ("MEAS 2 10", ["OK 2", "PT 0 1.0 1 1 1"])])
+    lt = LineTracker(
+        "tracker", "scripted://", transport=t, timeout=0.2, backoff_s=0.0, reconnects=0
+    )
+    lt.connect()
+    with pytest.raises(TrackerTimeoutError, match="not finished within"):
+        lt.measure(2, 10.0)
+    assert len(lt.events) > 10  # it kept talking the whole time
