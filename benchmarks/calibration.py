@@ -49,6 +49,7 @@ from typing import Any, TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
+from real_data import print_real  # benchmarks/real_data.py, beside this script
 from scipy.spatial.transform import Rotation
 
 from cellcal.calib.error_model import State, jacobian, predict
@@ -1041,6 +1042,7 @@ def main(argv: list[str] | None = None) -> int:
             )
 
     print_conclusion(comps, b, cubes, rows, fg)
+    print_real()
     print(f"\n(total wall time {time.perf_counter() - t_start:.1f} s)")
     return 0
 

@@ -35,7 +35,7 @@ class _Strict(BaseModel):
 
 class ModbusConfig(_Strict):
     """A robot behind Modbus TCP: where its handshake registers are (holding registers,
-    0-based) and how its float32 words are ordered (``shared/specs/modbus-robot-notes.md``)."""
+    0-based) and how its float32 words are ordered (``docs/robots.md``)."""
 
     port: Annotated[int, Field(ge=1, le=65535)] = 502
     device_id: Annotated[int, Field(ge=0, le=255)] = 1
@@ -193,11 +193,28 @@ def config_from_dict(data: dict[str, object], source: str = "config") -> CellCon
         raise ConfigError(f"{source}: {_message(exc)}") from None
 
 
-def load_config(path: str | Path) -> CellConfig:
-    """Read and validate a cell configuration file."""
+def load_config(path: str | Path, *, relative_paths: bool = True) -> CellConfig:
+    """Read and validate a cell configuration file; relative paths in it are taken
+    relative to its folder (``relative_paths=False``: left as written, for the bundled
+    cell, whose database belongs in the working folder)."""
     p = Path(path)
     try:
         data = read_toml(p)
     except FileFormatError as exc:
         raise ConfigError(str(exc)) from None
-    return config_from_dict(data, str(p))
+    config = config_from_dict(data, str(p))
+    return _relative_to(config, p.parent) if relative_paths else config
+
+
+def _relative_to(config: CellConfig, folder: Path) -> CellConfig:
+    """Relative file paths in a configuration (a robot model file, the database) are
+    relative to the configuration file's folder, not to where the command runs."""
+    from cellcal.modelfiles import builtin_names
+
+    robot = config.robot
+    if robot.model not in builtin_names() and not Path(robot.model).is_absolute():
+        robot = robot.model_copy(update={"model": str(folder / robot.model)})
+    storage = config.storage
+    if not Path(storage.database).is_absolute():
+        storage = storage.model_copy(update={"database": str(folder / storage.database)})
+    return config.model_copy(update={"robot": robot, "storage": storage})

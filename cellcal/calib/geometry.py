@@ -1,6 +1,6 @@
 """Small rigid-body helpers: skew matrices, SO(3) exponential, homogeneous transforms.
 
-Frames follow DESIGN.md: ``T_a_b`` maps coordinates in frame b into frame a,
+Frames follow cellcal's convention: ``T_a_b`` maps coordinates in frame b into frame a,
 ``p_a = T_a_b @ p_b``. Lengths are millimetres, angles radians.
 """
 

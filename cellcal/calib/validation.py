@@ -12,6 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from cellcal.calib.acceptance import ACCURACY_CLASS_MM
 from cellcal.calib.error_model import predict
 from cellcal.calib.geometry import Array
 from cellcal.calib.identification import (
@@ -21,7 +22,7 @@ from cellcal.calib.identification import (
     fit_frames,
 )
 from cellcal.calib.robot_model import RobotModel
-from cellcal.errors import InputError
+from cellcal.errors import InputError, UserError
 
 
 @dataclass(frozen=True)
@@ -76,6 +77,20 @@ def validate_on(
     baseline = fit_frames(result.nominal, q_calibration, measured_calibration, sigma_calibration)
     eb = measured - predict(baseline, q)
     ea = measured - result.predict(q)
+    off = ErrorStats.of(ea).rms
+    if off > ACCURACY_CLASS_MM and len(q) >= 4:
+        # Far off: is it the model, or were these points measured from somewhere else?
+        try:
+            own = ErrorStats.of(measured - predict(fit_frames(result.calibrated, q, measured), q))
+        except UserError:
+            own = None
+        if own is not None and own.rms < ACCURACY_CLASS_MM:
+            raise InputError(
+                f"the validation points are {off:.0f} mm (RMS) from the model's prediction but "
+                f"fit it within {own.rms:.3g} mm once re-registered: they come from another "
+                "set-up (instrument moved, another target); re-register that set-up with "
+                "cellcal calibrate --model CALIBRATED.toml --fix kinematics --data FILE"
+            )
     return Validation("file", ErrorStats.of(eb), ErrorStats.of(ea), eb, ea)
 
 

@@ -77,7 +77,7 @@ class BarProgress:
 def bundled_mock_cell() -> tuple[CellConfig, str]:
     ref = resources.files("cellcal") / "data" / "mock-cell.toml"
     with resources.as_file(ref) as p:
-        return load_config(p), "bundled config/mock-cell.toml"
+        return load_config(p, relative_paths=False), "bundled config/mock-cell.toml"
 
 
 def _print_summary(out: CampaignOutcome) -> None:

@@ -3,6 +3,7 @@ started afresh or resumed from the database."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import threading
 from dataclasses import dataclass
@@ -20,7 +21,7 @@ from cellcal.daemon.analysis import CampaignSummary, analyse
 from cellcal.daemon.devices import Devices, build_devices
 from cellcal.daemon.engine import Acquisition, Progress, acquire
 from cellcal.daemon.plan import CALIBRATION, VALIDATION, Plan, make_plan
-from cellcal.daemon.store import Store
+from cellcal.daemon.store import Store, StoreError
 from cellcal.errors import AcceptanceError, CampaignError, UserError
 from cellcal.modelfiles import load_model
 
@@ -102,6 +103,14 @@ class _RunLock:
             self.fh.close()
 
 
+def _record(store: Store, campaign_id: int, kind: str, message: str) -> None:
+    """Note a failure and mark the campaign resumable — if the database still takes
+    writes (a full disk may not): the failure itself is what the user must see."""
+    with contextlib.suppress(StoreError):
+        store.add_event(campaign_id, kind, message)
+        store.set_status(campaign_id, "interrupted")
+
+
 def _run(
     store: Store,
     campaign_id: int,
@@ -133,12 +142,10 @@ def _run(
             progress=progress,
         )
     except UserError as exc:
-        store.add_event(campaign_id, "error", f"{type(exc).__name__}: {exc}")
-        store.set_status(campaign_id, "interrupted")
+        _record(store, campaign_id, "error", f"{type(exc).__name__}: {exc}")
         raise CampaignError(f"{exc}; {hint}") from exc
     except BaseException as exc:
-        store.add_event(campaign_id, "error", f"{type(exc).__name__}: {exc}")
-        store.set_status(campaign_id, "interrupted")
+        _record(store, campaign_id, "error", f"{type(exc).__name__}: {exc}")
         raise
     finally:
         devices.close()

@@ -1,6 +1,6 @@
 """The campaign database (SQLite through sqlite-utils): append-only, crash-safe.
 
-The core is public (``shared/specs/cli-and-files.md``): ``campaigns``, ``poses`` (``idx``
+The core is public (``docs/database.md``): ``campaigns``, ``poses`` (``idx``
 unique within a campaign, planned and reached joints), ``samples`` (``pose_id``,
 ``sensor``, host and device timestamps, ``x, y, z``). Other tools read it directly.
 
@@ -215,6 +215,8 @@ class Store:
             conn.execute("PRAGMA synchronous=FULL")
             conn.execute("PRAGMA foreign_keys=ON")
             version = conn.execute("PRAGMA user_version").fetchone()[0]
+        except sqlite3.OperationalError as exc:
+            raise StoreError(f"{self.path}: {_write_error(exc)}") from None
         except sqlite3.DatabaseError as exc:
             raise StoreError(f"{self.path}: not a cellcal database ({exc})") from None
         self.conn = conn
@@ -557,7 +559,7 @@ class _Transaction:
 
     def __enter__(self) -> sqlite3.Connection:
         if not self.conn.in_transaction:
-            self.conn.execute("BEGIN IMMEDIATE")
+            _writing(lambda: self.conn.execute("BEGIN IMMEDIATE"))
             self.outer = True
         return self.conn
 
@@ -565,6 +567,32 @@ class _Transaction:
         if not self.outer:
             return
         if exc_type is None:
-            self.conn.execute("COMMIT")
-        else:
+            _writing(lambda: self.conn.execute("COMMIT"))
+            return
+        with contextlib.suppress(sqlite3.Error):
             self.conn.execute("ROLLBACK")
+        if isinstance(exc, sqlite3.OperationalError):
+            raise _write_error(exc) from None
+
+
+def _write_error(exc: sqlite3.Error) -> StoreError:
+    """A failed write as one line with its likely cause; what was committed is kept."""
+    text = str(exc)
+    if "full" in text:
+        why = "the disk is full"
+    elif "readonly" in text or "read-only" in text:
+        why = "the database file or its folder is read-only"
+    elif "locked" in text:
+        why = "another program holds the database locked"
+    else:
+        why = text
+    return StoreError(
+        f"cannot write to the database: {why} ({text}); every pose committed before is kept"
+    )
+
+
+def _writing(step: Callable[[], object]) -> None:
+    try:
+        step()
+    except sqlite3.OperationalError as exc:
+        raise _write_error(exc) from None

@@ -1,5 +1,5 @@
 """A robot controller reached over Modbus TCP through a handshake register map
-(``shared/specs/modbus-robot-notes.md``): KUKA, Fanuc or ABB behind a PLC or gateway,
+(``docs/robots.md``): KUKA, Fanuc or ABB behind a PLC or gateway,
 xArm and Lebai natively. pymodbus 3.16's synchronous ``ModbusTcpClient``.
 
 The handshake, and what the driver does about faults:

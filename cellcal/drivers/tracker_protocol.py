@@ -1,4 +1,4 @@
-"""The tracker line protocol, version 1 (``shared/specs/tracker-line-protocol.md``):
+"""The tracker line protocol, version 1 (``docs/tracker.md``):
 parsing of every line a tracker may send, and the error codes as exceptions.
 
 :func:`parse_line` never raises: whatever bytes arrive become one of the message types,

@@ -1,5 +1,5 @@
 """A protocol-level mock of a robot controller behind Modbus TCP, with the handshake
-register map of ``shared/specs/modbus-robot-notes.md``, so that the real
+register map of ``docs/robots.md``, so that the real
 :class:`~cellcal.drivers.modbus_robot.ModbusRobot` runs unchanged against it.
 
 Built on pymodbus 3.16's ``pymodbus.simulator`` (``SimDevice``/``SimData`` and an

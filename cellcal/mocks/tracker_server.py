@@ -1,5 +1,5 @@
 """A protocol-level mock laser tracker: tracker line protocol v1
-(``shared/specs/tracker-line-protocol.md``) over TCP on a loopback address or over a
+(``docs/tracker.md``) over TCP on a loopback address or over a
 pseudo-terminal, so that the real driver runs unchanged against it in CI and in
 ``cellcal mock tracker``.
 

@@ -183,7 +183,7 @@ class DHKinematics:
     """Standard DH (θᵢ = qᵢ; Rz(θ) Tz(d) Tx(a) Rx(α)) forward kinematics of a 6R arm and a
     small numeric inverse (damped least squares from the seed, a few restarts).
 
-    Lengths are given in mm (as in DESIGN.md) and used in m, as URScript does."""
+    Lengths are given in mm (as everywhere in cellcal) and used in m, as URScript does."""
 
     def __init__(self, a_mm: np.ndarray, d_mm: np.ndarray, alpha_deg: np.ndarray) -> None:
         self.a = np.asarray(a_mm, dtype=np.float64) / 1000.0

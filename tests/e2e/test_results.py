@@ -159,3 +159,29 @@ def test_campaign_list_text_and_errors(finished, tmp_path):
         "report", "--db", str(folder / "c.db"), "--campaign", "9", "--out", str(tmp_path / "x")
     )
     assert res.returncode == 2 and "no campaign 9" in res.stderr
+
+
+def test_a_disk_that_fills_during_a_campaign_is_one_line_and_keeps_the_poses(tmp_path, monkeypatch):
+    from cellcal.daemon import store as store_module
+    from cellcal.errors import UserError
+
+    real_init = store_module.Store.__init__
+
+    def small_disk(self, path, **kw):
+        real_init(self, path, **kw)
+        if not kw.get("readonly"):
+            # SQLite reports SQLITE_FULL, as on a full disk, beyond this many pages.
+            self.conn.execute("PRAGMA max_page_count = 60")
+
+    monkeypatch.setattr(store_module.Store, "__init__", small_disk)
+    config, _ = bundled_mock_cell()
+    db = str(tmp_path / "c.db")
+    with pytest.raises(UserError) as info:
+        start_campaign(config, db, config_path=None, mock=True)
+    text = str(info.value)
+    assert "disk is full" in text and "\n" not in text
+    conn = sqlite3.connect(db)
+    stored = conn.execute("SELECT COUNT(*) FROM poses").fetchone()[0]
+    samples = conn.execute("SELECT COUNT(*) FROM samples").fetchone()[0]
+    conn.close()
+    assert 0 < stored < 128 and samples == stored * 2 * 20  # whole poses, nothing torn
