@@ -70,3 +70,24 @@ def test_bad_files(tmp_path):
         load_config(bad)
     with pytest.raises(ConfigError, match="directory"):
         load_config(tmp_path)
+
+
+def test_relative_paths_resolve_against_the_config_folder(tmp_path):
+    from pathlib import Path
+
+    from cellcal.config import load_config
+
+    bundled = Path(__file__).parents[1] / "config" / "mock-cell.toml"
+    folder = tmp_path / "cell"
+    folder.mkdir()
+    (folder / "robot.toml").write_text(
+        (
+            Path(__file__).parents[1] / "cellcal" / "data" / "models" / "kuka-kr5-arc.toml"
+        ).read_text()
+    )
+    text = bundled.read_text().replace('model = "kuka-kr5-arc"', 'model = "robot.toml"', 1)
+    assert 'model = "robot.toml"' in text
+    (folder / "cell.toml").write_text(text)
+    config = load_config(folder / "cell.toml")
+    assert config.robot.model == str(folder / "robot.toml")
+    assert config.storage.database == str(folder / "cellcal.db")

@@ -71,7 +71,7 @@ def test_reported_uncertainties_match_the_scatter():
 
 
 def test_paper_ranks_with_the_base_fixed():
-    """DESIGN.md says 24 for the paper's 27 parameters on a KR 5 arc with the base fixed;
+    """A rank of 24 is often assumed for the paper's 27 parameters on a KR 5 arc (base fixed);
     the identification Jacobian says 22: the target offset absorbs θ6, d6, a6, α6, and
     d2, d3 lie along parallel axes. UR10e (three parallel axes): 21."""
     expected = {"kuka-kr5-arc": 22, "ur10e": 21}

@@ -161,3 +161,37 @@ def test_models_and_predict_nominal(capsys, tmp_path):
     out_file = tmp_path / "p.csv"
     code, out, _ = run(capsys, "predict", "--model", "ur10e", "--joints", joints, "--out", out_file)
     assert code == 0 and out == "" and out_file.read_text().startswith("q1,")
+
+
+def test_validation_from_another_set_up_says_to_re_register(tmp_path, capsys):
+    from cellcal.calib.geometry import so3_exp
+
+    d = well_spread("kuka-kr5-arc")
+    data = write_measurements(tmp_path / "m.csv", d.q, d.m)
+    R = so3_exp(np.array([0.3, 0.1, -0.2]))
+    moved_xyz = d.m[:20] @ R.T + np.array([400.0, -200.0, 50.0])
+    moved = write_measurements(tmp_path / "moved.csv", d.q[:20], moved_xyz)
+    code, _, err = run(
+        capsys, "calibrate", "--model", "kuka-kr5-arc", "--data", data, "--validate", moved
+    )
+    assert code == 2 and "another set-up" in err and "--fix kinematics" in err
+    model = tmp_path / "cal.toml"
+    code, _, _ = run(capsys, "calibrate", "--model", "kuka-kr5-arc", "--data", data, "--out", model)
+    assert code == 0
+    code, out, err = run(
+        capsys,
+        "calibrate",
+        "--model",
+        model,
+        "--fix",
+        "kinematics",
+        "--data",
+        moved,
+        "--folds",
+        "0",
+        "--json",
+    )
+    assert code == 0, err
+    doc = json.loads(out)
+    assert doc["identified"] == ["tool_x", "tool_y", "tool_z"]
+    assert doc["rms_after_mm"] < 0.03
