@@ -51,6 +51,11 @@ def builtin_names() -> list[str]:
     return sorted(p.name[: -len(".toml")] for p in folder.iterdir() if p.name.endswith(".toml"))
 
 
+def builtin_models() -> tuple[RobotModel, ...]:
+    """Every built-in model (the alternatives an acceptance diagnosis tries)."""
+    return tuple(load_model(n).model for n in builtin_names())
+
+
 def _read_toml(path: Path, label: str) -> dict[str, Any]:
     if not path.exists() and not path.is_symlink():
         raise FileFormatError(
@@ -154,9 +159,7 @@ def calibrated_document(
             "unidentifiable": list(result.unidentifiable),
             "correlated": [list(c) for c in result.identifiability.correlated],
             "warnings": list(result.warnings),
-            "accepted_despite": [
-                w.split("'")[1] for w in result.warnings if w.startswith("accepted despite")
-            ],
+            "accepted_despite": list(result.accepted_despite),
         },
         "point": [
             p.as_dict()

@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import math
 from collections.abc import Collection, Sequence
-from dataclasses import dataclass
 
 import numpy as np
 from scipy.optimize import least_squares
@@ -26,6 +25,7 @@ from cellcal.calib.acceptance import (
     check_data,
     diagnose,
 )
+from cellcal.calib.calibration_result import CalibrationResult, ParameterEstimate, rms
 from cellcal.calib.error_model import (
     KINEMATIC_KINDS,
     ParameterSpec,
@@ -36,7 +36,7 @@ from cellcal.calib.error_model import (
     predict,
 )
 from cellcal.calib.geometry import Array, skew, wrap_deg
-from cellcal.calib.identifiability import Identifiability, analyse, weakly_determined
+from cellcal.calib.identifiability import analyse, weakly_determined
 from cellcal.calib.kinematics import target_kinematics
 from cellcal.calib.registration import fit_rigid
 from cellcal.calib.robot_model import RobotModel
@@ -48,92 +48,13 @@ from cellcal.errors import (
     MirroredCorrespondenceError,
 )
 
+__all__ = ["CalibrationResult", "ParameterEstimate", "calibrate", "fit_frames"]
+
 ROBUST_LOSSES = ("huber", "soft_l1", "cauchy")
 #: Above this condition number of the (unit-scaled) identification Jacobian a warning
 #: says the poses are poorly chosen; well-spread poses with varied wrist orientation
 #: give tens to a few hundred, the paper's fixed-orientation cube about 5e3.
 ILL_CONDITIONED = 1e3
-
-
-@dataclass(frozen=True)
-class ParameterEstimate:
-    """A parameter's estimate in display units (mm or deg): for a kinematic parameter
-    ``value`` is the correction to nominal (angles wrapped to (−180°, 180°]), for the
-    target offset the coordinate itself.
-    ``std`` is its standard uncertainty (0 for a parameter left at nominal)."""
-
-    name: str
-    kind: str
-    joint: int
-    unit: str
-    identified: bool
-    value: float
-    std: float
-    #: why a parameter is at nominal: "rank" (not identifiable from these poses), "weak"
-    #: (the noise hides it), "fixed" (pinned by the user); "" when identified.
-    at_nominal: str = ""
-
-
-@dataclass(frozen=True)
-class CalibrationResult:
-    """Everything a calibration produced. Lengths mm; ``T_instrument_base`` maps robot-base
-    coordinates into the instrument frame. ``rms_before``/``residuals_before`` are those of
-    the nominal model with best-fit instrument frame and target offset."""
-
-    nominal: RobotModel
-    calibrated: RobotModel
-    tool: Array
-    tool_std: Array
-    T_instrument_base: Array
-    frame_std: Array  # rotation vector (rad, 3) then translation (mm, 3), of T at its origin
-    parameters: tuple[ParameterEstimate, ...]
-    identifiability: Identifiability
-    n_points: int
-    dof: int
-    sigma0: float
-    residuals: Array
-    residuals_before: Array
-    evaluations: int
-    weighted: bool
-    robust: str | None
-    warnings: tuple[str, ...]
-
-    @property
-    def identified(self) -> tuple[str, ...]:
-        return tuple(p.name for p in self.parameters if p.identified)
-
-    @property
-    def unidentifiable(self) -> tuple[str, ...]:
-        return tuple(p.name for p in self.parameters if not p.identified)
-
-    @property
-    def condition_number(self) -> float:
-        return self.identifiability.condition_number
-
-    @property
-    def rms_before(self) -> float:
-        return _rms(self.residuals_before)
-
-    @property
-    def rms_after(self) -> float:
-        return _rms(self.residuals)
-
-    @property
-    def max_after(self) -> float:
-        return float(np.max(np.linalg.norm(self.residuals, axis=1)))
-
-    @property
-    def state(self) -> State:
-        T = self.T_instrument_base
-        return State(self.calibrated, self.tool, T[:3, :3], T[:3, 3], np.zeros(3))
-
-    def predict(self, q: Array) -> Array:
-        """Target positions in the instrument frame (mm) for joint readings ``q`` (rad)."""
-        return predict(self.state, q)
-
-
-def _rms(r: Array) -> float:
-    return float(np.sqrt(np.mean(np.sum(r * r, axis=1))))
 
 
 # --------------------------------------------------------------------------- input checks
@@ -261,7 +182,7 @@ def frames_rms(model: RobotModel, q: Array, measured: Array) -> float:
     trying reinterpretations of data that do not fit)."""
     w = np.ones((len(q), 3))
     st = _fit_frames(model, q, measured, w)
-    return _rms(measured - predict(st, q))
+    return rms(measured - predict(st, q))
 
 
 def _expand_fix(specs: tuple[ParameterSpec, ...], fix: Collection[str]) -> frozenset[str]:
@@ -283,12 +204,15 @@ def _expand_fix(specs: tuple[ParameterSpec, ...], fix: Collection[str]) -> froze
     return frozenset(out)
 
 
-def _refuse_or_note(findings: list[Finding], accept: bool, notes: list[str]) -> None:
+def _refuse_or_note(
+    findings: list[Finding], accept: bool, notes: list[str], accepted: list[str]
+) -> None:
     if not findings:
         return
     if not accept:
         raise findings[0].refusal()
     notes += [f"accepted despite the check '{f.check}': {f.message}" for f in findings]
+    accepted += [f.check for f in findings]
 
 
 def _sigma0(residuals: Array, w: Array, dof: int) -> float:
@@ -328,6 +252,7 @@ def calibrate(
         raise DegenerateGeometryError(f"need at least 3 measurements, got {N}")
     w = _weights(sigma, N)
     warnings: list[str] = []
+    accepted: list[str] = []
     specs = parameter_specs(nominal, paper_parameters=paper_parameters)
     pinned = _expand_fix(specs, fix)
     sv = np.linalg.svd(measured - measured.mean(axis=0), compute_uv=False)
@@ -336,7 +261,7 @@ def calibrate(
             "the measurements do not determine the instrument frame (they lie on a line or "
             "at one point); spread the poses over a volume"
         )
-    _refuse_or_note(check_data(nominal, q, measured, nominal.tool), accept, warnings)
+    _refuse_or_note(check_data(nominal, q, measured, nominal.tool), accept, warnings, accepted)
 
     def diagnosis(what: str) -> AcceptanceError:
         return diagnose(nominal, q, measured, frames_rms, alternatives, what=what).refusal()
@@ -350,7 +275,7 @@ def calibrate(
             "the nominal model's positions match the measurements only mirrored"
         ) from None
     residuals_before = measured - predict(baseline, q)
-    if _rms(residuals_before) > ACCURACY_CLASS_MM:
+    if rms(residuals_before) > ACCURACY_CLASS_MM:
         finding = diagnose(
             nominal,
             q,
@@ -358,9 +283,9 @@ def calibrate(
             frames_rms,
             alternatives,
             what=f"the nominal model with best-fit frames leaves RMS "
-            f"{_rms(residuals_before):.3g} mm, far worse than any robot's accuracy class",
+            f"{rms(residuals_before):.3g} mm, far worse than any robot's accuracy class",
         )
-        _refuse_or_note([finding], accept, warnings)
+        _refuse_or_note([finding], accept, warnings, accepted)
 
     _, J = jacobian(baseline, q, specs)
     Jw_all = (J * w[:, :, None]).reshape(-1, len(specs))
@@ -408,7 +333,10 @@ def calibrate(
             "the model holds only at the measured orientations"
         )
     _refuse_or_note(
-        assess(nominal, estimates_preview(state, nominal, sel), state.tool), accept, warnings
+        assess(nominal, estimates_preview(state, nominal, sel), state.tool),
+        accept,
+        warnings,
+        accepted,
     )
     if ident.condition_number > ILL_CONDITIONED:
         warnings.append(
@@ -475,6 +403,7 @@ def calibrate(
         weighted=sigma is not None,
         robust=robust,
         warnings=tuple(warnings),
+        accepted_despite=tuple(accepted),
     )
 
 

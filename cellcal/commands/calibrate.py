@@ -21,7 +21,7 @@ from cellcal.calib.validation import Validation, cross_validate, validate_on
 from cellcal.commands.output import SEED, print_json, warn
 from cellcal.errors import AcceptanceError, InputError, UserError
 from cellcal.measurementfiles import read_measurements
-from cellcal.modelfiles import builtin_names, load_model, write_calibrated
+from cellcal.modelfiles import builtin_models, load_model, write_calibrated
 
 #: The paper's figures (Liu et al. 2018, Sec. 4.2): position error after calibration with
 #: another registration method (0.436) and with its own (0.200), and outside the region.
@@ -181,7 +181,7 @@ def calibrate(
     nominal = replace(loaded.model, tool_xyz=(x, y, z))
     pinned = tuple(n.strip() for n in (fix or "").split(",") if n.strip())
     data = read_measurements(data_path, nominal.dof)
-    alternatives = tuple(load_model(n).model for n in builtin_names())
+    alternatives = builtin_models()
     options: dict[str, Any] = {"robust": robust, "paper_parameters": paper_parameters}
     res = run_calibration(
         nominal,

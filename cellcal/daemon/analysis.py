@@ -17,9 +17,9 @@ from cellcal.calib.outliers import PointResidual, point_residuals
 from cellcal.calib.robot_model import RobotModel
 from cellcal.calib.validation import ErrorStats
 from cellcal.daemon.plan import CALIBRATION, VALIDATION
-from cellcal.daemon.store import Store
+from cellcal.daemon.store import PoseData, Store
 from cellcal.errors import AcceptanceError, CampaignError
-from cellcal.modelfiles import builtin_names, calibrated_toml, load_model
+from cellcal.modelfiles import builtin_models, calibrated_toml
 
 #: Liu et al. 2018, Sec. 4.2 and Table 3 (mm): error after calibration with another
 #: registration method, with the characteristic-line method, and outside the region.
@@ -126,6 +126,14 @@ class CampaignSummary:
         }
 
 
+def mean_sigma(data: PoseData, sensor: str) -> Array:
+    """The 1σ (mm, per axis) of each pose's mean position: the samples' standard
+    deviation over √n, floored — the weights of the analysis (and of the report's CSVs)."""
+    s = data.std[sensor] / np.sqrt(np.maximum(data.n[sensor], 1))[:, None]
+    out: Array = np.maximum(s, SIGMA_FLOOR_MM)
+    return out
+
+
 def _rms(e: Array) -> float:
     return float(np.sqrt(np.mean(np.sum(e * e, axis=1)))) if len(e) else float("nan")
 
@@ -153,14 +161,13 @@ def analyse(
     q_cal = data.q[cal]
 
     def sigma(sensor: str, mask: Array) -> Array:
-        s = data.std[sensor][mask] / np.sqrt(np.maximum(data.n[sensor][mask], 1))[:, None]
-        out: Array = np.maximum(s, SIGMA_FLOOR_MM)
+        out: Array = mean_sigma(data, sensor)[mask]
         return out
 
     ref_m = data.mean[reference]
     if not val.any():
         raise CampaignError(f"campaign {campaign_id}: no validation poses were measured")
-    alternatives = tuple(load_model(n).model for n in builtin_names())
+    alternatives = builtin_models()
     result = calibrate(
         nominal,
         q_cal,

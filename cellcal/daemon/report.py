@@ -21,14 +21,11 @@ from typing import Any
 
 import numpy as np
 
-from cellcal.calib.geometry import Array
+from cellcal.daemon.analysis import mean_sigma
 from cellcal.daemon.plan import CALIBRATION, VALIDATION
 from cellcal.daemon.store import PoseData, Store
 from cellcal.errors import CampaignError, InputError
 from cellcal.modelfiles import write_atomically
-
-#: The floor of a mean's σ (mm) — the analysis' own (daemon.analysis.SIGMA_FLOOR_MM).
-SIGMA_FLOOR_MM = 1e-4
 
 
 @dataclass(frozen=True)
@@ -97,18 +94,12 @@ def _number(v: float) -> str:
     return repr(float(v)) if math.isfinite(v) else ""
 
 
-def _sigma(data: PoseData, sensor: str) -> Array:
-    s = data.std[sensor] / np.sqrt(np.maximum(data.n[sensor], 1))[:, None]
-    out: Array = np.maximum(s, SIGMA_FLOOR_MM)
-    return out
-
-
 def measurements_csv(data: PoseData, sensor: str, role: str) -> str:
     """The ``calibrate`` format: name (plan index), q (deg), x, y, z and sx, sy, sz (mm)."""
     dof = data.q.shape[1]
     head = ["name", *(f"q{i}" for i in range(1, dof + 1)), "x", "y", "z", "sx", "sy", "sz"]
     lines = [",".join(head)]
-    mean, sig = data.mean[sensor], _sigma(data, sensor)
+    mean, sig = data.mean[sensor], mean_sigma(data, sensor)
     for k, idx in enumerate(data.idx):
         if data.role[k] != role or not np.isfinite(mean[k]).all():
             continue

@@ -1,0 +1,100 @@
+"""The result of a calibration: frozen values, display units at the edges.
+
+``cellcal.calib.identification`` produces them; the CLI, the model files, the campaign
+analysis and the report read them.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from cellcal.calib.error_model import State, predict
+from cellcal.calib.geometry import Array
+from cellcal.calib.identifiability import Identifiability
+from cellcal.calib.robot_model import RobotModel
+
+
+@dataclass(frozen=True)
+class ParameterEstimate:
+    """A parameter's estimate in display units (mm or deg): for a kinematic parameter
+    ``value`` is the correction to nominal (angles wrapped to (−180°, 180°]), for the
+    target offset the coordinate itself.
+    ``std`` is its standard uncertainty (0 for a parameter left at nominal)."""
+
+    name: str
+    kind: str
+    joint: int
+    unit: str
+    identified: bool
+    value: float
+    std: float
+    #: why a parameter is at nominal: "rank" (not identifiable from these poses), "weak"
+    #: (the noise hides it), "fixed" (pinned by the user); "" when identified.
+    at_nominal: str = ""
+
+
+@dataclass(frozen=True)
+class CalibrationResult:
+    """Everything a calibration produced. Lengths mm; ``T_instrument_base`` maps robot-base
+    coordinates into the instrument frame. ``rms_before``/``residuals_before`` are those of
+    the nominal model with best-fit instrument frame and target offset."""
+
+    nominal: RobotModel
+    calibrated: RobotModel
+    tool: Array
+    tool_std: Array
+    T_instrument_base: Array
+    frame_std: Array  # rotation vector (rad, 3) then translation (mm, 3), of T at its origin
+    parameters: tuple[ParameterEstimate, ...]
+    identifiability: Identifiability
+    n_points: int
+    dof: int
+    sigma0: float
+    residuals: Array
+    residuals_before: Array
+    evaluations: int
+    weighted: bool
+    robust: str | None
+    warnings: tuple[str, ...]
+    #: the acceptance checks that failed and were overridden (``accept=True``)
+    accepted_despite: tuple[str, ...] = ()
+
+    @property
+    def identified(self) -> tuple[str, ...]:
+        return tuple(p.name for p in self.parameters if p.identified)
+
+    @property
+    def unidentifiable(self) -> tuple[str, ...]:
+        return tuple(p.name for p in self.parameters if not p.identified)
+
+    @property
+    def condition_number(self) -> float:
+        return self.identifiability.condition_number
+
+    @property
+    def rms_before(self) -> float:
+        return rms(self.residuals_before)
+
+    @property
+    def rms_after(self) -> float:
+        return rms(self.residuals)
+
+    @property
+    def max_after(self) -> float:
+        return float(np.max(np.linalg.norm(self.residuals, axis=1)))
+
+    @property
+    def state(self) -> State:
+        T = self.T_instrument_base
+        return State(self.calibrated, self.tool, T[:3, :3], T[:3, 3], np.zeros(3))
+
+    def predict(self, q: Array) -> Array:
+        """Target positions in the instrument frame (mm) for joint readings ``q`` (rad)."""
+        return predict(self.state, q)
+
+
+def rms(r: Array) -> float:
+    """RMS length of the rows of an N×3 array (mm)."""
+    return float(np.sqrt(np.mean(np.sum(r * r, axis=1))))
