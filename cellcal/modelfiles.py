@@ -37,13 +37,17 @@ FORMAT_VERSION = 1
 @dataclass(frozen=True)
 class LoadedModel:
     """A model as read from ``--model``: the geometry, the target offset, and for a
-    calibrated file the instrument frame (``T_instrument_base``, else None)."""
+    calibrated file the instrument frame (``T_instrument_base``, else None). A calibrated
+    file of several targets or sessions also gives each one's offset (``targets``) and
+    frame (``sessions``), by name; the first of each is ``tool`` and ``T_instrument_base``."""
 
     source: str
     model: RobotModel
     tool: Array
     T_instrument_base: Array | None
     calibrated: bool
+    targets: dict[str, Array] | None = None
+    sessions: dict[str, Array] | None = None
 
 
 def builtin_names() -> list[str]:
@@ -86,9 +90,56 @@ def load_model(spec: str) -> LoadedModel:
         if matrix.shape != (4, 4) or tool.shape != (3,) or not np.isfinite(matrix).all():
             raise FileFormatError(f"{spec}: instrument.matrix must be 4×4, tool.xyz 3 numbers")
         model = model_from_dict(geometry, spec)
-        return LoadedModel(spec, model, tool, matrix, True)
+        targets = _named(data, "target", spec, "xyz", (3,))
+        sessions = _named(data, "session", spec, "matrix", (4, 4))
+        return LoadedModel(spec, model, tool, matrix, True, targets, sessions)
     model = model_from_dict(data, spec)
     return LoadedModel(spec, model, model.tool, None, False)
+
+
+def _named(
+    data: dict[str, Any], key: str, spec: str, field: str, shape: tuple[int, ...]
+) -> dict[str, Array] | None:
+    """``[[target]]`` (name, xyz) or ``[[session]]`` (name, matrix) tables, by name."""
+    if key not in data:
+        return None
+    out: dict[str, Array] = {}
+    try:
+        for row in data[key]:
+            value = np.array(row[field], dtype=np.float64)
+            if value.shape != shape or not np.isfinite(value).all():
+                raise ValueError(f"{key}.{field} must be {'×'.join(map(str, shape))} numbers")
+            out[str(row["name"])] = value
+    except (KeyError, TypeError, ValueError) as exc:
+        raise FileFormatError(f"{spec}: bad [[{key}]] table ({exc})") from None
+    return out
+
+
+def _groups_document(result: CalibrationResult) -> dict[str, Any]:
+    """``[[target]]`` and ``[[session]]`` tables of a fit with several targets or sessions,
+    or with orientations (each target's orientation on the flange)."""
+    out: dict[str, Any] = {}
+    if result.tools is not None and (len(result.targets) > 1 or result.tool_rotations is not None):
+        rows = []
+        for k, name in enumerate(result.targets):
+            row: dict[str, Any] = {"name": name or "target", "xyz": result.tools[k]}
+            if result.tools_std is not None:
+                row["std_mm"] = result.tools_std[k]
+            if result.tool_rotations is not None:
+                row["rotation_vector_deg"] = np.degrees(so3_log(result.tool_rotations[k]))
+            rows.append(row)
+        out["target"] = rows
+    if result.frames is not None and len(result.sessions) > 1:
+        out["session"] = [
+            {
+                "name": name,
+                "matrix": T,
+                "rotation_vector_deg": np.degrees(so3_log(T[:3, :3])),
+                "translation_mm": T[:3, 3],
+            }
+            for name, T in zip(result.sessions, result.frames, strict=True)
+        ]
+    return out
 
 
 def _clean(value: Any) -> Any:
@@ -131,6 +182,7 @@ def calibrated_document(
             "std_rotation_deg": np.degrees(result.frame_std[:3]),
             "std_translation_mm": result.frame_std[3:],
         },
+        **_groups_document(result),
         "nominal": model_to_dict(result.nominal),
         "parameter": [
             {

@@ -10,7 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from cellcal.calib.error_model import State, predict
+from cellcal.calib.error_model import Groups, State, predict
 from cellcal.calib.geometry import Array
 from cellcal.calib.identifiability import Identifiability
 from cellcal.calib.robot_model import RobotModel
@@ -39,7 +39,13 @@ class ParameterEstimate:
 class CalibrationResult:
     """Everything a calibration produced. Lengths mm; ``T_instrument_base`` maps robot-base
     coordinates into the instrument frame. ``rms_before``/``residuals_before`` are those of
-    the nominal model with best-fit instrument frame and target offset."""
+    the nominal model with best-fit instrument frame and target offset.
+
+    ``tool``, ``tool_std``, ``T_instrument_base`` and ``frame_std`` are those of the first
+    target and session; with several (``groups``), ``tools`` (T×3), ``tools_std``,
+    ``frames`` (S×4×4) and ``frames_std`` hold each one's. A 6-DOF fit adds each target's
+    orientation on the flange (``tool_rotations``, T×3×3) and the orientation residuals
+    (N×3 rotation vectors, rad)."""
 
     nominal: RobotModel
     calibrated: RobotModel
@@ -60,6 +66,21 @@ class CalibrationResult:
     warnings: tuple[str, ...]
     #: the acceptance checks that failed and were overridden (``accept=True``)
     accepted_despite: tuple[str, ...] = ()
+    groups: Groups | None = None
+    tools: Array | None = None
+    tools_std: Array | None = None
+    frames: Array | None = None
+    frames_std: Array | None = None
+    tool_rotations: Array | None = None
+    orientation_residuals: Array | None = None
+
+    @property
+    def targets(self) -> tuple[str, ...]:
+        return self.groups.targets if self.groups is not None else ("",)
+
+    @property
+    def sessions(self) -> tuple[str, ...]:
+        return self.groups.sessions if self.groups is not None else ("",)
 
     @property
     def identified(self) -> tuple[str, ...]:
@@ -87,12 +108,21 @@ class CalibrationResult:
 
     @property
     def state(self) -> State:
-        T = self.T_instrument_base
-        return State(self.calibrated, self.tool, T[:3, :3], T[:3, 3], np.zeros(3))
+        tools = self.tools if self.tools is not None else self.tool
+        frames = self.frames if self.frames is not None else self.T_instrument_base[None]
+        return State(
+            self.calibrated,
+            tools,
+            frames[:, :3, :3],
+            frames[:, :3, 3],
+            np.zeros((len(frames), 3)),
+            self.tool_rotations,
+        )
 
-    def predict(self, q: Array) -> Array:
-        """Target positions in the instrument frame (mm) for joint readings ``q`` (rad)."""
-        return predict(self.state, q)
+    def predict(self, q: Array, groups: Groups | None = None) -> Array:
+        """Target positions in the instrument frame (mm) for joint readings ``q`` (rad)
+        (of the first target and session, unless ``groups`` says otherwise)."""
+        return predict(self.state, q, groups)
 
 
 def rms(r: Array) -> float:

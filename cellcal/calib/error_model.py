@@ -2,17 +2,24 @@
 
 A measurement is the target position in the instrument's frame,
 
-    m = T_instrument_base · FK(q; geometry) · tool,
+    m = T_instrument_base[s] · FK(q; geometry) · tool[t],
 
-and the parameters are, in this order:
+for the measurement's session s (an instrument set-up) and target t (e.g. one of three
+SMRs); with a 6-DOF instrument also the target's orientation
+R_instrument_base[s] · R_base_flange(q) · R_flange_target[t]. The parameters are, in
+this order:
 
 * per joint i: θᵢ, then dᵢ — or βᵢ where the row's axes are parallel (Hayati) — then
   aᵢ and αᵢ: corrections to the nominal geometry (mm, rad);
-* the target offset on the flange, ``tool_x``, ``tool_y``, ``tool_z`` (mm);
-* the instrument frame ``T_instrument_base``: a rotation vector ``frame_rx/ry/rz``
-  (rad, applied on the left, about the instrument's axes through a pivot — the centroid
-  of the measurements — so that rotation and translation are not needlessly
-  correlated) and a translation ``frame_x/y/z`` (mm).
+* per target, the target offset on the flange, ``tool_x``, ``tool_y``, ``tool_z`` (mm),
+  and for 6-DOF measurements its orientation ``tool_rx/ry/rz`` (rad, a rotation vector
+  applied in the flange frame); a target's parameters are named ``tool_x:NAME`` when
+  there are several targets;
+* per session, the instrument frame ``T_instrument_base``: a rotation vector
+  ``frame_rx/ry/rz`` (rad, applied on the left, about the instrument's axes through a
+  pivot — the centroid of the session's measurements — so that rotation and translation
+  are not needlessly correlated) and a translation ``frame_x/y/z`` (mm); named
+  ``frame_x:NAME`` when there are several sessions.
 
 ``paper_parameters=True`` gives the paper's set instead (θ, d, a, α for every row, no β).
 """
@@ -20,9 +27,12 @@ and the parameters are, in this order:
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
 
 import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial.transform import Rotation
 
 from cellcal.calib.geometry import Array, so3_exp
 from cellcal.calib.kinematics import ROW_PARAMS, target_kinematics
@@ -33,111 +43,286 @@ KINEMATIC_KINDS = ("theta", "d", "a", "alpha", "beta")
 
 @dataclass(frozen=True)
 class ParameterSpec:
-    """One estimable parameter: its name (``a2``, ``beta3``, ``tool_x``, ``frame_rz``),
-    kind, joint (1-based, or 0), and the unit it is shown in (``mm`` or ``deg``)."""
+    """One estimable parameter: its name (``a2``, ``beta3``, ``tool_x``, ``frame_rz``,
+    ``tool_x:SMR2``), kind, joint (1-based, or 0), the unit it is shown in (``mm`` or
+    ``deg``), and for target and frame parameters the target's or session's index."""
 
     name: str
     kind: str
     joint: int
     unit: str
+    group: int = 0
 
     @property
     def is_angle(self) -> bool:
         return self.unit == "deg"
+
+    @property
+    def axis(self) -> int:
+        """0, 1, 2 for the x, y, z of a target or frame parameter."""
+        return "xyz".index(self.name.split(":")[0][-1])
 
     def to_display(self, value: float) -> float:
         """Internal (mm, rad) to display (mm, deg)."""
         return math.degrees(value) if self.is_angle else value
 
 
+#: Row indices (into a measurement set, or into a Groups' names).
+Index = NDArray[np.intp]
+
+
+@dataclass(frozen=True)
+class Groups:
+    """Which target and which session (instrument set-up) each measurement belongs to:
+    ``target``/``session`` are N indices into ``targets``/``sessions`` (their names, in
+    order of first appearance; ``("",)`` for a file without the column)."""
+
+    target: Index
+    session: Index
+    targets: tuple[str, ...] = ("",)
+    sessions: tuple[str, ...] = ("",)
+
+    @classmethod
+    def single(cls, n: int) -> Groups:
+        return cls(np.zeros(n, dtype=np.intp), np.zeros(n, dtype=np.intp))
+
+    @classmethod
+    def of(
+        cls, n: int, targets: Sequence[str] | None = None, sessions: Sequence[str] | None = None
+    ) -> Groups:
+        """Groups from per-row labels (None: one target, one session)."""
+
+        def index(labels: Sequence[str] | None) -> tuple[Index, tuple[str, ...]]:
+            if labels is None:
+                return np.zeros(n, dtype=np.intp), ("",)
+            names = tuple(dict.fromkeys(labels))
+            pos = {k: i for i, k in enumerate(names)}
+            return np.array([pos[v] for v in labels], dtype=np.intp), names
+
+        t, tn = index(targets)
+        s, sn = index(sessions)
+        return cls(t, s, tn, sn)
+
+    def subset(self, rows: Index) -> Groups:
+        """The groups of some rows (the names stay, so parameters keep their meaning)."""
+        return Groups(self.target[rows], self.session[rows], self.targets, self.sessions)
+
+    @property
+    def plain(self) -> bool:
+        return len(self.targets) == 1 and len(self.sessions) == 1
+
+
+def _label(base: str, names: tuple[str, ...], k: int) -> str:
+    return base if len(names) == 1 else f"{base}:{names[k]}"
+
+
 def parameter_specs(
-    model: RobotModel, *, paper_parameters: bool = False, frame: bool = True
+    model: RobotModel,
+    *,
+    paper_parameters: bool = False,
+    frame: bool = True,
+    groups: Groups | None = None,
+    orientation: bool = False,
 ) -> tuple[ParameterSpec, ...]:
-    """The full, ordered parameter list of a model (kinematic, tool, frame)."""
+    """The full, ordered parameter list of a model (kinematic, targets, frames)."""
+    targets = groups.targets if groups is not None else ("",)
+    sessions = groups.sessions if groups is not None else ("",)
     specs = []
     for i, par in enumerate(model.parallel, start=1):
         second = "beta" if par and not paper_parameters else "d"
         for kind in ("theta", second, "a", "alpha"):
             unit = "mm" if kind in ("d", "a") else "deg"
             specs.append(ParameterSpec(f"{kind}{i}", kind, i, unit))
-    specs += [ParameterSpec(f"tool_{c}", "tool", 0, "mm") for c in "xyz"]
+    for g in range(len(targets)):
+        specs += [ParameterSpec(_label(f"tool_{c}", targets, g), "tool", 0, "mm", g) for c in "xyz"]
+        if orientation:
+            specs += [
+                ParameterSpec(_label(f"tool_r{c}", targets, g), "tool_rot", 0, "deg", g)
+                for c in "xyz"
+            ]
     if frame:
-        specs += [ParameterSpec(f"frame_r{c}", "frame_rot", 0, "deg") for c in "xyz"]
-        specs += [ParameterSpec(f"frame_{c}", "frame_trans", 0, "mm") for c in "xyz"]
+        for g in range(len(sessions)):
+            specs += [
+                ParameterSpec(_label(f"frame_r{c}", sessions, g), "frame_rot", 0, "deg", g)
+                for c in "xyz"
+            ]
+            specs += [
+                ParameterSpec(_label(f"frame_{c}", sessions, g), "frame_trans", 0, "mm", g)
+                for c in "xyz"
+            ]
     return tuple(specs)
+
+
+def _stack(a: Array, shape: tuple[int, ...]) -> Array:
+    a = np.asarray(a, dtype=np.float64)
+    out: Array = a[None] if a.ndim == len(shape) else a
+    return out
 
 
 @dataclass(frozen=True)
 class State:
-    """Geometry, target offset and instrument frame (R, t), in mm and rad; ``pivot`` is
-    the point (instrument frame) that frame rotations turn about."""
+    """Geometry, target offsets and instrument frames, in mm and rad. Per target:
+    ``tools`` (T×3) and, for 6-DOF fits, ``tool_rotations`` (T×3×3, R_flange_target); per session:
+    ``Rs`` (S×3×3), ``ts`` (S×3) and ``pivots`` (S×3), the point (instrument frame) that
+    frame rotations turn about. A single target's or session's arrays may be given
+    unstacked; ``tool``, ``R``, ``t``, ``pivot`` are those of the first."""
 
     model: RobotModel
-    tool: Array
-    R: Array
-    t: Array
-    pivot: Array
+    tools: Array
+    Rs: Array
+    ts: Array
+    pivots: Array
+    tool_rotations: Array | None = None
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "tools", _stack(self.tools, (3,)))
+        object.__setattr__(self, "Rs", _stack(self.Rs, (3, 3)))
+        object.__setattr__(self, "ts", _stack(self.ts, (3,)))
+        object.__setattr__(self, "pivots", _stack(self.pivots, (3,)))
+        if self.tool_rotations is not None:
+            object.__setattr__(self, "tool_rotations", _stack(self.tool_rotations, (3, 3)))
+
+    @property
+    def tool(self) -> Array:
+        out: Array = self.tools[0]
+        return out
+
+    @property
+    def R(self) -> Array:
+        out: Array = self.Rs[0]
+        return out
+
+    @property
+    def t(self) -> Array:
+        out: Array = self.ts[0]
+        return out
+
+    @property
+    def pivot(self) -> Array:
+        out: Array = self.pivots[0]
+        return out
 
     @property
     def T_instrument_base(self) -> Array:
+        return self.frame(0)
+
+    def frame(self, session: int) -> Array:
+        """T_instrument_base of a session (4×4)."""
         T = np.eye(4)
-        T[:3, :3] = self.R
-        T[:3, 3] = self.t
+        T[:3, :3] = self.Rs[session]
+        T[:3, 3] = self.ts[session]
         return T
 
 
-def predict(state: State, q: Array) -> Array:
+def _per_point(state: State, groups: Groups | None, n: int) -> tuple[Array, Array, Array]:
+    """Per measurement: its session's R (N×3×3) and t (N×3), its target's offset (N×3)."""
+    g = groups if groups is not None else Groups.single(n)
+    return state.Rs[g.session], state.ts[g.session], state.tools[g.target]
+
+
+def predict(state: State, q: Array, groups: Groups | None = None) -> Array:
     """Target positions in the instrument frame (N×3, mm) for joint readings q (rad)."""
-    k = target_kinematics(state.model, q, state.tool, jacobian=False)
-    out: Array = k.p @ state.R.T + state.t
+    q = np.atleast_2d(q)
+    Rp, tp, tool = _per_point(state, groups, len(q))
+    k = target_kinematics(state.model, q, tool, jacobian=False)
+    out: Array = np.einsum("nij,nj->ni", Rp, k.p) + tp
     return out
 
 
-def jacobian(state: State, q: Array, specs: tuple[ParameterSpec, ...]) -> tuple[Array, Array]:
-    """Predicted positions (N×3) and ∂m/∂parameters (N×3×P), instrument frame."""
-    k = target_kinematics(state.model, q, state.tool)
-    pb = k.p
-    m = pb @ state.R.T + state.t
+def predict_orientation(state: State, q: Array, groups: Groups | None = None) -> Array:
+    """Target orientations R_instrument_target (N×3×3) for joint readings q (rad)."""
+    q = np.atleast_2d(q)
+    g = groups if groups is not None else Groups.single(len(q))
+    k = target_kinematics(state.model, q, np.zeros(3), jacobian=False)
+    tR = state.tool_rotations if state.tool_rotations is not None else np.eye(3)[None]
+    out: Array = state.Rs[g.session] @ k.R_flange @ tR[g.target]
+    return out
+
+
+def orientation_residuals(measured_R: Array, predicted_R: Array) -> Array:
+    """Rotation vectors (N×3, rad, instrument frame) taking predicted onto measured."""
+    out: Array = Rotation.from_matrix(measured_R @ np.swapaxes(predicted_R, 1, 2)).as_rotvec()
+    return out
+
+
+def jacobian(
+    state: State,
+    q: Array,
+    specs: tuple[ParameterSpec, ...],
+    groups: Groups | None = None,
+    orientation: bool = False,
+) -> tuple[Array, Array]:
+    """Predicted positions (N×3) and ∂m/∂parameters (N×3×P, instrument frame); with
+    ``orientation`` N×6×P, rows 3–5 the angular velocity of the target's orientation."""
+    g = groups if groups is not None else Groups.single(len(q))
+    Rp, tp, tool = _per_point(state, g, len(q))
+    k = target_kinematics(state.model, q, tool)
+    m = np.einsum("nij,nj->ni", Rp, k.p) + tp
     N = len(q)
-    J = np.empty((N, 3, len(specs)))
-    Rm = state.R
+    J = np.zeros((N, 6 if orientation else 3, len(specs)))
+    assert k.W_rows is not None
+
+    def turn(v: Array) -> Array:  # base-frame vectors (N×3) into the instrument frame
+        out: Array = np.einsum("nij,nj->ni", Rp, v)
+        return out
+
     for col, sp in enumerate(specs):
         if sp.kind in KINEMATIC_KINDS:
-            J[:, :, col] = k.J_rows[:, :, 5 * (sp.joint - 1) + ROW_PARAMS.index(sp.kind)] @ Rm.T
-        elif sp.kind == "tool":
-            axis = "xyz".index(sp.name[-1])
-            J[:, :, col] = k.R_flange[:, :, axis] @ Rm.T
-        elif sp.kind == "frame_rot":
-            e = np.zeros(3)
-            e["xyz".index(sp.name[-1])] = 1.0
-            J[:, :, col] = np.cross(e, m - state.pivot)
+            c = 5 * (sp.joint - 1) + ROW_PARAMS.index(sp.kind)
+            J[:, :3, col] = turn(k.J_rows[:, :, c])
+            if orientation:
+                J[:, 3:, col] = turn(k.W_rows[:, :, c])
+            continue
+        if sp.kind in ("tool", "tool_rot"):
+            rows = g.target == sp.group
+            v = turn(k.R_flange[:, :, sp.axis])
+            if sp.kind == "tool":
+                J[rows, :3, col] = v[rows]
+            elif orientation:
+                J[rows, 3:, col] = v[rows]
+            continue
+        rows = g.session == sp.group
+        e = np.zeros(3)
+        e[sp.axis] = 1.0
+        if sp.kind == "frame_rot":
+            J[rows, :3, col] = np.cross(e, m[rows] - state.pivots[sp.group])
+            if orientation:
+                J[rows, 3:, col] = e
         else:
-            J[:, :, col] = 0.0
-            J[:, "xyz".index(sp.name[-1]), col] = 1.0
+            J[rows, :3, col] = e
     return m, J
 
 
 def apply(state: State, specs: tuple[ParameterSpec, ...], delta: Array) -> State:
     """The state moved by ``delta`` (internal units) along ``specs``."""
     joints = list(state.model.joints)
-    tool = state.tool.copy()
-    omega = np.zeros(3)
-    dt = np.zeros(3)
+    tools = state.tools.copy()
+    S, T = len(state.Rs), len(state.tools)
+    omega = np.zeros((S, 3))
+    dt = np.zeros((S, 3))
+    tool_omega = np.zeros((T, 3))
     for sp, v in zip(specs, delta, strict=True):
         if sp.kind in KINEMATIC_KINDS:
             j = joints[sp.joint - 1]
             joints[sp.joint - 1] = replace(j, **{sp.kind: getattr(j, sp.kind) + float(v)})
         elif sp.kind == "tool":
-            tool["xyz".index(sp.name[-1])] += v
+            tools[sp.group, sp.axis] += v
+        elif sp.kind == "tool_rot":
+            tool_omega[sp.group, sp.axis] += v
         elif sp.kind == "frame_rot":
-            omega["xyz".index(sp.name[-1])] += v
+            omega[sp.group, sp.axis] += v
         else:
-            dt["xyz".index(sp.name[-1])] += v
-    E = so3_exp(omega)
-    # m' = E (m − pivot) + pivot + dt for every predicted m.
-    R = E @ state.R
-    t = E @ (state.t - state.pivot) + state.pivot + dt
-    return State(state.model.with_joints(tuple(joints)), tool, R, t, state.pivot)
+            dt[sp.group, sp.axis] += v
+    E = np.stack([so3_exp(w) for w in omega])
+    # m' = E (m − pivot) + pivot + dt for every predicted m of the session.
+    Rs = E @ state.Rs
+    ts = np.einsum("sij,sj->si", E, state.ts - state.pivots) + state.pivots + dt
+    tool_rotations = state.tool_rotations
+    if tool_rotations is not None:
+        tool_rotations = np.stack([so3_exp(w) for w in tool_omega]) @ tool_rotations
+    return State(
+        state.model.with_joints(tuple(joints)), tools, Rs, ts, state.pivots, tool_rotations
+    )
 
 
 def joint_errors(nominal: RobotModel, calibrated: RobotModel) -> list[tuple[Joint, Joint]]:

@@ -77,7 +77,7 @@ class Identifiability:
 
 def _groups(specs: Sequence[ParameterSpec]) -> list[list[int]]:
     frame = [i for i, s in enumerate(specs) if s.kind.startswith("frame")]
-    tool = [i for i, s in enumerate(specs) if s.kind == "tool"]
+    tool = [i for i, s in enumerate(specs) if s.kind in ("tool", "tool_rot")]
     kin = [i for i, s in enumerate(specs) if s.kind in KINEMATIC_KINDS]
     return [g for g in (frame, tool, kin) if g]
 
@@ -196,7 +196,9 @@ def weakly_determined(J: Array, sigma0: float, ident: Identifiability) -> Identi
         std = np.sqrt(np.clip(np.diag(C), 0.0, None))
         ratio = np.array(
             [
-                std[k] / _limit(specs[i]) if not specs[i].kind.startswith("frame") else 0.0
+                std[k] / _limit(specs[i])
+                if not specs[i].kind.startswith("frame") and specs[i].kind != "tool_rot"
+                else 0.0
                 for k, i in enumerate(keep)
             ]
         )

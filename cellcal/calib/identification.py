@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Collection, Sequence
+from dataclasses import dataclass
 
 import numpy as np
 from scipy.optimize import least_squares
@@ -28,14 +29,18 @@ from cellcal.calib.acceptance import (
 from cellcal.calib.calibration_result import CalibrationResult, ParameterEstimate, rms
 from cellcal.calib.error_model import (
     KINEMATIC_KINDS,
+    Groups,
+    Index,
     ParameterSpec,
     State,
     apply,
     jacobian,
+    orientation_residuals,
     parameter_specs,
     predict,
+    predict_orientation,
 )
-from cellcal.calib.geometry import Array, skew, wrap_deg
+from cellcal.calib.geometry import Array, skew, so3_log, wrap_deg
 from cellcal.calib.identifiability import analyse, weakly_determined
 from cellcal.calib.kinematics import target_kinematics
 from cellcal.calib.registration import fit_rigid
@@ -48,13 +53,16 @@ from cellcal.errors import (
     MirroredCorrespondenceError,
 )
 
-__all__ = ["CalibrationResult", "ParameterEstimate", "calibrate", "fit_frames"]
+__all__ = ["CalibrationResult", "Groups", "ParameterEstimate", "calibrate", "fit_frames"]
 
 ROBUST_LOSSES = ("huber", "soft_l1", "cauchy")
 #: Above this condition number of the (unit-scaled) identification Jacobian a warning
 #: says the poses are poorly chosen; well-spread poses with varied wrist orientation
 #: give tens to a few hundred, the paper's fixed-orientation cube about 5e3.
 ILL_CONDITIONED = 1e3
+#: The starting weight of an orientation residual against a position residual (mm/rad:
+#: 0.02 mm against 0.2 mrad); re-balanced from the residuals of the fit.
+ORIENTATION_WEIGHT_START = 100.0
 
 
 # --------------------------------------------------------------------------- input checks
@@ -93,34 +101,100 @@ def check_measurements(
 # --------------------------------------------------------------------------- the fit
 
 
-def initial_state(model: RobotModel, q: Array, measured: Array) -> State:
-    """Closed-form start: register the nominal positions to the measurements (SVD), then
-    solve the target offset and the translation linearly, and register once more."""
+def initial_state(
+    model: RobotModel,
+    q: Array,
+    measured: Array,
+    groups: Groups | None = None,
+    orientations: Array | None = None,
+) -> State:
+    """Closed-form start: register the nominal positions to the measurements of each
+    session (SVD), solve the target offsets and the translations linearly, and register
+    once more; with orientations, each target's orientation on the flange as the mean of
+    what the measurements imply."""
+    g = groups if groups is not None else Groups.single(len(q))
+    S, T = len(g.sessions), len(g.targets)
     k = target_kinematics(model, q, model.tool, jacobian=False)
-    fit = fit_rigid(k.p, measured)
-    R = fit.R
-    # measured − R·o_flange = R·R_flange·tool + t: linear in (tool, t).
-    A = np.concatenate(
-        [np.einsum("ij,njk->nik", R, k.R_flange), np.broadcast_to(np.eye(3), (len(q), 3, 3))],
-        axis=2,
-    )
-    b = measured - (k.p - k.R_flange @ model.tool) @ R.T
-    sol, _, rank, _ = np.linalg.lstsq(A.reshape(-1, 6), b.reshape(-1), rcond=1e-9)
-    tool = sol[:3] if rank == 6 else model.tool.copy()
-    k = target_kinematics(model, q, tool, jacobian=False)
-    fit = fit_rigid(k.p, measured)
-    return State(model, tool, fit.R, fit.t, measured.mean(axis=0))
+    Rs = np.empty((S, 3, 3))
+    for s in range(S):
+        rows = g.session == s
+        if np.count_nonzero(rows) < 3:
+            raise DegenerateGeometryError(
+                f"session {g.sessions[s]!r} has {np.count_nonzero(rows)} measurement(s); "
+                "each instrument set-up needs at least 3 (spread over a volume)"
+            )
+        Rs[s] = fit_rigid(k.p[rows], measured[rows]).R
+    # measured − R_s·o_flange = R_s·R_flange·tool_t + t_s: linear in (tools, ts).
+    N = len(q)
+    Rp = Rs[g.session]
+    A = np.zeros((N, 3, 3 * T + 3 * S))
+    RR = np.einsum("nij,njk->nik", Rp, k.R_flange)
+    for n in range(N):
+        A[n, :, 3 * g.target[n] : 3 * g.target[n] + 3] = RR[n]
+        A[n, :, 3 * T + 3 * g.session[n] : 3 * T + 3 * g.session[n] + 3] = np.eye(3)
+    b = measured - np.einsum("nij,nj->ni", Rp, k.p - k.R_flange @ model.tool)
+    sol, _, rank, _ = np.linalg.lstsq(A.reshape(-1, A.shape[2]), b.reshape(-1), rcond=1e-9)
+    tools = sol[: 3 * T].reshape(T, 3) if rank == A.shape[2] else np.tile(model.tool, (T, 1))
+    k = target_kinematics(model, q, tools[g.target], jacobian=False)
+    ts = np.empty((S, 3))
+    pivots = np.empty((S, 3))
+    for s in range(S):
+        rows = g.session == s
+        fit = fit_rigid(k.p[rows], measured[rows])
+        Rs[s], ts[s] = fit.R, fit.t
+        pivots[s] = measured[rows].mean(axis=0)
+    tool_rotations = None
+    if orientations is not None:
+        tool_rotations = np.empty((T, 3, 3))
+        implied = np.swapaxes(Rs[g.session] @ k.R_flange, 1, 2) @ orientations
+        for t in range(T):
+            U, _, Vt = np.linalg.svd(implied[g.target == t].sum(axis=0))
+            tool_rotations[t] = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+    return State(model, tools, Rs, ts, pivots, tool_rotations)
 
 
-def _weights(sigma: Array | None, n: int) -> Array:
-    return np.ones((n, 3)) if sigma is None else 1.0 / sigma
+def _weights(sigma: Array | None, n: int, orientation: bool = False) -> Array:
+    """Per measurement: 1/σ of x, y, z (and of the three orientation components)."""
+    w = np.ones((n, 3)) if sigma is None else 1.0 / sigma
+    if orientation:
+        w = np.hstack([w, np.full((n, 3), ORIENTATION_WEIGHT_START * float(np.mean(w)))])
+    return w
+
+
+@dataclass(frozen=True)
+class Data:
+    """What a fit reads: joint readings (rad), positions (mm), their groups, and the
+    measured orientations (N×3×3) of a 6-DOF instrument or None."""
+
+    q: Array
+    measured: Array
+    groups: Groups
+    orientations: Array | None = None
+
+    def residuals(self, state: State) -> Array:
+        """Measured − predicted: N×3 (mm), or N×6 with the orientations' (rad)."""
+        r = self.measured - predict(state, self.q, self.groups)
+        if self.orientations is None:
+            return r
+        o = orientation_residuals(
+            self.orientations, predict_orientation(state, self.q, self.groups)
+        )
+        out: Array = np.hstack([r, o])
+        return out
+
+    def jacobian(self, state: State, specs: tuple[ParameterSpec, ...]) -> Array:
+        _, J = jacobian(state, self.q, specs, self.groups, self.orientations is not None)
+        return J
+
+    def subset(self, rows: Index) -> Data:
+        o = None if self.orientations is None else self.orientations[rows]
+        return Data(self.q[rows], self.measured[rows], self.groups.subset(rows), o)
 
 
 def _least_squares(
     state: State,
     specs: tuple[ParameterSpec, ...],
-    q: Array,
-    measured: Array,
+    data: Data,
     w: Array,
     robust: str | None = None,
     f_scale: float = 1.0,
@@ -128,11 +202,11 @@ def _least_squares(
     """Levenberg–Marquardt (or TRF with a robust loss) over ``specs`` from ``state``."""
 
     def fun(x: Array) -> Array:
-        out: Array = ((measured - predict(apply(state, specs, x), q)) * w).ravel()
+        out: Array = (data.residuals(apply(state, specs, x)) * w).ravel()
         return out
 
     def jac(x: Array) -> Array:
-        _, J = jacobian(apply(state, specs, x), q, specs)
+        J = data.jacobian(apply(state, specs, x), specs)
         out: Array = -(J * w[:, :, None]).reshape(-1, len(specs))
         return out
 
@@ -154,35 +228,51 @@ def _frame_tool_specs(specs: tuple[ParameterSpec, ...]) -> tuple[ParameterSpec, 
     return tuple(s for s in specs if s.kind not in KINEMATIC_KINDS)
 
 
-def fit_frames(model: RobotModel, q: Array, measured: Array, sigma: Array | None = None) -> State:
-    """The nominal geometry with best-fit instrument frame and target offset (the
+def fit_frames(
+    model: RobotModel,
+    q: Array,
+    measured: Array,
+    sigma: Array | None = None,
+    groups: Groups | None = None,
+) -> State:
+    """The nominal geometry with best-fit instrument frames and target offsets (the
     "before" model of a calibration, and the baseline of validation)."""
     q, measured, sigma = check_measurements(model, q, measured, sigma)
-    return _fit_frames(model, q, measured, _weights(sigma, len(q)))
+    data = Data(q, measured, groups if groups is not None else Groups.single(len(q)))
+    return _fit_frames(model, data, _weights(sigma, len(q)))
 
 
-def _fit_frames(model: RobotModel, q: Array, measured: Array, w: Array) -> State:
-    state = initial_state(model, q, measured)
-    specs = _frame_tool_specs(parameter_specs(model))
-    _, J = jacobian(state, q, specs)
+def _fit_frames(model: RobotModel, data: Data, w: Array) -> State:
+    state = initial_state(model, data.q, data.measured, data.groups, data.orientations)
+    specs = _frame_tool_specs(
+        parameter_specs(model, groups=data.groups, orientation=data.orientations is not None)
+    )
+    J = data.jacobian(state, specs)
     ident = analyse((J * w[:, :, None]).reshape(-1, len(specs)), specs)
     sel = tuple(specs[i] for i in ident.identified)
-    if any(s.kind == "tool" for s in specs if s not in sel):
-        # The poses do not determine the whole target offset: keep its nominal value
-        # (the closed-form start may have given it any value) and register again.
-        k = target_kinematics(model, q, model.tool, jacobian=False)
-        fit = fit_rigid(k.p, measured)
-        state = State(model, model.tool, fit.R, fit.t, state.pivot)
-    state, _, _ = _least_squares(state, sel, q, measured, w)
+    lost = {s.group for s in specs if s.kind == "tool" and s not in sel}
+    if lost:
+        # The poses do not determine a whole target offset: keep its nominal value (the
+        # closed-form start may have given it any value) and register again.
+        tools = state.tools.copy()
+        tools[sorted(lost)] = model.tool
+        k = target_kinematics(model, data.q, tools[data.groups.target], jacobian=False)
+        Rs, ts = state.Rs.copy(), state.ts.copy()
+        for s in range(len(Rs)):
+            rows = data.groups.session == s
+            fit = fit_rigid(k.p[rows], data.measured[rows])
+            Rs[s], ts[s] = fit.R, fit.t
+        state = State(model, tools, Rs, ts, state.pivots, state.tool_rotations)
+    state, _, _ = _least_squares(state, sel, data, w)
     return state
 
 
-def frames_rms(model: RobotModel, q: Array, measured: Array) -> float:
-    """RMS residual (mm) of the model with best-fit frames; joint limits not checked (for
-    trying reinterpretations of data that do not fit)."""
-    w = np.ones((len(q), 3))
-    st = _fit_frames(model, q, measured, w)
-    return rms(measured - predict(st, q))
+def frames_rms(model: RobotModel, q: Array, measured: Array, groups: Groups | None = None) -> float:
+    """RMS position residual (mm) of the model with best-fit frames; joint limits not
+    checked (for trying reinterpretations of data that do not fit)."""
+    data = Data(q, measured, groups if groups is not None else Groups.single(len(q)))
+    st = _fit_frames(model, data, np.ones((len(q), 3)))
+    return rms(measured - predict(st, q, data.groups))
 
 
 def _expand_fix(specs: tuple[ParameterSpec, ...], fix: Collection[str]) -> frozenset[str]:
@@ -193,7 +283,7 @@ def _expand_fix(specs: tuple[ParameterSpec, ...], fix: Collection[str]) -> froze
         if item == "kinematics":
             out |= {s.name for s in specs if s.kind in KINEMATIC_KINDS}
         elif item in ("tool", "target_offset"):
-            out |= {s.name for s in specs if s.kind == "tool"}
+            out |= {s.name for s in specs if s.kind in ("tool", "tool_rot")}
         elif item in names:
             out.add(item)
         else:
@@ -219,6 +309,31 @@ def _sigma0(residuals: Array, w: Array, dof: int) -> float:
     return float(np.sqrt(np.sum((residuals * w) ** 2) / max(dof, 1)))
 
 
+def check_orientations(orientations: Array | None, n: int) -> Array | None:
+    """Measured orientations: N rotation matrices (3×3), or None."""
+    if orientations is None:
+        return None
+    o = np.asarray(orientations, dtype=np.float64)
+    if o.shape != (n, 3, 3) or not np.isfinite(o).all():
+        raise InputError(f"orientations: expected {n} rotation matrices (3×3)")
+    err = np.abs(o @ np.swapaxes(o, 1, 2) - np.eye(3)).max(axis=(1, 2))
+    bad = np.flatnonzero((err > 1e-6) | (np.linalg.det(o) < 0))
+    if len(bad):
+        raise InputError(f"orientation of row {int(bad[0]) + 1} is not a rotation")
+    return o
+
+
+def _balance(w: Array, r: Array) -> Array:
+    """Orientation weights re-scaled so that weighted position and orientation residuals
+    have the same spread (variance components estimated from the fit)."""
+    sp = float(np.sqrt(np.mean((r[:, :3] * w[:, :3]) ** 2)))
+    so = float(np.sqrt(np.mean((r[:, 3:] * w[:, 3:]) ** 2)))
+    out = w.copy()
+    if sp > 0 and so > 0:
+        out[:, 3:] *= sp / so
+    return out
+
+
 def calibrate(
     nominal: RobotModel,
     q: Array,
@@ -230,19 +345,24 @@ def calibrate(
     fix: Collection[str] = (),
     accept: bool = False,
     alternatives: Sequence[RobotModel] = (),
+    groups: Groups | None = None,
+    orientations: Array | None = None,
 ) -> CalibrationResult:
-    """Identify kinematic errors, target offset and instrument frame together.
+    """Identify kinematic errors, target offsets and instrument frames together.
 
     ``q``: joint readings (N×n, rad); ``measured``: target positions in the instrument
     frame (N×3, mm); ``sigma``: their 1σ per axis (N×3, mm) to weight the fit;
     ``robust``: a robust loss (huber, soft_l1, cauchy) after the least-squares fit;
     ``paper_parameters``: the paper's θ, d, a, α on every row (no β); ``fix``: parameter
-    names (or ``kinematics``, ``tool``) pinned at nominal. A result that fails an
-    acceptance check raises :class:`AcceptanceError` unless ``accept`` (then the failures
-    are among the warnings); ``alternatives``: other models to try when diagnosing data
-    that do not fit.
+    names (or ``kinematics``, ``tool``) pinned at nominal; ``groups``: the target and the
+    session (instrument set-up) of each row, each with its own offset or frame;
+    ``orientations``: measured target orientations (N×3×3) of a 6-DOF instrument. A
+    result that fails an acceptance check raises :class:`AcceptanceError` unless
+    ``accept`` (then the failures are among the warnings); ``alternatives``: other models
+    to try when diagnosing data that do not fit.
     """
     q, measured, sigma = check_measurements(nominal, q, measured, sigma)
+    orientations = check_orientations(orientations, len(q))
     if robust is not None and robust not in ROBUST_LOSSES:
         raise InputError(
             f"unknown robust loss {robust!r}; choose one of {', '.join(ROBUST_LOSSES)}"
@@ -250,90 +370,114 @@ def calibrate(
     N = len(q)
     if N < 3:
         raise DegenerateGeometryError(f"need at least 3 measurements, got {N}")
-    w = _weights(sigma, N)
+    g = groups if groups is not None else Groups.single(N)
+    if len(g.target) != N or len(g.session) != N:
+        raise InputError(f"groups: expected {N} target and session labels")
+    data = Data(q, measured, g, orientations)
+    six = orientations is not None
+    w = _weights(sigma, N, six)
     warnings: list[str] = []
     accepted: list[str] = []
-    specs = parameter_specs(nominal, paper_parameters=paper_parameters)
+    specs = parameter_specs(nominal, paper_parameters=paper_parameters, groups=g, orientation=six)
     pinned = _expand_fix(specs, fix)
-    sv = np.linalg.svd(measured - measured.mean(axis=0), compute_uv=False)
-    if not sv[1] > 1e-9 * sv[0]:
-        raise DegenerateGeometryError(
-            "the measurements do not determine the instrument frame (they lie on a line or "
-            "at one point); spread the poses over a volume"
-        )
-    _refuse_or_note(check_data(nominal, q, measured, nominal.tool), accept, warnings, accepted)
+    for s in range(len(g.sessions)):
+        m_s = measured[g.session == s]
+        if len(g.sessions) > 1 and len(m_s) < 3:
+            raise DegenerateGeometryError(
+                f"session {g.sessions[s]!r} has {len(m_s)} measurement(s); each instrument "
+                "set-up needs at least 3 (spread over a volume)"
+            )
+        sv = np.linalg.svd(m_s - m_s.mean(axis=0), compute_uv=False)
+        if not sv[1] > 1e-9 * sv[0]:
+            raise DegenerateGeometryError(
+                "the measurements do not determine the instrument frame (they lie on a line "
+                "or at one point); spread the poses over a volume"
+            )
+    findings: list[Finding] = []
+    for s in range(len(g.sessions)):
+        rows = g.session == s
+        findings += check_data(nominal, q[rows], measured[rows], nominal.tool)
+    _refuse_or_note(findings[:1], accept, warnings, accepted)
+
+    def frames_fit(model: RobotModel, qq: Array, mm: Array) -> float:
+        return frames_rms(model, qq, mm, g)
 
     def diagnosis(what: str) -> AcceptanceError:
-        return diagnose(nominal, q, measured, frames_rms, alternatives, what=what).refusal()
+        return diagnose(nominal, q, measured, frames_fit, alternatives, what=what).refusal()
 
     try:
-        baseline = _fit_frames(nominal, q, measured, w)
+        baseline = _fit_frames(nominal, data, w)
     except ConvergenceError:
         raise diagnosis("the registration of the nominal model did not converge") from None
     except MirroredCorrespondenceError:
         raise diagnosis(
             "the nominal model's positions match the measurements only mirrored"
         ) from None
-    residuals_before = measured - predict(baseline, q)
+    residuals_before = measured - predict(baseline, q, g)
     if rms(residuals_before) > ACCURACY_CLASS_MM:
         finding = diagnose(
             nominal,
             q,
             measured,
-            frames_rms,
+            frames_fit,
             alternatives,
             what=f"the nominal model with best-fit frames leaves RMS "
             f"{rms(residuals_before):.3g} mm, far worse than any robot's accuracy class",
         )
         _refuse_or_note([finding], accept, warnings, accepted)
 
-    _, J = jacobian(baseline, q, specs)
-    Jw_all = (J * w[:, :, None]).reshape(-1, len(specs))
-    ident = analyse(Jw_all, specs, fixed=pinned)
+    def weighted(state: State) -> Array:
+        out: Array = (data.jacobian(state, specs) * w[:, :, None]).reshape(-1, len(specs))
+        return out
+
+    ident = analyse(weighted(baseline), specs, fixed=pinned)
     sel = tuple(specs[i] for i in ident.identified)
-    if len(sel) >= 3 * N:
+    equations = w.size
+    if len(sel) >= equations:
         raise InputError(
-            f"{N} measurements give {3 * N} equations for {len(sel)} identifiable "
+            f"{N} measurements give {equations} equations for {len(sel)} identifiable "
             f"parameters; measure at least {len(sel) // 3 + 1} poses"
         )
     # Identifiability as a matter of degree: fit, estimate the noise, leave at nominal
     # what the noise hides, and fit again from the baseline without it.
     try:
-        trial, _, nfev = _least_squares(baseline, sel, q, measured, w)
-        point = trial
+        point, _, nfev = _least_squares(baseline, sel, data, w)
+        for _ in range(2 if six else 0):
+            w = _balance(w, data.residuals(point))
+            point, _, more = _least_squares(baseline, sel, data, w)
+            nfev += more
     except ConvergenceError:
         point, nfev = baseline, 0
-    r_trial = measured - predict(point, q)
-    _, J = jacobian(point, q, specs)
     ident = weakly_determined(
-        (J * w[:, :, None]).reshape(-1, len(specs)),
-        _sigma0(r_trial, w, 3 * N - len(sel)),
-        ident,
+        weighted(point), _sigma0(data.residuals(point), w, equations - len(sel)), ident
     )
     sel = tuple(specs[i] for i in ident.identified)
     P = len(sel)
     try:
-        state, Jw, more = _least_squares(baseline, sel, q, measured, w)
+        state, Jw, more = _least_squares(baseline, sel, data, w)
     except ConvergenceError:
         raise diagnosis("the identification did not converge") from None
     nfev += more
     if robust is not None:
-        r = np.linalg.norm((measured - predict(state, q)) * w, axis=1)
+        r = np.linalg.norm(data.residuals(state) * w, axis=1)
         f_scale = 2.5 * max(float(np.median(r)) / 1.5382, 1e-12)
         try:
-            state, Jw, more = _least_squares(state, sel, q, measured, w, robust, f_scale)
+            state, Jw, more = _least_squares(state, sel, data, w, robust, f_scale)
         except ConvergenceError:
             raise diagnosis(f"the robust ({robust}) identification did not converge") from None
         nfev += more
-    lost_tool = [s.name for s in specs if s.kind == "tool" and s not in sel]
+    lost_tool = [
+        s.name for s in specs if s.kind == "tool" and s not in sel and s.name not in pinned
+    ]
     if lost_tool:
         warnings.append(
             f"the target offset ({', '.join(lost_tool)}) is not identifiable from these poses "
             "(does the flange orientation never change?); it stays at its nominal value and "
             "the model holds only at the measured orientations"
         )
+    farthest = state.tools[int(np.argmax(np.linalg.norm(state.tools, axis=1)))]
     _refuse_or_note(
-        assess(nominal, estimates_preview(state, nominal, sel), state.tool),
+        assess(nominal, estimates_preview(state, nominal, sel), farthest),
         accept,
         warnings,
         accepted,
@@ -345,9 +489,10 @@ def calibrate(
             "spread them over a larger volume"
         )
 
-    residuals = measured - predict(state, q)
-    dof = 3 * N - P
-    sigma0 = _sigma0(residuals, w, dof)
+    full = data.residuals(state)
+    residuals = full[:, :3]
+    dof = equations - P
+    sigma0 = _sigma0(full, w, dof)
     try:
         cov: Array = np.asarray(sigma0**2 * np.linalg.inv(Jw.T @ Jw), dtype=np.float64)
         std = np.sqrt(np.clip(np.diag(cov), 0.0, None))
@@ -363,7 +508,10 @@ def calibrate(
             continue
         k = sel_index.get(sp.name)
         if sp.kind == "tool":
-            value = float(state.tool["xyz".index(sp.name[-1])])
+            value = float(state.tools[sp.group, sp.axis])
+        elif sp.kind == "tool_rot":
+            assert state.tool_rotations is not None
+            value = math.degrees(float(so3_log(state.tool_rotations[sp.group])[sp.axis]))
         else:
             value = sp.to_display(
                 getattr(state.model.joints[sp.joint - 1], sp.kind)
@@ -383,15 +531,15 @@ def calibrate(
                 "" if k is not None else ident.reason(i),
             )
         )
-    tool_std = np.array([e.std for e in estimates if e.kind == "tool"])
-    frame_std = _frame_std(state, sel, cov)
+    tool_std = np.array([e.std for e in estimates if e.kind == "tool"]).reshape(-1, 3)
+    frame_std = np.stack([_frame_std(state, sel, cov, s) for s in range(len(g.sessions))])
     return CalibrationResult(
         nominal=nominal,
         calibrated=state.model,
         tool=state.tool,
-        tool_std=tool_std,
-        T_instrument_base=state_T(state),
-        frame_std=frame_std,
+        tool_std=tool_std[0],
+        T_instrument_base=state.T_instrument_base,
+        frame_std=frame_std[0],
         parameters=tuple(estimates),
         identifiability=ident,
         n_points=N,
@@ -404,23 +552,27 @@ def calibrate(
         robust=robust,
         warnings=tuple(warnings),
         accepted_despite=tuple(accepted),
+        groups=g,
+        tools=state.tools,
+        tools_std=tool_std,
+        frames=np.stack([state.frame(s) for s in range(len(g.sessions))]),
+        frames_std=frame_std,
+        tool_rotations=state.tool_rotations,
+        orientation_residuals=None if not six else full[:, 3:],
     )
 
 
-def state_T(state: State) -> Array:
-    return state.T_instrument_base
-
-
-def _frame_std(state: State, sel: tuple[ParameterSpec, ...], cov: Array) -> Array:
-    """Standard uncertainty of T_instrument_base's rotation vector and translation (at the
-    instrument origin), from the covariance of the pivot parameterisation."""
-    idx = [k for k, s in enumerate(sel) if s.kind.startswith("frame")]
+def _frame_std(state: State, sel: tuple[ParameterSpec, ...], cov: Array, session: int = 0) -> Array:
+    """Standard uncertainty of a session's T_instrument_base rotation vector and
+    translation (at the instrument origin), from the covariance of the pivot
+    parameterisation."""
+    idx = [k for k, s in enumerate(sel) if s.kind.startswith("frame") and s.group == session]
     if len(idx) != 6:
         return np.full(6, np.nan)
     C = cov[np.ix_(idx, idx)]
     # t = E(ω)(t₀ − pivot) + pivot + δt  ⇒  ∂t/∂ω = −[t₀ − pivot]×, ∂t/∂δt = I.
     G = np.eye(6)
-    G[3:6, 0:3] = -skew(state.t - state.pivot)
+    G[3:6, 0:3] = -skew(state.ts[session] - state.pivots[session])
     out: Array = np.sqrt(np.clip(np.diag(G @ C @ G.T), 0.0, None))
     return out
 

@@ -73,6 +73,7 @@ def solve(
         if done.all():
             break
         J = np.concatenate([k.J_rows[:, :, 0::5], k.axes * length_mm], axis=1)  # N×6×n
+        J = J @ model.reading_matrix  # ∂/∂angles → ∂/∂readings
         e = np.concatenate([e_pos, e_rot * length_mm], axis=1)
         A = J @ np.swapaxes(J, 1, 2) + (lam * length_mm) ** 2 * np.eye(6)
         step = np.einsum("nji,nj->ni", J, np.linalg.solve(A, e[:, :, None])[:, :, 0])

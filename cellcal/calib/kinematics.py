@@ -28,12 +28,16 @@ ROW_PARAMS = ("theta", "d", "a", "alpha", "beta")
 class TargetKinematics:
     """Positions ``p`` (N×3, base frame, mm), flange rotations ``R_flange`` (N×3×3),
     ``J_rows`` (N×3×5n): ∂p/∂(θ, d, a, α, β) of every row (mm/rad, mm/mm), and the joint
-    axes ``axes`` (N×3×n, unit vectors in the base frame). ∂p/∂qᵢ equals ∂p/∂θᵢ."""
+    axes ``axes`` (N×3×n, unit vectors in the base frame). ∂p/∂θᵢ is ∂p/∂(angle i); with
+    the model's reading map A, ∂p/∂q = ∂p/∂θ · A."""
 
     p: Array
     R_flange: Array
     J_rows: Array
     axes: Array
+    #: ∂(flange orientation)/∂(θ, d, a, α, β) of every row as angular velocities (N×3×5n,
+    #: base frame, rad/rad; zero for d and a)
+    W_rows: Array | None = None
 
 
 def _cross(u: Array, v: Array) -> Array:
@@ -44,7 +48,8 @@ def _cross(u: Array, v: Array) -> Array:
 def target_kinematics(
     model: RobotModel, q: Array, tool: Array, *, jacobian: bool = True
 ) -> TargetKinematics:
-    """Target positions for joint readings ``q`` (N×n, rad) and target offset ``tool`` (mm)."""
+    """Target positions for joint readings ``q`` (N×n, rad) and target offset ``tool`` (mm;
+    one offset, or one per pose: N×3)."""
     q = np.atleast_2d(np.asarray(q, dtype=np.float64))
     N, n = q.shape
     if n != model.dof:
@@ -57,8 +62,9 @@ def target_kinematics(
     # Per row: (axis, origin) pairs for θ, α, β and directions for d, a.
     rec: list[tuple[Array, ...]] = []
     dh = model.convention == "dh"
+    angles = model.joint_angles(q)
     for i, jt in enumerate(model.joints):
-        ang = jt.theta + q[:, i]
+        ang = jt.theta + angles[:, i]
         c, s = np.cos(ang)[:, None], np.sin(ang)[:, None]
         ca, sa = np.cos(jt.alpha), np.sin(jt.alpha)
         cb, sb = np.cos(jt.beta), np.sin(jt.beta)
@@ -94,12 +100,14 @@ def target_kinematics(
         if jacobian:
             rec.append((z_th, o_th, d_dir, a_dir, al_axis, al_org, be_axis, be_org))
     R = np.stack([x, y, z], axis=2)
-    p = o + R @ np.asarray(tool, dtype=np.float64)
+    tool = np.asarray(tool, dtype=np.float64)
+    p = o + (R @ tool if tool.ndim == 1 else np.einsum("nij,nj->ni", R, tool))
     if not jacobian:
         return TargetKinematics(
             p=p, R_flange=R, J_rows=np.zeros((N, 3, 0)), axes=np.zeros((N, 3, 0))
         )
     J = np.empty((N, 3, 5 * n))
+    W = np.zeros((N, 3, 5 * n))
     axes = np.empty((N, 3, n))
     for i, (z_th, o_th, d_dir, a_dir, al_axis, al_org, be_axis, be_org) in enumerate(rec):
         J[:, :, 5 * i + 0] = _cross(z_th, p - o_th)
@@ -107,8 +115,11 @@ def target_kinematics(
         J[:, :, 5 * i + 2] = a_dir
         J[:, :, 5 * i + 3] = _cross(al_axis, p - al_org)
         J[:, :, 5 * i + 4] = _cross(be_axis, p - be_org)
+        W[:, :, 5 * i + 0] = z_th
+        W[:, :, 5 * i + 3] = al_axis
+        W[:, :, 5 * i + 4] = be_axis
         axes[:, :, i] = z_th
-    return TargetKinematics(p=p, R_flange=R, J_rows=J, axes=axes)
+    return TargetKinematics(p=p, R_flange=R, J_rows=J, axes=axes, W_rows=W)
 
 
 def flange_transforms(model: RobotModel, q: Array) -> Array:

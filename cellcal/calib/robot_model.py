@@ -34,7 +34,7 @@ Convention = Literal["dh", "mdh"]
 #: Consecutive axes closer than this are treated as parallel (Hayati's β replaces d).
 PARALLEL_AXES_DEG = 1.0
 
-_JOINT_KEYS = {"a", "alpha", "d", "theta", "beta", "min", "max"}
+_JOINT_KEYS = {"a", "alpha", "d", "theta", "beta", "min", "max", "scale", "couple"}
 _TOP_KEYS = {"name", "convention", "joint", "tool", "description"}
 
 
@@ -44,7 +44,9 @@ class ModelError(InputError):
 
 @dataclass(frozen=True)
 class Joint:
-    """One row of the table. Lengths mm, angles rad; limits apply to the joint reading."""
+    """One row of the table. Lengths mm, angles rad; limits apply to the joint reading.
+    The joint angle is ``scale`` × its reading (+ ``couple_factor`` × the reading of joint
+    ``couple_joint``, 1-based, 0 for none), then θ is added."""
 
     a: float
     alpha: float
@@ -53,6 +55,9 @@ class Joint:
     beta: float = 0.0
     q_min: float = -math.inf
     q_max: float = math.inf
+    scale: float = 1.0
+    couple_joint: int = 0
+    couple_factor: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -86,6 +91,30 @@ class RobotModel:
         lo = np.array([j.q_min for j in self.joints])
         hi = np.array([j.q_max for j in self.joints])
         return lo, hi
+
+    @property
+    def reading_matrix(self) -> Array:
+        """A (n×n): joint angles (before θ) = A · readings. Identity unless a joint has a
+        ``scale`` or a ``couple``; a coupling to a joint beyond this model is ignored."""
+        n = self.dof
+        A = np.zeros((n, n))
+        for i, j in enumerate(self.joints):
+            A[i, i] = j.scale
+            if 0 < j.couple_joint <= n:
+                A[i, j.couple_joint - 1] += j.couple_factor
+        return A
+
+    @property
+    def maps_readings(self) -> bool:
+        """True when a joint's angle is not simply its reading."""
+        return any(j.scale != 1.0 or j.couple_joint for j in self.joints)
+
+    def joint_angles(self, q: Array) -> Array:
+        """Joint angles before θ (N×n, rad) for readings ``q`` (N×n, rad)."""
+        if not self.maps_readings:
+            return q
+        out: Array = q @ self.reading_matrix.T
+        return out
 
     def with_joints(self, joints: tuple[Joint, ...]) -> RobotModel:
         """The same model with other geometry (same β rows)."""
@@ -145,6 +174,10 @@ def model_from_dict(data: Mapping[str, object], source: str = "model") -> RobotM
         hi = _number(row["max"], f"{where}.max") if "max" in row else math.inf
         if lo >= hi:
             raise ModelError(f"{where}: min must be below max")
+        scale = _number(row.get("scale", 1.0), f"{where}.scale")
+        if scale == 0.0:
+            raise ModelError(f"{where}.scale: must not be 0 (−1 reverses an axis)")
+        couple_joint, couple_factor = _couple(row.get("couple"), where, i, len(rows))
         joints.append(
             Joint(
                 a=_number(row["a"], f"{where}.a"),
@@ -154,6 +187,9 @@ def model_from_dict(data: Mapping[str, object], source: str = "model") -> RobotM
                 beta=math.radians(_number(row.get("beta", 0.0), f"{where}.beta")),
                 q_min=math.radians(lo) if math.isfinite(lo) else lo,
                 q_max=math.radians(hi) if math.isfinite(hi) else hi,
+                scale=scale,
+                couple_joint=couple_joint,
+                couple_factor=couple_factor,
             )
         )
     tool = (0.0, 0.0, 0.0)
@@ -167,7 +203,27 @@ def model_from_dict(data: Mapping[str, object], source: str = "model") -> RobotM
         x, y, z = (_number(v, f"{source}: tool.xyz") for v in xyz)
         tool = (x, y, z)
     conv: Convention = "dh" if convention == "dh" else "mdh"
-    return RobotModel(name=name, convention=conv, joints=tuple(joints), tool_xyz=tool)
+    model = RobotModel(name=name, convention=conv, joints=tuple(joints), tool_xyz=tool)
+    if model.maps_readings and abs(np.linalg.det(model.reading_matrix)) < 1e-9:
+        raise ModelError(
+            f"{source}: the joints' scale and couple make two joint angles depend on the "
+            "same readings (the reading → angle map is singular)"
+        )
+    return model
+
+
+def _couple(value: object, where: str, i: int, n: int) -> tuple[int, float]:
+    """``couple = { joint = J, factor = F }`` of joint ``i`` → (J, F); (0, 0.0) if absent."""
+    if value is None:
+        return 0, 0.0
+    if not isinstance(value, dict) or set(value) != {"joint", "factor"}:
+        raise ModelError(f"{where}.couple: must be {{ joint = J, factor = F }}")
+    joint = value["joint"]
+    if isinstance(joint, bool) or not isinstance(joint, int) or not 1 <= joint <= n:
+        raise ModelError(f"{where}.couple.joint: must be a joint number 1..{n}")
+    if joint == i:
+        raise ModelError(f"{where}.couple.joint: a joint cannot couple to itself (use scale)")
+    return joint, _number(value["factor"], f"{where}.couple.factor")
 
 
 def _deg(rad: float) -> float:
@@ -184,9 +240,9 @@ def model_to_dict(model: RobotModel) -> dict[str, object]:
     """The contract's TOML structure (mm, deg) of a model. ``beta`` (an optional key that
     cellcal adds to the format) is written only where it is not zero; θ, α, β are wrapped
     to (−180°, 180°]."""
-    rows: list[dict[str, float]] = []
+    rows: list[dict[str, object]] = []
     for j in model.joints:
-        row = {
+        row: dict[str, object] = {
             "a": j.a,
             "alpha": _angle(j.alpha),
             "d": j.d,
@@ -198,6 +254,10 @@ def model_to_dict(model: RobotModel) -> dict[str, object]:
             row["min"] = _deg(j.q_min)
         if math.isfinite(j.q_max):
             row["max"] = _deg(j.q_max)
+        if j.scale != 1.0:
+            row["scale"] = j.scale
+        if j.couple_joint:
+            row["couple"] = {"joint": j.couple_joint, "factor": j.couple_factor}
         rows.append(row)
     out: dict[str, object] = {"name": model.name, "convention": model.convention, "joint": rows}
     if any(model.tool_xyz):

@@ -7,13 +7,13 @@ points. k-fold cross-validation fits k times, each time holding one fold out.
 
 from __future__ import annotations
 
-from collections.abc import Collection
+from collections.abc import Collection, Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
 from cellcal.calib.acceptance import ACCURACY_CLASS_MM
-from cellcal.calib.error_model import predict
+from cellcal.calib.error_model import Groups, Index, predict
 from cellcal.calib.geometry import Array
 from cellcal.calib.identification import (
     CalibrationResult,
@@ -64,6 +64,42 @@ class Validation:
         return self.before.rms / self.after.rms if self.after.rms > 0 else float("inf")
 
 
+def held_out_groups(
+    result: CalibrationResult,
+    n: int,
+    targets: Sequence[str] | None = None,
+    sessions: Sequence[str] | None = None,
+) -> Groups:
+    """The calibration's targets and sessions of held-out rows, by their labels (None: the
+    first of each). A label the calibration did not see is refused: a new target has no
+    offset yet and a new session is another set-up, to be re-registered."""
+
+    def index(labels: Sequence[str] | None, known: tuple[str, ...], what: str) -> Index:
+        if labels is None:
+            return np.zeros(n, dtype=np.intp)
+        pos = {k: i for i, k in enumerate(known)}
+        unknown = next((v for v in labels if v not in pos), None)
+        if unknown is not None:
+            hint = (
+                "another set-up: re-register it with cellcal calibrate --model CALIBRATED.toml "
+                "--fix kinematics --data FILE"
+                if what == "session"
+                else "its offset was not calibrated"
+            )
+            raise InputError(
+                f"the validation points name {what} {unknown!r}, which the calibration data "
+                f"do not have ({', '.join(repr(k) for k in known)}): {hint}"
+            )
+        return np.array([pos[v] for v in labels], dtype=np.intp)
+
+    return Groups(
+        index(targets, result.targets, "target"),
+        index(sessions, result.sessions, "session"),
+        result.targets,
+        result.sessions,
+    )
+
+
 def validate_on(
     result: CalibrationResult,
     q_calibration: Array,
@@ -71,17 +107,27 @@ def validate_on(
     q: Array,
     measured: Array,
     sigma_calibration: Array | None = None,
+    groups: Groups | None = None,
 ) -> Validation:
-    """Errors of the calibrated model and of the baseline on separately measured points."""
+    """Errors of the calibrated model and of the baseline on separately measured points;
+    ``groups``: their targets and sessions among the calibration's (see
+    :func:`held_out_groups`)."""
     q, measured, _ = check_measurements(result.nominal, q, measured, None)
-    baseline = fit_frames(result.nominal, q_calibration, measured_calibration, sigma_calibration)
-    eb = measured - predict(baseline, q)
-    ea = measured - result.predict(q)
+    baseline = fit_frames(
+        result.nominal, q_calibration, measured_calibration, sigma_calibration, result.groups
+    )
+    eb = measured - predict(baseline, q, groups)
+    ea = measured - result.predict(q, groups)
     off = ErrorStats.of(ea).rms
     if off > ACCURACY_CLASS_MM and len(q) >= 4:
         # Far off: is it the model, or were these points measured from somewhere else?
         try:
-            own = ErrorStats.of(measured - predict(fit_frames(result.calibrated, q, measured), q))
+            one = None
+            if groups is not None:  # the same targets, one new instrument frame
+                one = Groups(groups.target, np.zeros(len(q), dtype=np.intp), groups.targets)
+            own = ErrorStats.of(
+                measured - predict(fit_frames(result.calibrated, q, measured, None, one), q, one)
+            )
         except UserError:
             own = None
         if own is not None and own.rms < ACCURACY_CLASS_MM:
@@ -105,12 +151,15 @@ def cross_validate(
     robust: str | None = None,
     paper_parameters: bool = False,
     fix: Collection[str] = (),
+    groups: Groups | None = None,
+    orientations: Array | None = None,
 ) -> Validation:
     """k-fold cross-validation: every point is predicted by a calibration without it,
     made with the same options as the calibration it validates (a fold is not refused by
     the acceptance checks: the calibration on all points was checked)."""
     q, measured, sigma = check_measurements(nominal, q, measured, sigma)
     N = len(q)
+    g = groups if groups is not None else Groups.single(N)
     if folds < 2 or folds > N:
         raise InputError(f"folds must be between 2 and the number of points ({N}), got {folds}")
     order = np.random.default_rng(seed).permutation(N)
@@ -129,8 +178,10 @@ def cross_validate(
             paper_parameters=paper_parameters,
             fix=fix,
             accept=True,
+            groups=g.subset(train),
+            orientations=None if orientations is None else orientations[train],
         )
-        base = fit_frames(nominal, q[train], measured[train], s)
-        eb[held] = measured[held] - predict(base, q[held])
-        ea[held] = measured[held] - res.predict(q[held])
+        base = fit_frames(nominal, q[train], measured[train], s, g.subset(train))
+        eb[held] = measured[held] - predict(base, q[held], g.subset(held))
+        ea[held] = measured[held] - res.predict(q[held], g.subset(held))
     return Validation(f"k-fold k={folds}", ErrorStats.of(eb), ErrorStats.of(ea), eb, ea)

@@ -17,7 +17,12 @@ from cellcal.calib.identification import (
     calibrate as run_calibration,
 )
 from cellcal.calib.outliers import OUTLIER_Z, PointResidual, point_residuals
-from cellcal.calib.validation import Validation, cross_validate, validate_on
+from cellcal.calib.validation import (
+    Validation,
+    cross_validate,
+    held_out_groups,
+    validate_on,
+)
 from cellcal.commands.output import SEED, print_json, warn
 from cellcal.errors import AcceptanceError, InputError, UserError
 from cellcal.measurementfiles import read_measurements
@@ -92,20 +97,31 @@ def _report(
             f"{PAPER_BEFORE_MM:.3f} mm with another ({PAPER_BEFORE_MM / PAPER_AFTER_MM:.2f}×, "
             'printed as "45.8 %")'
         )
-    click.echo("parameters (correction to nominal ± 1σ; target offset as estimated):")
+    if res.orientation_residuals is not None:
+        o = np.degrees(np.linalg.norm(res.orientation_residuals, axis=1))
+        click.echo(
+            f"orientation (6-DOF): RMS after {float(np.sqrt(np.mean(o * o))):.5f}°, "
+            f"max {float(o.max()):.5f}°"
+        )
+    click.echo(
+        "parameters (correction to nominal ± 1σ; target offset and orientation as estimated):"
+    )
+    width = max([len(p.name) for p in res.parameters] + [6]) + 2
     for p in res.parameters:
         if p.identified:
-            click.echo(f"  {p.name:<8}{p.value:+13.5f} ± {p.std:.5f} {p.unit}")
+            click.echo(f"  {p.name:<{width}}{p.value:+13.5f} ± {p.std:.5f} {p.unit}")
     echo_points(points, "per-point residuals after the fit")
-    T = res.T_instrument_base
-    rv = np.degrees(so3_log(T[:3, :3]))
-    sd = res.frame_std
-    click.echo(
-        f"instrument frame T_instrument_base: rotation vector ({rv[0]:.5f}, {rv[1]:.5f}, "
-        f"{rv[2]:.5f})° ± ({', '.join(f'{v:.2g}' for v in np.degrees(sd[:3]))})°, translation "
-        f"({T[0, 3]:.4f}, {T[1, 3]:.4f}, {T[2, 3]:.4f}) mm ± "
-        f"({', '.join(f'{v:.2g}' for v in sd[3:])}) mm"
-    )
+    frames = res.frames if res.frames is not None else res.T_instrument_base[None]
+    stds = res.frames_std if res.frames_std is not None else res.frame_std[None]
+    for name, T, sd in zip(res.sessions, frames, stds, strict=True):
+        rv = np.degrees(so3_log(T[:3, :3]))
+        label = f" of session {name}" if name else ""
+        click.echo(
+            f"instrument frame{label} T_instrument_base: rotation vector ({rv[0]:.5f}, "
+            f"{rv[1]:.5f}, {rv[2]:.5f})° ± ({', '.join(f'{v:.2g}' for v in np.degrees(sd[:3]))})°, "
+            f"translation ({T[0, 3]:.4f}, {T[1, 3]:.4f}, {T[2, 3]:.4f}) mm ± "
+            f"({', '.join(f'{v:.2g}' for v in sd[3:])}) mm"
+        )
 
 
 @click.command()
@@ -119,7 +135,8 @@ def _report(
     "--data",
     "data_path",
     required=True,
-    help="CSV q1..q6,x,y,z (deg, mm); optional name, sx,sy,sz.",
+    help="CSV q1..qN,x,y,z (deg, mm); optional columns name, sx,sy,sz (1σ), target (one "
+    "offset per target), session (one instrument frame per set-up), ori_w..ori_z (6-DOF).",
 )
 @click.option("--out", "out_path", help="Write the calibrated model (TOML) here.")
 @click.option(
@@ -168,8 +185,12 @@ def calibrate(
     """Identify the kinematic errors from measured target positions.
 
     The model (--model) is a built-in name or a TOML file of revolute joints (standard
-    or modified DH, any number of joints); a calibrated model written by --out is
-    accepted too, e.g. with --fix kinematics to re-register a new set-up. A result that
+    or modified DH, any number of joints, per joint an optional scale (-1: a reversed
+    axis) and couple = { joint = J, factor = F } (e.g. FANUC's J2/J3 coupling)); a
+    calibrated model written by --out is accepted too, e.g. with --fix kinematics to
+    re-register a new set-up. Several targets (a target column) each get their own
+    offset, several sessions (a session column) their own instrument frame, and 6-DOF
+    measurements (ori_w..ori_z) are fitted in orientation too. A result that
     fails an acceptance check (the target does not follow the robot, units that do not
     fit, corrections beyond manufacturing tolerances, no convergence) exits 3 and writes
     nothing unless --accept is given.
@@ -191,16 +212,28 @@ def calibrate(
         fix=pinned,
         accept=accept,
         alternatives=alternatives,
+        groups=data.groups,
+        orientations=data.orientations,
         **options,
     )
     validation: Validation | None = None
     if validate_path is not None:
         val = read_measurements(validate_path, nominal.dof)
-        validation = validate_on(res, data.q, data.xyz, val.q, val.xyz, data.sigma)
+        held = held_out_groups(res, len(val.q), val.targets, val.sessions)
+        validation = validate_on(res, data.q, data.xyz, val.q, val.xyz, data.sigma, held)
     elif folds:
         try:
             validation = cross_validate(
-                nominal, data.q, data.xyz, data.sigma, folds=folds, seed=seed, fix=pinned, **options
+                nominal,
+                data.q,
+                data.xyz,
+                data.sigma,
+                folds=folds,
+                seed=seed,
+                fix=pinned,
+                groups=data.groups,
+                orientations=data.orientations,
+                **options,
             )
         except (UserError, AcceptanceError) as exc:
             warn(f"k-fold validation skipped: {exc}")
@@ -233,6 +266,23 @@ def calibrate(
             ],
             "tool_mm": res.tool,
             "T_instrument_base": res.T_instrument_base,
+            "targets": {
+                name: xyz
+                for name, xyz in zip(
+                    res.targets, res.tools if res.tools is not None else [res.tool], strict=True
+                )
+            },
+            "sessions": {
+                name: T
+                for name, T in zip(
+                    res.sessions,
+                    res.frames if res.frames is not None else [res.T_instrument_base],
+                    strict=True,
+                )
+            },
+            "orientation_rms_deg": None
+            if res.orientation_residuals is None
+            else float(np.degrees(np.sqrt(np.mean(np.sum(res.orientation_residuals**2, axis=1))))),
             "validation": None
             if validation is None
             else {

@@ -2,35 +2,75 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import click
 import numpy as np
 
-from cellcal.calib.error_model import State
+from cellcal.calib.error_model import Groups, Index, State
 from cellcal.calib.error_model import predict as predict_positions
+from cellcal.calib.geometry import Array
 from cellcal.calib.identification import check_measurements
-from cellcal.measurementfiles import format_positions, read_joints
+from cellcal.errors import InputError
+from cellcal.measurementfiles import format_positions, read_joints_labelled
 from cellcal.modelfiles import load_model, write_atomically
+
+
+def _pick(
+    labels: Sequence[str] | None, known: dict[str, Array] | None, first: Array, what: str
+) -> tuple[Array, Index]:
+    """The values (stacked) and per-row indices for a label column; without the column,
+    or for a model without named ones, the first value for every row."""
+    n = 0 if labels is None else len(labels)
+    if labels is None:
+        return first[None], np.zeros(0, dtype=np.intp)
+    if not known:
+        raise InputError(
+            f"the joints file has a {what} column but the model has no named {what}s "
+            f"(a calibrated model of data with a {what} column has)"
+        )
+    names = list(known)
+    missing = next((v for v in labels if v not in known), None)
+    if missing is not None:
+        raise InputError(f"{what} {missing!r} is not in the model ({', '.join(names)})")
+    idx = np.array([names.index(v) for v in labels], dtype=np.intp)
+    assert len(idx) == n
+    return np.stack([known[k] for k in names]), idx
 
 
 @click.command()
 @click.option(
     "--model", "model_spec", required=True, help="Built-in name, model TOML or calibrated model."
 )
-@click.option("--joints", "joints_path", required=True, help="CSV q1..qn in degrees.")
+@click.option(
+    "--joints",
+    "joints_path",
+    required=True,
+    help="CSV q1..qn in degrees; optional target and session columns pick a calibrated "
+    "model's target offset and instrument frame by name.",
+)
 @click.option("--out", "out_path", help="Write the CSV here instead of stdout.")
 def predict(model_spec: str, joints_path: str, out_path: str | None) -> None:
     """Positions of the target (mm) for joint readings.
 
     With a calibrated model (from `cellcal calibrate --out`) the positions are in the
-    measuring instrument's frame; with a nominal model, in the robot base frame with
-    the model's [tool] offset.
+    measuring instrument's frame (of its first session and target, or those the
+    joints file names); with a nominal model, in the robot base frame with the model's
+    [tool] offset.
     """
     loaded = load_model(model_spec)
-    q = read_joints(joints_path, loaded.model.dof)
+    q, targets, sessions = read_joints_labelled(joints_path, loaded.model.dof)
     check_measurements(loaded.model, q, np.zeros((len(q), 3)), None)
-    T = np.eye(4) if loaded.T_instrument_base is None else loaded.T_instrument_base
-    state = State(loaded.model, loaded.tool, T[:3, :3], T[:3, 3], np.zeros(3))
-    text = format_positions(q, predict_positions(state, q))
+    T0 = np.eye(4) if loaded.T_instrument_base is None else loaded.T_instrument_base
+    tools, t_idx = _pick(targets, loaded.targets, loaded.tool, "target")
+    frames, s_idx = _pick(sessions, loaded.sessions, T0, "session")
+    n = len(q)
+    groups = Groups(
+        t_idx if len(t_idx) else np.zeros(n, dtype=np.intp),
+        s_idx if len(s_idx) else np.zeros(n, dtype=np.intp),
+    )
+    state = State(loaded.model, tools, frames[:, :3, :3], frames[:, :3, 3], np.zeros(3))
+    text = format_positions(q, predict_positions(state, q, groups))
     if out_path is None:
         click.echo(text, nl=False)
     else:
