@@ -73,6 +73,16 @@ def test_unreadable_files(capsys, tmp_path):
     )
 
 
+@pytest.mark.parametrize("value", ["1e9", "1e300", "inf", "nan", "-1"])
+def test_time_scales_that_would_never_finish_or_overflow(capsys, tmp_path, value):
+    db = tmp_path / "c.db"
+    line = _one_line_exit_2(capsys, "run", "--mock", "--db", str(db), "--time-scale", value)
+    assert "--time-scale" in line
+    assert not db.exists()
+    line = _one_line_exit_2(capsys, "mock", "tracker", "--time-scale", value)
+    assert "--time-scale" in line
+
+
 @pytest.mark.parametrize(
     ("edit", "expect"),
     [

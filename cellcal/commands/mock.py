@@ -9,7 +9,7 @@ from typing import TYPE_CHECKING
 
 import click
 
-from cellcal.commands.output import NON_NEGATIVE, SEED
+from cellcal.commands.output import NON_NEGATIVE, SEED, TIME_SCALE
 from cellcal.config import CellConfig, load_config
 from cellcal.errors import InputError
 from cellcal.modelfiles import load_model
@@ -75,7 +75,7 @@ def mock() -> None:
 @click.option("--drop-after", type=int, help="Fault: drop the connection after N lines.")
 @click.option(
     "--time-scale",
-    type=NON_NEGATIVE,
+    type=TIME_SCALE,
     default=1.0,
     show_default=True,
     help="Wall seconds per tracker second (pacing of points).",
@@ -156,7 +156,7 @@ def _cell(config_path: str | None, seed: int | None) -> tuple[CellConfig, Simula
 )
 @click.option(
     "--time-scale",
-    type=NON_NEGATIVE,
+    type=TIME_SCALE,
     default=1.0,
     show_default=True,
     help="Wall seconds per second of motion.",
@@ -176,7 +176,7 @@ def mock_modbus_robot(
     estop: bool,
     stale_heartbeat: bool,
 ) -> None:
-    """A robot behind Modbus TCP with the handshake map of modbus-robot-notes.md."""
+    """A robot behind Modbus TCP with the handshake map of docs/robots.md."""
     import math
 
     from cellcal.mocks.modbus_robot_server import ModbusRobotFaults, ModbusRobotSimulator
@@ -218,7 +218,7 @@ def mock_modbus_robot(
 @click.option("--seed", type=SEED, help="Seed of the simulated truth.")
 @click.option(
     "--time-scale",
-    type=NON_NEGATIVE,
+    type=TIME_SCALE,
     default=1.0,
     show_default=True,
     help="Wall seconds per second of motion.",

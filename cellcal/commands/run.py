@@ -13,7 +13,7 @@ from typing import Any
 import click
 
 from cellcal.commands.calibrate import at_nominal_text, echo_points
-from cellcal.commands.output import NON_NEGATIVE, SEED, print_json
+from cellcal.commands.output import SEED, TIME_SCALE, print_json
 from cellcal.config import CellConfig, load_config
 from cellcal.daemon.analysis import PAPER, CampaignSummary
 from cellcal.daemon.campaign import CampaignOutcome, resume_campaign, start_campaign
@@ -145,7 +145,7 @@ def _print_summary(out: CampaignOutcome) -> None:
 )
 @click.option(
     "--time-scale",
-    type=NON_NEGATIVE,
+    type=TIME_SCALE,
     help="Mock mode: wall seconds per simulated second (0, the default: as fast as possible).",
 )
 @click.option(
