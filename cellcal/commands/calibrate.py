@@ -203,18 +203,16 @@ def calibrate(
     pinned = tuple(n.strip() for n in (fix or "").split(",") if n.strip())
     data = read_measurements(data_path, nominal.dof)
     alternatives = builtin_models()
-    options: dict[str, Any] = {"robust": robust, "paper_parameters": paper_parameters}
+    # The calibration and its k-fold folds are made with the same options.
+    options: dict[str, Any] = {
+        "robust": robust,
+        "paper_parameters": paper_parameters,
+        "fix": pinned,
+        "groups": data.groups,
+        "orientations": data.orientations,
+    }
     res = run_calibration(
-        nominal,
-        data.q,
-        data.xyz,
-        data.sigma,
-        fix=pinned,
-        accept=accept,
-        alternatives=alternatives,
-        groups=data.groups,
-        orientations=data.orientations,
-        **options,
+        nominal, data.q, data.xyz, data.sigma, accept=accept, alternatives=alternatives, **options
     )
     validation: Validation | None = None
     if validate_path is not None:
@@ -224,16 +222,7 @@ def calibrate(
     elif folds:
         try:
             validation = cross_validate(
-                nominal,
-                data.q,
-                data.xyz,
-                data.sigma,
-                folds=folds,
-                seed=seed,
-                fix=pinned,
-                groups=data.groups,
-                orientations=data.orientations,
-                **options,
+                nominal, data.q, data.xyz, data.sigma, folds=folds, seed=seed, **options
             )
         except (UserError, AcceptanceError) as exc:
             warn(f"k-fold validation skipped: {exc}")
