@@ -161,6 +161,26 @@ def test_campaign_list_text_and_errors(finished, tmp_path):
     assert res.returncode == 2 and "no campaign 9" in res.stderr
 
 
+def test_a_read_only_database_is_one_line_on_a_new_campaign(tmp_path, monkeypatch):
+    """Root can write any file, so the read-only file is SQLite's own: query_only makes
+    every write fail with SQLITE_READONLY, as a file without write permission does."""
+    from cellcal.daemon import store as store_module
+    from cellcal.errors import UserError
+
+    real_init = store_module.Store.__init__
+
+    def read_only(self, path, **kw):
+        real_init(self, path, **kw)
+        self.conn.execute("PRAGMA query_only = 1")
+
+    monkeypatch.setattr(store_module.Store, "__init__", read_only)
+    config, _ = bundled_mock_cell()
+    with pytest.raises(UserError) as info:
+        start_campaign(config, str(tmp_path / "c.db"), config_path=None, mock=True)
+    text = str(info.value)
+    assert "read-only" in text and "\n" not in text
+
+
 def test_a_disk_that_fills_during_a_campaign_is_one_line_and_keeps_the_poses(tmp_path, monkeypatch):
     from cellcal.daemon import store as store_module
     from cellcal.errors import UserError
