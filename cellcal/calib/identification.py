@@ -7,14 +7,15 @@ model's positions to the measurements (SVD, then a linear solve for the target o
 fits the instrument frame and target offset alone (the "before" model: nominal
 geometry, best-fit frames), chooses the identifiable parameters from the Jacobian at
 that point, and runs Levenberg–Marquardt (scipy.optimize.least_squares) on them.
-Standard uncertainties come from the a-posteriori covariance σ₀²(JᵀJ)⁻¹.
+Standard uncertainties come from the a-posteriori covariance σ₀²(JᵀJ)⁻¹. Several
+targets (one offset each), several sessions (one instrument frame each) and measured
+orientations are carried by ``cellcal.calib.observations.Data``.
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Collection, Sequence
-from dataclasses import dataclass
 
 import numpy as np
 from scipy.optimize import least_squares
@@ -30,19 +31,23 @@ from cellcal.calib.calibration_result import CalibrationResult, ParameterEstimat
 from cellcal.calib.error_model import (
     KINEMATIC_KINDS,
     Groups,
-    Index,
     ParameterSpec,
     State,
     apply,
-    jacobian,
-    orientation_residuals,
     parameter_specs,
     predict,
-    predict_orientation,
 )
 from cellcal.calib.geometry import Array, skew, so3_log, wrap_deg
 from cellcal.calib.identifiability import analyse, weakly_determined
 from cellcal.calib.kinematics import target_kinematics
+from cellcal.calib.observations import (
+    Data,
+    balance,
+    check_measurements,
+    check_orientations,
+    initial_state,
+    weights,
+)
 from cellcal.calib.registration import fit_rigid
 from cellcal.calib.robot_model import RobotModel
 from cellcal.errors import (
@@ -60,135 +65,12 @@ ROBUST_LOSSES = ("huber", "soft_l1", "cauchy")
 #: says the poses are poorly chosen; well-spread poses with varied wrist orientation
 #: give tens to a few hundred, the paper's fixed-orientation cube about 5e3.
 ILL_CONDITIONED = 1e3
-#: The starting weight of an orientation residual against a position residual (mm/rad:
-#: 0.02 mm against 0.2 mrad); re-balanced from the residuals of the fit.
-ORIENTATION_WEIGHT_START = 100.0
 
 
 # --------------------------------------------------------------------------- input checks
 
 
-def check_measurements(
-    model: RobotModel, q: Array, measured: Array, sigma: Array | None
-) -> tuple[Array, Array, Array | None]:
-    """Shapes, finiteness and joint limits; returns float64 copies."""
-    q = np.asarray(q, dtype=np.float64)
-    m = np.asarray(measured, dtype=np.float64)
-    if q.ndim != 2 or q.shape[1] != model.dof:
-        raise InputError(f"joint readings: expected N×{model.dof}, got shape {q.shape}")
-    if m.shape != (len(q), 3):
-        raise InputError(f"measurements: expected {len(q)}×3 positions, got shape {m.shape}")
-    for name, arr in (("joint readings", q), ("measurements", m)):
-        bad = np.flatnonzero(~np.isfinite(arr).all(axis=1))
-        if len(bad):
-            raise InputError(f"{name}: row {int(bad[0]) + 1} is not finite")
-    lo, hi = model.limits
-    outside = (q < lo - 1e-9) | (q > hi + 1e-9)
-    if outside.any():
-        r, j = (int(v) for v in np.argwhere(outside)[0])
-        raise InputError(
-            f"row {r + 1}: joint {j + 1} reads {math.degrees(q[r, j]):.3f}°, outside the "
-            f"model's limits [{math.degrees(lo[j]):.1f}°, {math.degrees(hi[j]):.1f}°]"
-        )
-    s = None
-    if sigma is not None:
-        s = np.asarray(sigma, dtype=np.float64)
-        if s.shape != m.shape or not np.isfinite(s).all() or (s <= 0).any():
-            raise InputError("sx, sy, sz: must be positive, finite, one triple per row")
-    return q, m, s
-
-
 # --------------------------------------------------------------------------- the fit
-
-
-def initial_state(
-    model: RobotModel,
-    q: Array,
-    measured: Array,
-    groups: Groups | None = None,
-    orientations: Array | None = None,
-) -> State:
-    """Closed-form start: register the nominal positions to the measurements of each
-    session (SVD), solve the target offsets and the translations linearly, and register
-    once more; with orientations, each target's orientation on the flange as the mean of
-    what the measurements imply."""
-    g = groups if groups is not None else Groups.single(len(q))
-    S, T = len(g.sessions), len(g.targets)
-    k = target_kinematics(model, q, model.tool, jacobian=False)
-    Rs = np.empty((S, 3, 3))
-    for s in range(S):
-        rows = g.session == s
-        if np.count_nonzero(rows) < 3:
-            raise DegenerateGeometryError(
-                f"session {g.sessions[s]!r} has {np.count_nonzero(rows)} measurement(s); "
-                "each instrument set-up needs at least 3 (spread over a volume)"
-            )
-        Rs[s] = fit_rigid(k.p[rows], measured[rows]).R
-    # measured − R_s·o_flange = R_s·R_flange·tool_t + t_s: linear in (tools, ts).
-    N = len(q)
-    Rp = Rs[g.session]
-    A = np.zeros((N, 3, 3 * T + 3 * S))
-    RR = np.einsum("nij,njk->nik", Rp, k.R_flange)
-    for n in range(N):
-        A[n, :, 3 * g.target[n] : 3 * g.target[n] + 3] = RR[n]
-        A[n, :, 3 * T + 3 * g.session[n] : 3 * T + 3 * g.session[n] + 3] = np.eye(3)
-    b = measured - np.einsum("nij,nj->ni", Rp, k.p - k.R_flange @ model.tool)
-    sol, _, rank, _ = np.linalg.lstsq(A.reshape(-1, A.shape[2]), b.reshape(-1), rcond=1e-9)
-    tools = sol[: 3 * T].reshape(T, 3) if rank == A.shape[2] else np.tile(model.tool, (T, 1))
-    k = target_kinematics(model, q, tools[g.target], jacobian=False)
-    ts = np.empty((S, 3))
-    pivots = np.empty((S, 3))
-    for s in range(S):
-        rows = g.session == s
-        fit = fit_rigid(k.p[rows], measured[rows])
-        Rs[s], ts[s] = fit.R, fit.t
-        pivots[s] = measured[rows].mean(axis=0)
-    tool_rotations = None
-    if orientations is not None:
-        tool_rotations = np.empty((T, 3, 3))
-        implied = np.swapaxes(Rs[g.session] @ k.R_flange, 1, 2) @ orientations
-        for t in range(T):
-            U, _, Vt = np.linalg.svd(implied[g.target == t].sum(axis=0))
-            tool_rotations[t] = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
-    return State(model, tools, Rs, ts, pivots, tool_rotations)
-
-
-def _weights(sigma: Array | None, n: int, orientation: bool = False) -> Array:
-    """Per measurement: 1/σ of x, y, z (and of the three orientation components)."""
-    w = np.ones((n, 3)) if sigma is None else 1.0 / sigma
-    if orientation:
-        w = np.hstack([w, np.full((n, 3), ORIENTATION_WEIGHT_START * float(np.mean(w)))])
-    return w
-
-
-@dataclass(frozen=True)
-class Data:
-    """What a fit reads: joint readings (rad), positions (mm), their groups, and the
-    measured orientations (N×3×3) of a 6-DOF instrument or None."""
-
-    q: Array
-    measured: Array
-    groups: Groups
-    orientations: Array | None = None
-
-    def residuals(self, state: State) -> Array:
-        """Measured − predicted: N×3 (mm), or N×6 with the orientations' (rad)."""
-        r = self.measured - predict(state, self.q, self.groups)
-        if self.orientations is None:
-            return r
-        o = orientation_residuals(
-            self.orientations, predict_orientation(state, self.q, self.groups)
-        )
-        out: Array = np.hstack([r, o])
-        return out
-
-    def jacobian(self, state: State, specs: tuple[ParameterSpec, ...]) -> Array:
-        _, J = jacobian(state, self.q, specs, self.groups, self.orientations is not None)
-        return J
-
-    def subset(self, rows: Index) -> Data:
-        o = None if self.orientations is None else self.orientations[rows]
-        return Data(self.q[rows], self.measured[rows], self.groups.subset(rows), o)
 
 
 def _least_squares(
@@ -239,7 +121,7 @@ def fit_frames(
     "before" model of a calibration, and the baseline of validation)."""
     q, measured, sigma = check_measurements(model, q, measured, sigma)
     data = Data(q, measured, groups if groups is not None else Groups.single(len(q)))
-    return _fit_frames(model, data, _weights(sigma, len(q)))
+    return _fit_frames(model, data, weights(sigma, len(q)))
 
 
 def _fit_frames(model: RobotModel, data: Data, w: Array) -> State:
@@ -309,31 +191,6 @@ def _sigma0(residuals: Array, w: Array, dof: int) -> float:
     return float(np.sqrt(np.sum((residuals * w) ** 2) / max(dof, 1)))
 
 
-def check_orientations(orientations: Array | None, n: int) -> Array | None:
-    """Measured orientations: N rotation matrices (3×3), or None."""
-    if orientations is None:
-        return None
-    o = np.asarray(orientations, dtype=np.float64)
-    if o.shape != (n, 3, 3) or not np.isfinite(o).all():
-        raise InputError(f"orientations: expected {n} rotation matrices (3×3)")
-    err = np.abs(o @ np.swapaxes(o, 1, 2) - np.eye(3)).max(axis=(1, 2))
-    bad = np.flatnonzero((err > 1e-6) | (np.linalg.det(o) < 0))
-    if len(bad):
-        raise InputError(f"orientation of row {int(bad[0]) + 1} is not a rotation")
-    return o
-
-
-def _balance(w: Array, r: Array) -> Array:
-    """Orientation weights re-scaled so that weighted position and orientation residuals
-    have the same spread (variance components estimated from the fit)."""
-    sp = float(np.sqrt(np.mean((r[:, :3] * w[:, :3]) ** 2)))
-    so = float(np.sqrt(np.mean((r[:, 3:] * w[:, 3:]) ** 2)))
-    out = w.copy()
-    if sp > 0 and so > 0:
-        out[:, 3:] *= sp / so
-    return out
-
-
 def calibrate(
     nominal: RobotModel,
     q: Array,
@@ -375,7 +232,7 @@ def calibrate(
         raise InputError(f"groups: expected {N} target and session labels")
     data = Data(q, measured, g, orientations)
     six = orientations is not None
-    w = _weights(sigma, N, six)
+    w = weights(sigma, N, six)
     warnings: list[str] = []
     accepted: list[str] = []
     specs = parameter_specs(nominal, paper_parameters=paper_parameters, groups=g, orientation=six)
@@ -443,7 +300,7 @@ def calibrate(
     try:
         point, _, nfev = _least_squares(baseline, sel, data, w)
         for _ in range(2 if six else 0):
-            w = _balance(w, data.residuals(point))
+            w = balance(w, data.residuals(point))
             point, _, more = _least_squares(baseline, sel, data, w)
             nfev += more
     except ConvergenceError:

@@ -18,9 +18,9 @@ from cellcal.calib.geometry import Array
 from cellcal.calib.identification import (
     CalibrationResult,
     calibrate,
-    check_measurements,
     fit_frames,
 )
+from cellcal.calib.observations import check_measurements
 from cellcal.calib.robot_model import RobotModel
 from cellcal.errors import InputError, UserError
 

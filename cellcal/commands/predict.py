@@ -10,7 +10,7 @@ import numpy as np
 from cellcal.calib.error_model import Groups, Index, State
 from cellcal.calib.error_model import predict as predict_positions
 from cellcal.calib.geometry import Array
-from cellcal.calib.identification import check_measurements
+from cellcal.calib.observations import check_measurements
 from cellcal.errors import InputError
 from cellcal.measurementfiles import format_positions, read_joints_labelled
 from cellcal.modelfiles import load_model, write_atomically
