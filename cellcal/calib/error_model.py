@@ -107,9 +107,19 @@ class Groups:
         """The groups of some rows (the names stay, so parameters keep their meaning)."""
         return Groups(self.target[rows], self.session[rows], self.targets, self.sessions)
 
-    @property
-    def plain(self) -> bool:
-        return len(self.targets) == 1 and len(self.sessions) == 1
+
+def label_index(
+    n: int, labels: Sequence[str] | None, known: Sequence[str]
+) -> tuple[Index, str | None]:
+    """Each of n rows' index into ``known`` by its label (all 0 without labels), and the
+    first label that is not known (None when every one is)."""
+    if labels is None:
+        return np.zeros(n, dtype=np.intp), None
+    pos = {k: i for i, k in enumerate(known)}
+    unknown = next((v for v in labels if v not in pos), None)
+    if unknown is not None:
+        return np.zeros(n, dtype=np.intp), unknown
+    return np.array([pos[v] for v in labels], dtype=np.intp), None
 
 
 def _label(base: str, names: tuple[str, ...], k: int) -> str:

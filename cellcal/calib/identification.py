@@ -45,10 +45,11 @@ from cellcal.calib.observations import (
     balance,
     check_measurements,
     check_orientations,
+    check_sessions,
     initial_state,
+    register_sessions,
     weights,
 )
-from cellcal.calib.registration import fit_rigid
 from cellcal.calib.robot_model import RobotModel
 from cellcal.errors import (
     AcceptanceError,
@@ -139,11 +140,7 @@ def _fit_frames(model: RobotModel, data: Data, w: Array) -> State:
         tools = state.tools.copy()
         tools[sorted(lost)] = model.tool
         k = target_kinematics(model, data.q, tools[data.groups.target], jacobian=False)
-        Rs, ts = state.Rs.copy(), state.ts.copy()
-        for s in range(len(Rs)):
-            rows = data.groups.session == s
-            fit = fit_rigid(k.p[rows], data.measured[rows])
-            Rs[s], ts[s] = fit.R, fit.t
+        Rs, ts = register_sessions(k.p, data.measured, data.groups)
         state = State(model, tools, Rs, ts, state.pivots, state.tool_rotations)
     state, _, _ = _least_squares(state, sel, data, w)
     return state
@@ -237,19 +234,7 @@ def calibrate(
     accepted: list[str] = []
     specs = parameter_specs(nominal, paper_parameters=paper_parameters, groups=g, orientation=six)
     pinned = _expand_fix(specs, fix)
-    for s in range(len(g.sessions)):
-        m_s = measured[g.session == s]
-        if len(g.sessions) > 1 and len(m_s) < 3:
-            raise DegenerateGeometryError(
-                f"session {g.sessions[s]!r} has {len(m_s)} measurement(s); each instrument "
-                "set-up needs at least 3 (spread over a volume)"
-            )
-        sv = np.linalg.svd(m_s - m_s.mean(axis=0), compute_uv=False)
-        if not sv[1] > 1e-9 * sv[0]:
-            raise DegenerateGeometryError(
-                "the measurements do not determine the instrument frame (they lie on a line "
-                "or at one point); spread the poses over a volume"
-            )
+    check_sessions(measured, g)
     findings: list[Finding] = []
     for s in range(len(g.sessions)):
         rows = g.session == s

@@ -63,6 +63,36 @@ def check_measurements(
     return q, m, s
 
 
+def check_sessions(measured: Array, groups: Groups) -> None:
+    """Each session's measurements must determine its instrument frame: at least 3, not
+    on a line or at one point."""
+    for s, name in enumerate(groups.sessions):
+        m_s = measured[groups.session == s]
+        if len(groups.sessions) > 1 and len(m_s) < 3:
+            raise DegenerateGeometryError(
+                f"session {name!r} has {len(m_s)} measurement(s); each instrument set-up "
+                "needs at least 3 (spread over a volume)"
+            )
+        sv = np.linalg.svd(m_s - m_s.mean(axis=0), compute_uv=False)
+        if not sv[1] > 1e-9 * sv[0]:
+            raise DegenerateGeometryError(
+                "the measurements do not determine the instrument frame (they lie on a line "
+                "or at one point); spread the poses over a volume"
+            )
+
+
+def register_sessions(p_base: Array, measured: Array, groups: Groups) -> tuple[Array, Array]:
+    """Each session's instrument frame (Rs S×3×3, ts S×3) registering the base-frame
+    positions ``p_base`` (N×3) to the measurements (SVD)."""
+    S = len(groups.sessions)
+    Rs, ts = np.empty((S, 3, 3)), np.empty((S, 3))
+    for s in range(S):
+        rows = groups.session == s
+        fit = fit_rigid(p_base[rows], measured[rows])
+        Rs[s], ts[s] = fit.R, fit.t
+    return Rs, ts
+
+
 def initial_state(
     model: RobotModel,
     q: Array,
@@ -76,16 +106,9 @@ def initial_state(
     what the measurements imply."""
     g = groups if groups is not None else Groups.single(len(q))
     S, T = len(g.sessions), len(g.targets)
+    check_sessions(measured, g)
     k = target_kinematics(model, q, model.tool, jacobian=False)
-    Rs = np.empty((S, 3, 3))
-    for s in range(S):
-        rows = g.session == s
-        if np.count_nonzero(rows) < 3:
-            raise DegenerateGeometryError(
-                f"session {g.sessions[s]!r} has {np.count_nonzero(rows)} measurement(s); "
-                "each instrument set-up needs at least 3 (spread over a volume)"
-            )
-        Rs[s] = fit_rigid(k.p[rows], measured[rows]).R
+    Rs, _ = register_sessions(k.p, measured, g)
     # measured − R_s·o_flange = R_s·R_flange·tool_t + t_s: linear in (tools, ts).
     N = len(q)
     Rp = Rs[g.session]
@@ -98,13 +121,8 @@ def initial_state(
     sol, _, rank, _ = np.linalg.lstsq(A.reshape(-1, A.shape[2]), b.reshape(-1), rcond=1e-9)
     tools = sol[: 3 * T].reshape(T, 3) if rank == A.shape[2] else np.tile(model.tool, (T, 1))
     k = target_kinematics(model, q, tools[g.target], jacobian=False)
-    ts = np.empty((S, 3))
-    pivots = np.empty((S, 3))
-    for s in range(S):
-        rows = g.session == s
-        fit = fit_rigid(k.p[rows], measured[rows])
-        Rs[s], ts[s] = fit.R, fit.t
-        pivots[s] = measured[rows].mean(axis=0)
+    Rs, ts = register_sessions(k.p, measured, g)
+    pivots = np.stack([measured[g.session == s].mean(axis=0) for s in range(S)])
     tool_rotations = None
     if orientations is not None:
         tool_rotations = np.empty((T, 3, 3))

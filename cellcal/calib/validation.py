@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from cellcal.calib.acceptance import ACCURACY_CLASS_MM
-from cellcal.calib.error_model import Groups, Index, predict
+from cellcal.calib.error_model import Groups, Index, label_index, predict
 from cellcal.calib.geometry import Array
 from cellcal.calib.identification import (
     CalibrationResult,
@@ -75,10 +75,7 @@ def held_out_groups(
     offset yet and a new session is another set-up, to be re-registered."""
 
     def index(labels: Sequence[str] | None, known: tuple[str, ...], what: str) -> Index:
-        if labels is None:
-            return np.zeros(n, dtype=np.intp)
-        pos = {k: i for i, k in enumerate(known)}
-        unknown = next((v for v in labels if v not in pos), None)
+        idx, unknown = label_index(n, labels, known)
         if unknown is not None:
             hint = (
                 "another set-up: re-register it with cellcal calibrate --model CALIBRATED.toml "
@@ -90,7 +87,7 @@ def held_out_groups(
                 f"the validation points name {what} {unknown!r}, which the calibration data "
                 f"do not have ({', '.join(repr(k) for k in known)}): {hint}"
             )
-        return np.array([pos[v] for v in labels], dtype=np.intp)
+        return idx
 
     return Groups(
         index(targets, result.targets, "target"),

@@ -7,7 +7,7 @@ from collections.abc import Sequence
 import click
 import numpy as np
 
-from cellcal.calib.error_model import Groups, Index, State
+from cellcal.calib.error_model import Groups, Index, State, label_index
 from cellcal.calib.error_model import predict as predict_positions
 from cellcal.calib.geometry import Array
 from cellcal.calib.observations import check_measurements
@@ -17,24 +17,21 @@ from cellcal.modelfiles import load_model, write_atomically
 
 
 def _pick(
-    labels: Sequence[str] | None, known: dict[str, Array] | None, first: Array, what: str
+    n: int, labels: Sequence[str] | None, known: dict[str, Array] | None, first: Array, what: str
 ) -> tuple[Array, Index]:
-    """The values (stacked) and per-row indices for a label column; without the column,
-    or for a model without named ones, the first value for every row."""
-    n = 0 if labels is None else len(labels)
+    """The values (stacked) and each of the n rows' index into them, by a label column;
+    without the column, the first value for every row."""
     if labels is None:
-        return first[None], np.zeros(0, dtype=np.intp)
+        return first[None], np.zeros(n, dtype=np.intp)
     if not known:
         raise InputError(
             f"the joints file has a {what} column but the model has no named {what}s "
             f"(a calibrated model of data with a {what} column has)"
         )
     names = list(known)
-    missing = next((v for v in labels if v not in known), None)
+    idx, missing = label_index(n, labels, names)
     if missing is not None:
         raise InputError(f"{what} {missing!r} is not in the model ({', '.join(names)})")
-    idx = np.array([names.index(v) for v in labels], dtype=np.intp)
-    assert len(idx) == n
     return np.stack([known[k] for k in names]), idx
 
 
@@ -62,13 +59,9 @@ def predict(model_spec: str, joints_path: str, out_path: str | None) -> None:
     q, targets, sessions = read_joints_labelled(joints_path, loaded.model.dof)
     check_measurements(loaded.model, q, np.zeros((len(q), 3)), None)
     T0 = np.eye(4) if loaded.T_instrument_base is None else loaded.T_instrument_base
-    tools, t_idx = _pick(targets, loaded.targets, loaded.tool, "target")
-    frames, s_idx = _pick(sessions, loaded.sessions, T0, "session")
-    n = len(q)
-    groups = Groups(
-        t_idx if len(t_idx) else np.zeros(n, dtype=np.intp),
-        s_idx if len(s_idx) else np.zeros(n, dtype=np.intp),
-    )
+    tools, t_idx = _pick(len(q), targets, loaded.targets, loaded.tool, "target")
+    frames, s_idx = _pick(len(q), sessions, loaded.sessions, T0, "session")
+    groups = Groups(t_idx, s_idx)
     state = State(loaded.model, tools, frames[:, :3, :3], frames[:, :3, 3], np.zeros(3))
     text = format_positions(q, predict_positions(state, q, groups))
     if out_path is None:
