@@ -26,6 +26,7 @@ import sqlite_utils
 
 from cellcal.clock import SimulatedClock
 from cellcal.commands.run import bundled_mock_cell
+from cellcal.config import with_robot
 from cellcal.daemon.campaign import start_campaign
 from cellcal.daemon.devices import build_devices
 from cellcal.daemon.engine import acquire
@@ -111,7 +112,7 @@ def bench_overhead(folder: Path, driver: str) -> tuple[float, float, int]:
     "modbus": the Modbus driver against its mock over TCP) and the tracker over TCP,
     against bare storage of the same poses."""
     config, _ = bundled_mock_cell()
-    config = config.model_copy(update={"robot": config.robot.model_copy(update={"driver": driver})})
+    config = with_robot(config, driver=driver)
     nominal = load_model(config.robot.model).model
     plan = make_plan(
         config.campaign,

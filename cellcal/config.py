@@ -3,16 +3,23 @@
 Validation is strict (pydantic, ``extra="forbid"``): an unknown key is an error that
 names its path (``campaign.dwel_s``), and so is a value of the wrong type or range.
 Lengths are mm and angles degrees in the file, as everywhere a person writes.
+
+The ``[robot]`` table and each ``[[sensor]]`` table are discriminated by their family
+(kind and driver, ``cellcal/families.py``): each takes the keys its family's options
+model declares and no other, so ``sensor.0.move_timeout_s`` is refused for a tracker.
 """
 
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated, Literal
+from typing import Annotated, Any
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import Field, PlainValidator, SerializeAsAny, ValidationError, model_validator
+from pydantic_core import PydanticCustomError
 
+from cellcal.device_options import Positive, RobotOptions, Seed, SensorOptions, Strict, Vec3
 from cellcal.errors import FileFormatError, UserError
+from cellcal.families import ROBOT, Role, default_driver, families, find, kinds
 from cellcal.textfiles import read_toml
 
 
@@ -20,72 +27,51 @@ class ConfigError(UserError):
     """A configuration file that cannot be used; the message names the key."""
 
 
-Vec3 = Annotated[list[float], Field(min_length=3, max_length=3)]
-Positive = Annotated[float, Field(gt=0)]
+def _choices(role: Role, kind: str | None = None) -> str:
+    if kind is None:
+        return ", ".join(kinds(role))
+    return ", ".join(f.driver for f in families(role) if f.kind == kind)
 
 
-#: Seeds: what numpy's generators accept and SQLite stores.
-Seed = Annotated[int, Field(ge=0, le=2**32 - 1)]
+def _no_family(role: Role, kind: Any, driver: Any) -> str:
+    """Why no family matches a device section (a path relative to the section)."""
+    if role == "sensor" and kind not in kinds("sensor"):
+        if kind is None:
+            return f"kind: required key missing ({_choices(role)})"
+        return f"kind: {kind!r} is not a sensor kind ({_choices(role)})"
+    what = "robot" if role == "robot" else f"{kind}"
+    return f"driver: no {what} driver {driver!r} (choose {_choices(role, kind)})"
 
 
-class _Strict(BaseModel):
-    # NaN and inf are refused in every number of the file (they would reach the plan).
-    model_config = ConfigDict(extra="forbid", frozen=True, strict=True, allow_inf_nan=False)
+def _section(role: Role) -> Any:
+    """The validator of a device section: the options model of its family (from kind
+    and driver; a section that names no driver gets the first of its kind in the
+    table), looked up when a file is read, so a driver is imported only when used."""
+
+    def validate(value: Any) -> RobotOptions | SensorOptions:
+        if isinstance(value, RobotOptions if role == "robot" else SensorOptions):
+            return value
+        if not isinstance(value, dict):
+            raise PydanticCustomError("device_section", "expected a table")
+        kind = ROBOT if role == "robot" else value.get("kind")
+        fallback = default_driver(role, kind) if isinstance(kind, str) else None
+        driver = value.get("driver", fallback)
+        family = (
+            find(role, kind, driver) if isinstance(kind, str) and isinstance(driver, str) else None
+        )
+        if family is None:
+            raise PydanticCustomError("device_family", _no_family(role, kind, driver))
+        out: RobotOptions | SensorOptions = family.options_model().model_validate(value)
+        return out
+
+    return validate
 
 
-class ModbusConfig(_Strict):
-    """A robot behind Modbus TCP: where its handshake registers are (holding registers,
-    0-based) and how its float32 words are ordered (``docs/robots.md``)."""
-
-    port: Annotated[int, Field(ge=1, le=65535)] = 502
-    device_id: Annotated[int, Field(ge=0, le=255)] = 1
-    word_order: Literal["big", "little"] = "big"
-    heartbeat: Annotated[int, Field(ge=0, le=65535)] = 0
-    status: Annotated[int, Field(ge=0, le=65535)] = 1
-    error: Annotated[int, Field(ge=0, le=65535)] = 2
-    ack: Annotated[int, Field(ge=0, le=65535)] = 3
-    actual_joints: Annotated[int, Field(ge=0, le=65535)] = 10
-    actual_pose: Annotated[int, Field(ge=0, le=65535)] = 30
-    target_joints: Annotated[int, Field(ge=0, le=65535)] = 100
-    target_pose: Annotated[int, Field(ge=0, le=65535)] = 112
-    speed: Annotated[int, Field(ge=0, le=65535)] = 124
-    command: Annotated[int, Field(ge=0, le=65535)] = 130
-    sequence: Annotated[int, Field(ge=0, le=65535)] = 131
-    timeout_s: Positive = 60.0
+RobotSection = Annotated[SerializeAsAny[RobotOptions], PlainValidator(_section("robot"))]
+SensorSection = Annotated[SerializeAsAny[SensorOptions], PlainValidator(_section("sensor"))]
 
 
-class RobotConfig(_Strict):
-    """The robot: its model (built-in name or TOML file), its driver and address."""
-
-    model: str = "kuka-kr5-arc"
-    driver: Literal["simulated", "modbus", "ur"] = "simulated"
-    address: str = ""
-    speed: Annotated[float, Field(gt=0, le=1)] = 0.25
-    max_speed: Annotated[float, Field(gt=0, le=1)] = 0.5
-    home_deg: list[float] = Field(default_factory=lambda: [0.0, -30.0, 40.0, 0.0, -20.0, 0.0])
-    settle_timeout_s: Positive = 60.0
-    modbus: ModbusConfig = Field(default_factory=ModbusConfig)
-
-    @model_validator(mode="after")
-    def _speed(self) -> RobotConfig:
-        if self.speed > self.max_speed:
-            raise ValueError(f"speed {self.speed} exceeds max_speed {self.max_speed}")
-        return self
-
-
-class SensorConfig(_Strict):
-    """One measuring instrument and the target it follows on the flange."""
-
-    name: Annotated[str, Field(min_length=1, pattern=r"^[A-Za-z0-9_.-]+$")]
-    kind: Literal["laser-tracker", "photogrammetry"]
-    driver: Literal["simulated", "line-protocol"] = "simulated"
-    url: str = ""
-    rate_hz: Annotated[float, Field(gt=0, le=1000)] = 10.0
-    target_offset_mm: Vec3 = Field(default_factory=lambda: [0.0, 0.0, 0.0])
-    reference: bool = False
-
-
-class CampaignConfig(_Strict):
+class CampaignConfig(Strict):
     """The plan (the paper's cube and validation regions) and the acquisition rhythm."""
 
     cube_centre_mm: Vec3 = Field(default_factory=lambda: [750.0, 0.0, 1000.0])
@@ -127,11 +113,11 @@ class CampaignConfig(_Strict):
         return self
 
 
-class StorageConfig(_Strict):
+class StorageConfig(Strict):
     database: str = "cellcal.db"
 
 
-class SimulationConfig(_Strict):
+class SimulationConfig(Strict):
     """The simulated cell's ground truth (mock mode only). Same seed, same campaign."""
 
     seed: Seed = 2018
@@ -147,12 +133,12 @@ class SimulationConfig(_Strict):
     joint_speed_deg_s: Annotated[float, Field(gt=0, le=3600)] = 60.0
 
 
-class CellConfig(_Strict):
+class CellConfig(Strict):
     """The whole configuration file."""
 
     name: str = "cell"
-    robot: RobotConfig = Field(default_factory=RobotConfig)
-    sensor: Annotated[list[SensorConfig], Field(min_length=1)]
+    robot: RobotSection = Field(default_factory=lambda: _default_robot())
+    sensor: Annotated[list[SensorSection], Field(min_length=1)]
     campaign: CampaignConfig = Field(default_factory=CampaignConfig)
     storage: StorageConfig = Field(default_factory=StorageConfig)
     simulation: SimulationConfig = Field(default_factory=SimulationConfig)
@@ -171,16 +157,35 @@ class CellConfig(_Strict):
         return self
 
     @property
-    def reference_sensor(self) -> SensorConfig:
+    def reference_sensor(self) -> SensorOptions:
         return next(s for s in self.sensor if s.reference)
+
+
+def _default_robot() -> RobotOptions:
+    from cellcal.device_options import SimulatedRobotOptions
+
+    return SimulatedRobotOptions()
+
+
+#: Keys of earlier versions: a file that still has one is told what replaced it.
+RENAMED = {
+    "url": "address",
+    "settle_timeout_s": "move_timeout_s",
+    "modbus": "map (the port went into robot.address, error into error_code, "
+    "timeout_s into robot.move_timeout_s)",
+}
 
 
 def _message(exc: ValidationError) -> str:
     err = exc.errors()[0]
-    path = ".".join(str(p) for p in err["loc"]) or "(top level)"
+    loc = list(err["loc"])
+    path = ".".join(str(p) for p in loc) or "(top level)"
     kind = err["type"]
+    if kind == "device_family":
+        return f"{path}.{err['msg']}"
     if kind == "extra_forbidden":
-        return f"{path}: unknown key"
+        hint = RENAMED.get(str(loc[-1]))
+        return f"{path}: unknown key" + (f" (renamed: {hint})" if hint else "")
     if kind == "missing":
         return f"{path}: required key missing"
     return f"{path}: {str(err['msg']).removeprefix('Value error, ')}"
@@ -191,6 +196,48 @@ def config_from_dict(data: dict[str, object], source: str = "config") -> CellCon
         return CellConfig.model_validate(data)
     except ValidationError as exc:
         raise ConfigError(f"{source}: {_message(exc)}") from None
+
+
+def with_robot(config: CellConfig, **changes: Any) -> CellConfig:
+    """The configuration with its robot table changed and validated again; a new
+    ``driver`` keeps only the keys every robot driver shares."""
+    robot = config.robot.model_dump()
+    if "driver" in changes and changes["driver"] != robot["driver"]:
+        robot = {k: v for k, v in robot.items() if k in RobotOptions.model_fields}
+    return config_from_dict({**config.model_dump(), "robot": {**robot, **changes}}, "config")
+
+
+def upgrade_stored(data: dict[str, Any]) -> dict[str, Any]:
+    """A configuration stored with a campaign by an earlier version, in today's keys, so
+    that its campaign can be resumed: ``url`` is ``address``, ``[robot.modbus]`` is
+    ``[robot.map]`` (its port in the address), the timeouts are ``move_timeout_s``, and a
+    laser tracker's driver is the line protocol it always spoke."""
+    robot = dict(data.get("robot") or {})
+    driver = robot.get("driver", "simulated")
+    old = robot.pop("modbus", None)
+    settle = robot.pop("settle_timeout_s", None)
+    if driver == "modbus" and isinstance(old, dict):
+        old = dict(old)
+        port = old.pop("port", None)
+        if port is not None and robot.get("address") and ":" not in str(robot["address"]):
+            robot["address"] = f"{robot['address']}:{port}"
+        if "error" in old:
+            old["error_code"] = old.pop("error")
+        timeout = old.pop("timeout_s", None)
+        if timeout is not None:
+            robot["move_timeout_s"] = timeout
+        robot["map"] = old
+    elif driver == "ur" and settle is not None:
+        robot["move_timeout_s"] = settle
+    sensors = []
+    for raw in data.get("sensor") or []:
+        s = dict(raw)
+        if "url" in s:
+            s["address"] = s.pop("url")
+        if s.get("kind") == "laser-tracker" and s.get("driver") == "simulated":
+            s["driver"] = "line-protocol"
+        sensors.append(s)
+    return {**data, "robot": robot, "sensor": sensors}
 
 
 def load_config(path: str | Path, *, relative_paths: bool = True) -> CellConfig:

@@ -176,18 +176,28 @@ def mock_modbus_robot(
     estop: bool,
     stale_heartbeat: bool,
 ) -> None:
-    """A robot behind Modbus TCP with the handshake map of docs/robots.md."""
+    """The configured Modbus robot's twin: its map, word order and device id (docs/robots.md)."""
     import math
 
+    from cellcal.drivers.modbus_robot import ModbusRobotOptions
     from cellcal.mocks.modbus_robot_server import ModbusRobotFaults, ModbusRobotSimulator
+    from cellcal.mocks.twins import limits_deg
 
     config, cell = _cell(config_path, seed)
-    lo, hi = cell.model.limits
+    robot = config.robot
+    if not isinstance(robot, ModbusRobotOptions):
+        raise InputError(
+            f"the configuration's robot has driver = {robot.driver!r}, not a Modbus robot"
+        )
+    modbus_map = robot.map
+    if word_order is not None:
+        modbus_map = modbus_map.model_copy(update={"word_order": word_order})
     sim = ModbusRobotSimulator(
-        q0_deg=list(config.robot.home_deg),
-        limits_deg=[(math.degrees(a), math.degrees(b)) for a, b in zip(lo, hi, strict=True)],
+        q0_deg=list(robot.home_deg),
+        limits_deg=limits_deg(cell),
+        joint_speed_deg_s=math.degrees(cell.joint_speed),
         time_scale=time_scale,
-        word_order=word_order or config.robot.modbus.word_order,
+        map=modbus_map,
         faults=ModbusRobotFaults(
             no_ack=no_ack, error_code=error_code, estop=estop, stale_heartbeat=stale_heartbeat
         ),

@@ -16,7 +16,7 @@ from cellcal.calib.error_model import State, jacobian, parameter_specs
 from cellcal.calib.identifiability import analyse as analyse_identifiability
 from cellcal.calib.robot_model import RobotModel
 from cellcal.clock import Clock, SimulatedClock, WallClock
-from cellcal.config import CellConfig, config_from_dict
+from cellcal.config import CellConfig, config_from_dict, upgrade_stored
 from cellcal.daemon.analysis import CampaignSummary, analyse
 from cellcal.daemon.devices import Devices, build_devices
 from cellcal.daemon.engine import Acquisition, Progress, acquire
@@ -247,7 +247,9 @@ def resume_campaign(
             row = store.campaign(campaign_id)
             if row.status == "complete":
                 raise CampaignError(f"campaign {campaign_id} is already complete")
-            config = config_from_dict(json.loads(row.config_json), f"campaign {campaign_id}")
+            config = config_from_dict(
+                upgrade_stored(json.loads(row.config_json)), f"campaign {campaign_id}"
+            )
             plan, nominal = _plan(config)
             if plan.digest != row.plan_digest:
                 raise CampaignError(

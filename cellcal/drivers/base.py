@@ -7,12 +7,36 @@ positions are radians and lengths millimetres. Every call may raise a
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import Protocol
+from dataclasses import dataclass, field
+from typing import Any, Protocol
 
 import numpy as np
 
 from cellcal.calib.geometry import Array
+from cellcal.clock import Clock, WallClock
+
+
+@dataclass(frozen=True)
+class DeviceContext:
+    """What a driver may need beyond its options when it is built: the clock it takes
+    time on, and in mock mode the simulated cell (which only the in-process simulated
+    devices read; a real driver never looks at it)."""
+
+    clock: Clock = field(default_factory=WallClock)
+    cell: Any = None
+
+
+def label(name: str, address: str) -> str:
+    """How every device is named in messages: "name at address"."""
+    return f"{name} at {address}" if address else name
+
+
+def host_port(address: str, default_port: int) -> tuple[str, int]:
+    """``host`` or ``host:port`` (an IPv6 host in brackets) → (host, port)."""
+    host, sep, port = address.rpartition(":")
+    if sep and port.isdigit() and not host.endswith(":"):
+        return host.strip("[]"), int(port)
+    return address.strip("[]"), default_port
 
 
 @dataclass(frozen=True)

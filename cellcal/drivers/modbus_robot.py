@@ -32,15 +32,32 @@ from __future__ import annotations
 import logging
 import math
 import time
-from dataclasses import dataclass, fields
-from typing import Literal
+from dataclasses import dataclass
+from typing import Annotated, Literal
 
 import numpy as np
+from pydantic import Field
 from pymodbus.client import ModbusTcpClient
 from pymodbus.constants import ExcCodes
 from pymodbus.exceptions import ModbusException
 
 from cellcal.calib.geometry import Array
+from cellcal.device_options import Positive, RobotOptions
+from cellcal.drivers.base import DeviceContext, host_port, label
+from cellcal.drivers.modbus_map import (
+    BIT_NAMES,
+    BUSY,
+    CMD_MOVE_JOINTS,
+    CMD_RESET_ERROR,
+    CMD_STOP,
+    ERROR,
+    ESTOP,
+    IN_POSITION,
+    N_JOINTS,
+    READY,
+    REMOTE,
+    ModbusMap,
+)
 from cellcal.errors import DeviceError, InputError
 
 log = logging.getLogger("cellcal.modbus_robot")
@@ -49,75 +66,25 @@ log = logging.getLogger("cellcal.modbus_robot")
 # error; a NullHandler stops that and leaves the records to the application's logging.
 logging.getLogger("pymodbus").addHandler(logging.NullHandler())
 
-N_JOINTS = 6
-
-# status bits
-READY = 1 << 0
-BUSY = 1 << 1
-IN_POSITION = 1 << 2
-ERROR = 1 << 3
-ESTOP = 1 << 4
-REMOTE = 1 << 5
-_BIT_NAMES = ("ready", "busy", "in_position", "error", "e-stop", "remote")
-
-# commands
-CMD_NONE = 0
-CMD_MOVE_JOINTS = 1
-CMD_MOVE_LINEAR = 2
-CMD_STOP = 3
-CMD_RESET_ERROR = 4
-
 POSITION_TOLERANCE_RAD = 1e-3
 MAX_JOINT_DEG = 1e4  # beyond this a joint reading is taken for garbage
 MIN_NONZERO_DEG = 1e-20  # a word-swapped float32 of a round value lands below this
-MAX_READ = 125  # registers in one read request (Modbus limit)
 _F32 = ModbusTcpClient.DATATYPE.FLOAT32
+DEFAULT_PORT = 502
 
 
-@dataclass(frozen=True)
-class ModbusMap:
-    """Where things are (holding registers, 0-based) and how floats are laid out."""
+class ModbusRobotOptions(RobotOptions):
+    """``[robot]`` with ``driver = "modbus"``: ``address`` is host or host:port (502),
+    ``[robot.map]`` the controller's handshake map; a move that is not done within
+    ``move_timeout_s`` has failed, a heartbeat that does not change for
+    ``heartbeat_timeout_s`` during a move is a comms fault, and the status block is
+    read every ``poll_s`` while a move runs."""
 
-    heartbeat: int = 0
-    status: int = 1
-    error_code: int = 2
-    ack: int = 3
-    actual_joints: int = 10  # 12 registers: q1..q6, float32, deg
-    actual_pose: int = 30  # 12 registers: x, y, z (mm), a, b, c (deg)
-    target_joints: int = 100  # 12 registers
-    target_pose: int = 112  # 12 registers
-    speed: int = 124  # 2 registers, fraction of maximum
-    command: int = 130
-    sequence: int = 131  # must follow command: both are written in one request
-    word_order: Literal["big", "little"] = "big"
-    device_id: int = 1
-
-    def __post_init__(self) -> None:
-        for f in fields(self):
-            if f.name in ("word_order", "device_id"):
-                continue
-            value = getattr(self, f.name)
-            if not isinstance(value, int) or not 0 <= value <= 0xFFFF - 12:
-                raise InputError(f"ModbusMap.{f.name}: address {value!r} out of range")
-        if self.word_order not in ("big", "little"):
-            raise InputError(
-                f"ModbusMap.word_order must be 'big' or 'little', got {self.word_order!r}"
-            )
-        if not isinstance(self.device_id, int) or not 0 <= self.device_id <= 255:
-            raise InputError(f"ModbusMap.device_id must be 0..255, got {self.device_id!r}")
-        if self.sequence != self.command + 1:
-            raise InputError(
-                "ModbusMap: sequence must be the register after command (one write request)"
-            )
-        lo, hi = self.status_block
-        if hi - lo + 1 > MAX_READ:
-            raise InputError("ModbusMap: heartbeat, status, error code and ack must span <= 125")
-
-    @property
-    def status_block(self) -> tuple[int, int]:
-        """First and last address of the block read at every poll."""
-        addrs = (self.heartbeat, self.status, self.error_code, self.ack)
-        return min(addrs), max(addrs)
+    driver: Literal["modbus"] = "modbus"
+    map: ModbusMap = Field(default_factory=ModbusMap)
+    move_timeout_s: Positive = 60.0
+    heartbeat_timeout_s: Annotated[float, Field(gt=0, le=60)] = 2.0
+    poll_s: Annotated[float, Field(gt=0, le=1)] = 0.01
 
 
 @dataclass(frozen=True)
@@ -154,7 +121,7 @@ class ModbusRobotStatus:
         return bool(self.bits & REMOTE)
 
     def describe(self) -> str:
-        names = [n for i, n in enumerate(_BIT_NAMES) if self.bits & (1 << i)] or ["none"]
+        names = [n for i, n in enumerate(BIT_NAMES) if self.bits & (1 << i)] or ["none"]
         return (
             f"status 0x{self.bits:04x} ({', '.join(names)}), error code {self.error_code}, "
             f"ack {self.ack}"
@@ -181,24 +148,24 @@ class ModbusRobot:
         port: int = 502,
         *,
         name: str = "modbus-robot",
-        map: ModbusMap = ModbusMap(),
+        map: ModbusMap | None = None,
         timeout_s: float = 60.0,
         poll_s: float = 0.01,
         heartbeat_timeout_s: float = 2.0,
     ) -> None:
-        for label, value in (
+        for key, value in (
             ("timeout_s", timeout_s),
             ("poll_s", poll_s),
             ("heartbeat_timeout_s", heartbeat_timeout_s),
         ):
             if not (math.isfinite(value) and value > 0):
-                raise InputError(f"{name}: {label} must be a positive number, got {value!r}")
+                raise InputError(f"{name}: {key} must be a positive number, got {value!r}")
         if not 0 < port <= 0xFFFF:
             raise InputError(f"{name}: port must be 1..65535, got {port!r}")
         self.host = host
         self.port = port
         self.name = name
-        self.map = map
+        self.map = map or ModbusMap()
         self.timeout_s = float(timeout_s)
         self.poll_s = float(poll_s)
         self.heartbeat_timeout_s = float(heartbeat_timeout_s)
@@ -206,6 +173,18 @@ class ModbusRobot:
             host, port=port, timeout=self.heartbeat_timeout_s, retries=0, name=name
         )
         self._last_seq: int | None = None
+
+    @classmethod
+    def from_options(cls, options: ModbusRobotOptions, context: DeviceContext) -> ModbusRobot:
+        host, port = host_port(options.address, DEFAULT_PORT)
+        return cls(
+            host,
+            port,
+            map=options.map,
+            timeout_s=options.move_timeout_s,
+            poll_s=options.poll_s,
+            heartbeat_timeout_s=options.heartbeat_timeout_s,
+        )
 
     # ------------------------------------------------------------------ Robot
 
@@ -406,7 +385,7 @@ class ModbusRobot:
         self._client.close()  # type: ignore[no-untyped-call]
 
     def _error(self, message: str) -> DeviceError:
-        return DeviceError(_one_line(f"{self.name} at {self.where}: {message}"))
+        return DeviceError(_one_line(f"{label(self.name, self.where)}: {message}"))
 
     def _encode(self, values: Array | list[float]) -> list[int]:
         floats = [float(v) for v in values]

@@ -25,11 +25,14 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import dataclass, field
+from typing import Annotated, Literal
 
 import numpy as np
+from pydantic import Field
 
 from cellcal.clock import Clock, WallClock
-from cellcal.drivers.base import Series
+from cellcal.device_options import SensorOptions
+from cellcal.drivers.base import DeviceContext, Series, label
 from cellcal.drivers.line_framing import LineReader
 from cellcal.drivers.tracker_protocol import (
     BeamBrokenError,
@@ -88,13 +91,30 @@ def _fields(payload: str) -> dict[str, str]:
     return dict(kv.split("=", 1) for kv in payload.split() if "=" in kv)
 
 
+class LineTrackerOptions(SensorOptions):
+    """A ``[[sensor]]`` with ``kind = "laser-tracker"``, ``driver = "line-protocol"``:
+    ``address`` is a pyserial URL (``/dev/ttyUSB0``, a pty path, ``socket://host:port``);
+    a reply later than ``timeout_s`` is a fault; a broken beam is waited for up to
+    ``beam_wait_s`` and a series re-measured up to ``beam_retries`` times; a lost link is
+    reopened up to ``reconnects`` times; ``reflector`` (RRR15, RRR05, RRR0875, TBR05)
+    is set at connect when given."""
+
+    kind: Literal["laser-tracker"] = "laser-tracker"
+    driver: Literal["line-protocol"] = "line-protocol"
+    timeout_s: Annotated[float, Field(gt=0, le=600)] = 5.0
+    beam_retries: Annotated[int, Field(ge=0, le=100)] = 3
+    beam_wait_s: Annotated[float, Field(ge=0, le=3600)] = 30.0
+    reconnects: Annotated[int, Field(ge=0, le=100)] = 5
+    reflector: Literal["RRR15", "RRR05", "RRR0875", "TBR05"] | None = None
+
+
 class LineTracker:
-    """A tracker on ``url``; implements the engine's PositionSensor Protocol."""
+    """A tracker at ``address``; implements the engine's PositionSensor Protocol."""
 
     def __init__(
         self,
         name: str,
-        url: str,
+        address: str,
         *,
         clock: Clock | None = None,
         transport: Transport | None = None,
@@ -109,9 +129,10 @@ class LineTracker:
         self.name = name
         # "tracker t1", but not "tracker tracker" when the sensor is called so.
         self.label = name if "tracker" in name.lower() else f"tracker {name}"
-        self.url = url
+        self.address = address
+        self.where = label(self.label, address)
         self.clock = clock or WallClock()
-        self.transport = transport or SerialUrlTransport(url)
+        self.transport = transport or SerialUrlTransport(address)
         self.lines = LineReader(self.transport)
         self.timeout = timeout
         self.beam_retries = beam_retries
@@ -125,6 +146,19 @@ class LineTracker:
         self.garbage = 0
         self.retries = 0
         self.reconnections = 0
+
+    @classmethod
+    def from_options(cls, options: LineTrackerOptions, context: DeviceContext) -> LineTracker:
+        return cls(
+            options.name,
+            options.address,
+            clock=context.clock,
+            timeout=options.timeout_s,
+            beam_retries=options.beam_retries,
+            beam_wait_s=options.beam_wait_s,
+            reconnects=options.reconnects,
+            reflector=options.reflector,
+        )
 
     # ------------------------------------------------------------------ connection
 
@@ -150,7 +184,7 @@ class LineTracker:
             except TransportError as exc:
                 if attempt > self.reconnects:
                     raise TransportError(
-                        f"{self.label} at {self.url}: unreachable after {attempt} attempts ({exc})"
+                        f"{self.where}: unreachable after {attempt} attempts ({exc})"
                     ) from None
                 log.warning("%s: %s; retrying in %.2f s", self.label, exc, delay)
                 time.sleep(delay)
@@ -183,8 +217,7 @@ class LineTracker:
             except (TransportError, TrackerTimeoutError) as exc:
                 last = exc
         raise TransportError(
-            f"{self.label} at {self.url}: unreachable after {self.reconnects} "
-            f"reconnection attempts ({last})"
+            f"{self.where}: unreachable after {self.reconnects} reconnection attempts ({last})"
         )
 
     # ------------------------------------------------------------------ requests
@@ -203,7 +236,7 @@ class LineTracker:
             line = self.lines.read_line(max(0.0, deadline - time.monotonic()))
             if line is None:
                 raise TrackerTimeoutError(
-                    f"{self.label} at {self.url}: no answer to {request!r} within {timeout:g} s"
+                    f"{self.where}: no answer to {request!r} within {timeout:g} s"
                 )
             if line.overlong:
                 self._note(Garbage(line.raw, "line too long"), f"waiting for {request!r}")

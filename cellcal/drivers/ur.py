@@ -46,11 +46,13 @@ import socket
 import threading
 import time
 from collections.abc import Callable
-from typing import Any, TypeVar
+from typing import Any, Literal, TypeVar
 
 import numpy as np
 
 from cellcal.calib.geometry import Array
+from cellcal.device_options import Positive, RobotOptions
+from cellcal.drivers.base import DeviceContext, label
 from cellcal.errors import DeviceError, InputError
 
 log = logging.getLogger("cellcal.drivers.ur")
@@ -79,6 +81,15 @@ def _deg(q: Array) -> str:
     return "[" + ", ".join(f"{x:.3f}" for x in np.degrees(q)) + "] deg"
 
 
+class UROptions(RobotOptions):
+    """``[robot]`` with ``driver = "ur"``: ``address`` is the controller's host (the
+    ports are fixed: RTDE 30004, dashboard 29999, script 30003); a call (a connect, a
+    move) that takes longer than ``move_timeout_s`` has failed."""
+
+    driver: Literal["ur"] = "ur"
+    move_timeout_s: Positive = 60.0
+
+
 class URRobot:
     """A UR arm on ``host`` through ur_rtde. ``move_joints(q, speed)`` moves with
     ``moveJ`` at ``speed × velocity_rad_s`` (leading joint) and ``acceleration_rad_s2``."""
@@ -87,7 +98,7 @@ class URRobot:
         self,
         host: str,
         *,
-        name: str = "ur",
+        name: str = "ur-robot",
         timeout_s: float = 30.0,
         velocity_rad_s: float = 1.05,
         acceleration_rad_s2: float = 1.4,
@@ -117,9 +128,13 @@ class URRobot:
         self._receive: Any = None
         self._worker: threading.Thread | None = None
 
+    @classmethod
+    def from_options(cls, options: UROptions, context: DeviceContext) -> URRobot:
+        return cls(options.address, timeout_s=options.move_timeout_s)
+
     @property
     def label(self) -> str:
-        return f"UR robot {self.name!r} at {self.host}"
+        return label(self.name, self.host)
 
     @property
     def connected(self) -> bool:

@@ -60,48 +60,43 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 from pymodbus.constants import ExcCodes
 from pymodbus.server import ModbusTcpServer
 from pymodbus.simulator import DataType, SimData, SimDevice
 
+from cellcal.drivers.modbus_map import (
+    BLOCKS,
+    BUSY,
+    CMD_MOVE_JOINTS,
+    CMD_NONE,
+    CMD_STOP,
+    ERR_COMMAND,
+    ERR_LIMITS,
+    ERR_PARAMETER,
+    ERROR,
+    ESTOP,
+    IN_POSITION,
+    N_JOINTS,
+    READY,
+    REMOTE,
+    WRITABLE,
+    ModbusMap,
+)
+from cellcal.drivers.modbus_map import CMD_RESET_ERROR as CMD_RESET
+from cellcal.mocks.twins import MODBUS_HOST, RunningTwin, limits_deg
+
+if TYPE_CHECKING:
+    from cellcal.drivers.modbus_robot import ModbusRobotOptions
+    from cellcal.mocks.simulated_cell import SimulatedCell
+
 log = logging.getLogger("cellcal.mocks.modbus_robot")
 # pymodbus logs through "pymodbus.logging" without a handler, so Python's last-resort
 # handler would print its warnings (with frame dumps) on stderr; a NullHandler stops
 # that and leaves the records to whatever logging the application configures.
 logging.getLogger("pymodbus").addHandler(logging.NullHandler())
-
-N_JOINTS = 6
-
-HEARTBEAT = 0
-STATUS = 1
-ERROR_CODE = 2
-ACK = 3
-ACTUAL_JOINTS = 10
-ACTUAL_POSE = 30
-TARGET_JOINTS = 100
-TARGET_POSE = 112
-SPEED = 124
-COMMAND = 130
-SEQUENCE = 131
-
-READY = 1 << 0
-BUSY = 1 << 1
-IN_POSITION = 1 << 2
-ERROR = 1 << 3
-ESTOP = 1 << 4
-REMOTE = 1 << 5
-
-CMD_NONE = 0
-CMD_MOVE_JOINTS = 1
-CMD_MOVE_LINEAR = 2
-CMD_STOP = 3
-CMD_RESET = 4
-
-ERR_LIMITS = 2
-ERR_COMMAND = 3
-ERR_PARAMETER = 4
 
 MIN_SPEED = 0.001
 _READ_CODES = frozenset({3, 4, 23})
@@ -219,8 +214,7 @@ class ModbusRobotSimulator:
         limits_deg: list[tuple[float, float]] | None = None,
         joint_speed_deg_s: float = 60.0,
         time_scale: float = 0.0,
-        word_order: str = "big",
-        device_id: int = 1,
+        map: ModbusMap | None = None,
         faults: ModbusRobotFaults = ModbusRobotFaults(),
         on_move: Callable[[np.ndarray], None] | None = None,
         pose_fn: Callable[[np.ndarray], np.ndarray] | None = None,
@@ -239,14 +233,11 @@ class ModbusRobotSimulator:
             raise ValueError(f"joint_speed_deg_s must be > 0, got {joint_speed_deg_s}")
         if not (math.isfinite(time_scale) and time_scale >= 0):
             raise ValueError(f"time_scale must be >= 0, got {time_scale}")
-        if word_order not in ("big", "little"):
-            raise ValueError(f"word_order must be 'big' or 'little', got {word_order!r}")
-        if not 0 <= device_id <= 255:
-            raise ValueError(f"device_id must be 0..255, got {device_id}")
         self.joint_speed_deg_s = float(joint_speed_deg_s)
         self.time_scale = float(time_scale)
-        self.word_order = word_order
-        self.device_id = device_id
+        self.map = map or ModbusMap()
+        self.word_order = self.map.word_order
+        self.device_id = self.map.device_id
         self.faults = faults
         self.on_move = on_move
         self.pose_fn = pose_fn
@@ -299,14 +290,13 @@ class ModbusRobotSimulator:
         a catch-all for every other device id that answers exception code 0x0B (gateway
         target failed to respond); without it pymodbus answers code 4 and logs a
         KeyError traceback."""
+        m = self.map
+        blocks = sorted((m.span(name)[0], BLOCKS[name], name in WRITABLE) for name in BLOCKS)
         robot = SimDevice(
             id=self.device_id,
             simdata=[
-                SimData(HEARTBEAT, count=4, datatype=DataType.REGISTERS, readonly=True),
-                SimData(ACTUAL_JOINTS, count=12, datatype=DataType.REGISTERS, readonly=True),
-                SimData(ACTUAL_POSE, count=12, datatype=DataType.REGISTERS, readonly=True),
-                SimData(TARGET_JOINTS, count=26, datatype=DataType.REGISTERS),
-                SimData(COMMAND, count=2, datatype=DataType.REGISTERS),
+                SimData(start, count=count, datatype=DataType.REGISTERS, readonly=not writable)
+                for start, count, writable in blocks
             ],
             action=self._action,
         )
@@ -401,11 +391,15 @@ class ModbusRobotSimulator:
             if set_values is not None:
                 values = tuple(int(v) for v in set_values)
                 self._requests.append(ModbusRequest(function_code, address, count, values))
-                if address <= COMMAND and address + count - 1 >= SEQUENCE:
+                m = self.map
+                if address <= m.command and address + count - 1 >= m.sequence:
                     regs = list(registers)
                     regs[address - start_address : address - start_address + count] = values
                     self._command(
-                        values[COMMAND - address], values[SEQUENCE - address], regs, start_address
+                        values[m.command - address],
+                        values[m.sequence - address],
+                        regs,
+                        start_address,
                     )
                 return None
             if function_code not in _READ_CODES:  # the read-back of a single-register write
@@ -435,7 +429,7 @@ class ModbusRobotSimulator:
                 self._pose_stale = False
             status = self._publish(registers, start_address)
             covers = range(address, address + count)
-            if status & BUSY and STATUS in covers and self._motion is not None:
+            if status & BUSY and self.map.status in covers and self._motion is not None:
                 self._motion.seen_busy = True
             self._requests.append(
                 ModbusRequest(
@@ -443,8 +437,8 @@ class ModbusRobotSimulator:
                     address,
                     count,
                     None,
-                    status if STATUS in covers else None,
-                    self._ack if ACK in covers else None,
+                    status if self.map.status in covers else None,
+                    self._ack if self.map.ack in covers else None,
                 )
             )
         return None
@@ -478,9 +472,9 @@ class ModbusRobotSimulator:
             return
         if self._estop or self._error_code or faults.local:
             return
-        t0 = TARGET_JOINTS - start
+        t0 = self.map.target_joints - start
         target = registers_to_floats(regs[t0 : t0 + 2 * N_JOINTS], self.word_order)
-        s0 = SPEED - start
+        s0 = self.map.speed - start
         speed = float(registers_to_floats(regs[s0 : s0 + 2], self.word_order)[0])
         if not np.isfinite(target).all() or (
             self._limits is not None
@@ -551,12 +545,31 @@ class ModbusRobotSimulator:
 
     def _publish(self, registers: list[int], start: int) -> int:
         status = self._status()
-        registers[HEARTBEAT - start] = self._heartbeat
-        registers[STATUS - start] = status
-        registers[ERROR_CODE - start] = self._error_code
-        registers[ACK - start] = self._ack
-        j = ACTUAL_JOINTS - start
+        m = self.map
+        registers[m.heartbeat - start] = self._heartbeat
+        registers[m.status - start] = status
+        registers[m.error_code - start] = self._error_code
+        registers[m.ack - start] = self._ack
+        j = m.actual_joints - start
         registers[j : j + 2 * N_JOINTS] = floats_to_registers(self._q, self.word_order)
-        p = ACTUAL_POSE - start
+        p = m.actual_pose - start
         registers[p : p + 12] = floats_to_registers(self._pose, self.word_order)
         return status
+
+
+def serve(options: ModbusRobotOptions, cell: SimulatedCell, time_scale: float) -> RunningTwin:
+    """The twin of the configured Modbus robot: its map, word order and device id, on
+    an ephemeral port of a loopback address, following the simulated cell."""
+    sim = ModbusRobotSimulator(
+        q0_deg=list(options.home_deg),
+        limits_deg=limits_deg(cell),
+        joint_speed_deg_s=math.degrees(cell.joint_speed),
+        time_scale=time_scale,
+        map=options.map,
+        on_move=cell.set_q,
+        pose_fn=cell.flange_pose,
+    )
+    host, port = sim.start(MODBUS_HOST, 0)
+    # On loopback the status can be polled faster than a PLC cycle.
+    twin_options = options.model_copy(update={"address": f"{host}:{port}", "poll_s": 0.002})
+    return RunningTwin(twin_options, sim)

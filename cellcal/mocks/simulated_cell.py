@@ -23,7 +23,8 @@ from scipy.spatial.transform import Rotation
 from cellcal.calib.geometry import Array, invert
 from cellcal.calib.kinematics import target_kinematics
 from cellcal.calib.robot_model import RobotModel
-from cellcal.config import CellConfig, SensorConfig
+from cellcal.config import CellConfig
+from cellcal.device_options import SensorOptions
 from cellcal.mocks.robot_truth import perturbed_model
 
 
@@ -80,7 +81,9 @@ class SimulatedCell:
         self._q = np.radians(np.asarray(config.robot.home_deg, dtype=np.float64))
 
     @staticmethod
-    def _sensor_truth(s: SensorConfig, config: CellConfig, rng: np.random.Generator) -> SensorTruth:
+    def _sensor_truth(
+        s: SensorOptions, config: CellConfig, rng: np.random.Generator
+    ) -> SensorTruth:
         sim = config.simulation
         tool = np.asarray(s.target_offset_mm, dtype=np.float64) + rng.uniform(-0.5, 0.5, 3)
         if s.kind == "laser-tracker":

@@ -12,11 +12,18 @@ import numpy as np
 
 from cellcal.calib.geometry import Array
 from cellcal.clock import Clock
-from cellcal.drivers.base import Series
+from cellcal.device_options import SimulatedRigOptions, SimulatedRobotOptions
+from cellcal.drivers.base import DeviceContext, Series
 from cellcal.errors import DeviceError
 from cellcal.mocks.simulated_cell import SimulatedCell
 
 SETTLE_S = 0.5
+
+
+def _cell(context: DeviceContext) -> SimulatedCell:
+    if not isinstance(context.cell, SimulatedCell):
+        raise DeviceError('driver = "simulated" is the simulated cell: it needs --mock')
+    return context.cell
 
 
 class SimulatedRobot:
@@ -25,6 +32,10 @@ class SimulatedRobot:
         self.clock = clock
         self.name = name
         self.moves = 0
+
+    @classmethod
+    def from_options(cls, options: SimulatedRobotOptions, context: DeviceContext) -> SimulatedRobot:
+        return cls(_cell(context), context.clock)
 
     def connect(self) -> None:
         pass
@@ -57,6 +68,10 @@ class SimulatedSensor:
         self.clock = clock
         self.name = name
         self._device_epoch = 1000.0 + 37.0 * len(name)  # its own clock, not the host's
+
+    @classmethod
+    def from_options(cls, options: SimulatedRigOptions, context: DeviceContext) -> SimulatedSensor:
+        return cls(_cell(context), context.clock, options.name)
 
     def connect(self) -> None:
         pass

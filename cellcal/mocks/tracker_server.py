@@ -60,9 +60,15 @@ import tty
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Protocol
+from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
+
+from cellcal.mocks.twins import TRACKER_HOST, RunningTwin
+
+if TYPE_CHECKING:
+    from cellcal.drivers.tracker import LineTrackerOptions
+    from cellcal.mocks.simulated_cell import SimulatedCell
 
 log = logging.getLogger("cellcal.mocks.tracker")
 
@@ -964,3 +970,14 @@ class MockTracker:
                 f"PT -{i} {t} {x} {y} {z}",
             )
             return forms[int(rng.integers(0, len(forms)))].encode("ascii")
+
+
+def serve(options: LineTrackerOptions, cell: SimulatedCell, time_scale: float) -> RunningTwin:
+    """The twin of a configured line-protocol tracker: a MockTracker serving the
+    simulated cell's target of this sensor, over TCP on a loopback address."""
+    server = MockTracker(cell.target(options.name), time_scale=time_scale)
+    host, port = server.start_tcp(TRACKER_HOST, 0)
+    twin_options = options.model_copy(
+        update={"address": f"socket://{host}:{port}", "timeout_s": max(options.timeout_s, 10.0)}
+    )
+    return RunningTwin(twin_options, server)

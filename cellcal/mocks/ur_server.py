@@ -76,9 +76,15 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Protocol
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
+
+from cellcal.mocks.twins import UR_HOSTS, RunningTwin
+
+if TYPE_CHECKING:
+    from cellcal.drivers.ur import UROptions
+    from cellcal.mocks.simulated_cell import SimulatedCell
 from numpy.typing import NDArray
 
 log = logging.getLogger("cellcal.mocks.ur")
@@ -511,25 +517,26 @@ class URSimulator:
         self._send({"t": "ikr", "id": rid, "q": None if q is None else q.tolist()})
 
 
-def serve(host: str, *, time_scale: float = 1.0) -> None:
-    """Run a standalone UR10e simulator on ``host`` until SIGINT or SIGTERM."""
-    done = threading.Event()
+def serve(options: UROptions, cell: SimulatedCell, time_scale: float) -> RunningTwin:
+    """The twin of a configured UR controller: the first free loopback address of its
+    range (the ports are fixed), the simulated cell's nominal kinematics in UR's units."""
+    from cellcal.errors import DeviceError
 
-    def _handler(signum: int, frame: object) -> None:
-        done.set()
-
-    old_int = signal.signal(signal.SIGINT, _handler)
-    old_term = signal.signal(signal.SIGTERM, _handler)
-    sim = URSimulator(DHKinematics.ur10e(), q0=np.array(HOME_Q), time_scale=time_scale)
-    try:
-        sim.start(host)
-        log.info("UR simulator listening on %s (29999, 30003, 30004)", host)
-        while not done.wait(0.5):
-            pass
-    finally:
-        sim.stop()
-        signal.signal(signal.SIGINT, old_int)
-        signal.signal(signal.SIGTERM, old_term)
+    last: Exception | None = None
+    for host in UR_HOSTS:
+        sim = URSimulator(
+            cell.ur_kinematics(),
+            q0=np.radians(options.home_deg),
+            time_scale=time_scale,
+            on_move=cell.set_q,
+        )
+        try:
+            sim.start(host)
+        except OSError as exc:  # another simulated UR holds this address's fixed ports
+            last = exc
+            continue
+        return RunningTwin(options.model_copy(update={"address": host}), sim)
+    raise DeviceError(f"no free loopback address for a simulated UR ({last})")
 
 
 # ---------------------------------------------------------------------------------------
@@ -1586,18 +1593,3 @@ def _child_main(cfg_json: str) -> int:
     os.write(out_fd, b'{"t": "listening"}\n')
     ctl.run()
     return 0
-
-
-def main(argv: list[str] | None = None) -> int:
-    """``python -m cellcal.mocks.ur_server HOST [TIME_SCALE]``: a standalone UR10e."""
-    args = sys.argv[1:] if argv is None else argv
-    if not args or len(args) > 2:
-        print("usage: python -m cellcal.mocks.ur_server HOST [TIME_SCALE]", file=sys.stderr)
-        return 2
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(message)s")
-    serve(args[0], time_scale=float(args[1]) if len(args) > 1 else 1.0)
-    return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 
 from cellcal.commands.run import bundled_mock_cell
+from cellcal.config import with_robot
 from cellcal.daemon.campaign import resume_campaign, start_campaign
 from cellcal.errors import CampaignError
 from cellcal.mocks.simulated_cell import SimulatedCell
@@ -246,9 +247,7 @@ def test_refusals_before_anything_is_written(tmp_path):
 
     with pytest.raises(DeviceError, match=r"robot\.address is empty"):
         start_campaign(config, str(db), config_path=None, mock=False)
-    simulated = config.model_copy(
-        update={"robot": config.robot.model_copy(update={"driver": "simulated"})}
-    )
+    simulated = with_robot(config, driver="simulated")
     with pytest.raises(DeviceError, match="needs --mock"):
         start_campaign(simulated, str(db), config_path=None, mock=False)
     assert not db.exists() or _count(db, "SELECT COUNT(*) FROM campaigns") == 0
@@ -280,9 +279,7 @@ def test_device_fault_is_one_line_with_a_resume_hint_and_resumes(tmp_path, monke
         original(self, q, speed)
 
     monkeypatch.setattr(simulated_devices.SimulatedRobot, "move_joints", faulty)
-    config = config.model_copy(
-        update={"robot": config.robot.model_copy(update={"driver": "simulated"})}
-    )
+    config = with_robot(config, driver="simulated")
     with pytest.raises(
         CampaignError, match=r"protective stop; campaign 1 is resumable: cellcal run --resume 1"
     ):

@@ -22,14 +22,12 @@ model = "kuka-kr5-arc"
 driver = "modbus"
 address = "{ROBOT[0]}:{ROBOT[1]}"
 home_deg = [0.0, -30.0, 40.0, 0.0, -20.0, 0.0]
-[robot.modbus]
-port = {ROBOT[1]}
-timeout_s = 20.0
+move_timeout_s = 20.0
 [[sensor]]
 name = "tracker"
 kind = "laser-tracker"
 driver = "line-protocol"
-url = "socket://{TRACKER[0]}:{TRACKER[1]}"
+address = "socket://{TRACKER[0]}:{TRACKER[1]}"
 rate_hz = 10.0
 target_offset_mm = [25.0, -40.0, 130.0]
 reference = true

@@ -141,8 +141,7 @@ def test_move_round_trip_and_exact_registers(bench, word_order):
     float32 registers are exactly those of the chosen word order."""
     seen: list[np.ndarray] = []
     sim = bench.sim(
-        word_order=word_order,
-        device_id=7,
+        map=ModbusMap(word_order=word_order, device_id=7),
         limits_deg=LIMITS_DEG,
         on_move=seen.append,
         pose_fn=lambda q: np.array([1000.0, -250.5, 875.25, *np.degrees(q[:3])]),
@@ -285,11 +284,11 @@ def test_estop_ends_the_wait_and_refuses_connect(bench):
 
 
 def test_stale_heartbeat_is_a_comms_fault(bench):
-    # a 60 deg move at 60 deg/s lasts 1 s of wall time; the heartbeat gives up at 0.2 s
+    # a 60 deg move at 60 deg/s lasts 1 s of wall time; the heartbeat gives up at 0.4 s
     sim = bench.sim(
         q0_deg=[0.0] * 6, time_scale=1.0, faults=ModbusRobotFaults(stale_heartbeat=True)
     )
-    robot = bench.robot(sim, heartbeat_timeout_s=0.2, timeout_s=20.0)
+    robot = bench.robot(sim, heartbeat_timeout_s=0.4, timeout_s=20.0)
     robot.connect()
     t0 = time.monotonic()
     with pytest.raises(DeviceError, match="heartbeat stuck"):
@@ -350,7 +349,7 @@ def test_stop_from_elsewhere_interrupts_the_move(bench):
 
 @pytest.mark.parametrize(("device", "driver"), [("big", "little"), ("little", "big")])
 def test_word_order_mismatch_gives_absurd_joints_that_are_refused(bench, device, driver):
-    sim = bench.sim(word_order=device, limits_deg=LIMITS_DEG)
+    sim = bench.sim(map=ModbusMap(word_order=device), limits_deg=LIMITS_DEG)
     robot = bench.robot(sim, map=ModbusMap(word_order=driver))
     with pytest.raises(DeviceError, match=r"implausible actual joints.*word order"):
         robot.connect()
@@ -419,10 +418,12 @@ def test_bad_arguments_are_input_errors(bench):
     for speed in (0.0, 1.5, float("nan")):
         with pytest.raises(InputError):
             robot.move_joints(np.zeros(6), speed)
-    with pytest.raises(InputError):
+    with pytest.raises(ValueError, match="register after command"):
         ModbusMap(command=130, sequence=140)
-    with pytest.raises(InputError):
+    with pytest.raises(ValueError, match="word_order"):
         ModbusMap(word_order="middle")  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match=r"actual_joints \(registers 10..21\) and actual_pose"):
+        ModbusMap(actual_pose=20)
     assert sim.requests == []  # nothing reached the wire
 
 

@@ -435,7 +435,7 @@ def test_urrobot_moves_reads_and_closes() -> None:
         finally:
             robot.close()
         robot.close()  # twice is fine
-        with pytest.raises(DeviceError, match=r"'arm' at 127\.0\.0\.30: not connected"):
+        with pytest.raises(DeviceError, match=r"arm at 127\.0\.0\.30: not connected"):
             robot.move_joints(Q1, 0.5)
         robot.stop()  # a no-op when not connected
         assert dashboard(host, ["running"])[1] == "Program running: false"
@@ -504,7 +504,7 @@ def test_urrobot_timeout_and_busy() -> None:
 def test_urrobot_unreachable_host() -> None:
     robot = URRobot("127.0.0.33", name="nobody", timeout_s=5)
     t0 = time.monotonic()
-    with pytest.raises(DeviceError, match=r"'nobody' at 127\.0\.0\.33: cannot reach port 29999"):
+    with pytest.raises(DeviceError, match=r"nobody at 127\.0\.0\.33: cannot reach port 29999"):
         robot.connect()
     assert time.monotonic() - t0 < 2.0
     assert not robot.connected
