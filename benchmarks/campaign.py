@@ -31,7 +31,9 @@ from cellcal.daemon.campaign import start_campaign
 from cellcal.daemon.devices import build_devices
 from cellcal.daemon.engine import acquire
 from cellcal.daemon.plan import make_plan
+from cellcal.daemon.records import RecordStream
 from cellcal.daemon.store import Store
+from cellcal.daemon.store_writer import StoreWriter
 from cellcal.drivers.base import Series
 from cellcal.modelfiles import load_model
 
@@ -125,13 +127,16 @@ def bench_overhead(folder: Path, driver: str) -> tuple[float, float, int]:
     store = Store(folder / f"engine-{driver}.db")
     cid = _new_campaign(store, len(plan.poses))
     t0 = time.perf_counter()
+    stream = RecordStream()
+    stream.subscribe(StoreWriter(store), critical=True)
     acquire(
-        store,
-        cid,
         plan,
         devices.robot,
         devices.sensors,
         clock,
+        campaign_id=cid,
+        done=set(),
+        stream=stream,
         dwell_s=7.0,
         samples_per_pose=20,
         speed=0.25,

@@ -25,6 +25,11 @@ class Clock(Protocol):
 
     def sleep(self, seconds: float) -> None: ...
 
+    def wait(self, event: threading.Event, seconds: float) -> bool:
+        """Sleep up to ``seconds``, less if ``event`` is set first; whether it was set
+        (a dwell that a stop request cuts short)."""
+        ...
+
     def branch(self, start: float) -> AbstractContextManager[None]:
         """Context for work running concurrently with other branches from ``start``."""
         ...
@@ -39,6 +44,9 @@ class WallClock:
     def sleep(self, seconds: float) -> None:
         if seconds > 0:
             time.sleep(seconds)
+
+    def wait(self, event: threading.Event, seconds: float) -> bool:
+        return event.wait(seconds) if seconds > 0 else event.is_set()
 
     @contextmanager
     def branch(self, start: float) -> Iterator[None]:
@@ -68,6 +76,26 @@ class SimulatedClock:
             return
         if self.time_scale > 0:
             time.sleep(seconds * self.time_scale)
+        self._advance(seconds)
+
+    def wait(self, event: threading.Event, seconds: float) -> bool:
+        """As ``sleep``, cut short when ``event`` is set: with ``time_scale`` 0 only a
+        stop already requested cuts it; otherwise virtual time advances by the wall
+        time waited (÷ time_scale)."""
+        if event.is_set():
+            return True
+        if seconds <= 0:
+            return False
+        if self.time_scale <= 0:
+            self.sleep(seconds)
+            return event.is_set()
+        t0 = time.monotonic()
+        hit = event.wait(seconds * self.time_scale)
+        waited = min(seconds, (time.monotonic() - t0) / self.time_scale) if hit else seconds
+        self._advance(waited)
+        return hit
+
+    def _advance(self, seconds: float) -> None:
         local = getattr(self._local, "t", None)
         with self._lock:
             deadline = (self._now if local is None else local) + seconds

@@ -17,7 +17,7 @@ from cellcal.commands.output import SEED, TIME_SCALE, print_json
 from cellcal.config import CellConfig, load_config
 from cellcal.daemon.analysis import PAPER, CampaignSummary
 from cellcal.daemon.campaign import CampaignOutcome, resume_campaign, start_campaign
-from cellcal.daemon.plan import PlannedPose
+from cellcal.daemon.records import CampaignEnded, CampaignStarted, PoseStored, Record
 from cellcal.daemon.report import write_report
 from cellcal.daemon.store import Store
 from cellcal.errors import InputError
@@ -26,21 +26,21 @@ EXIT_INTERRUPTED = 130
 
 
 class LineProgress:
-    """Plain log lines on stderr (no terminal): every 10th pose and the last."""
+    """Plain log lines on stderr (no terminal): every 10th pose and the last; a
+    subscriber of the campaign's record stream."""
 
-    def start(self, total: int, done: int) -> None:
-        click.echo(f"acquiring {total - done} of {total} poses", err=True)
-
-    def advance(self, pose: PlannedPose, done: int, total: int) -> None:
-        if done % 10 == 0 or done == total:
-            click.echo(f"pose {done}/{total} stored ({pose.role}, {pose.region})", err=True)
-
-    def finish(self) -> None:
-        pass
+    def __call__(self, record: Record) -> None:
+        if isinstance(record, CampaignStarted):
+            click.echo(f"acquiring {record.total - record.done} of {record.total} poses", err=True)
+        elif isinstance(record, PoseStored) and (
+            record.done % 10 == 0 or record.done == record.total
+        ):
+            p = record.pose
+            click.echo(f"pose {record.done}/{record.total} stored ({p.role}, {p.region})", err=True)
 
 
 class BarProgress:
-    """A rich progress bar on a terminal."""
+    """A rich progress bar on a terminal; a subscriber of the campaign's record stream."""
 
     def __init__(self) -> None:
         from rich.console import Console
@@ -63,14 +63,17 @@ class BarProgress:
         )
         self._task = self._bar.add_task("", total=1)
 
-    def start(self, total: int, done: int) -> None:
-        self._bar.update(self._task, total=total, completed=done)
-        self._bar.start()
+    def __call__(self, record: Record) -> None:
+        if isinstance(record, CampaignStarted):
+            self._bar.update(self._task, total=record.total, completed=record.done)
+            self._bar.start()
+        elif isinstance(record, PoseStored):
+            p = record.pose
+            self._bar.update(self._task, completed=record.done, description=f"{p.role} {p.region}")
+        elif isinstance(record, CampaignEnded):
+            self.close()
 
-    def advance(self, pose: PlannedPose, done: int, total: int) -> None:
-        self._bar.update(self._task, completed=done, description=f"{pose.role} {pose.region}")
-
-    def finish(self) -> None:
+    def close(self) -> None:
         self._bar.stop()
 
 
@@ -198,7 +201,7 @@ def run(
                 resume_id,
                 time_scale=time_scale,
                 stop=stop,
-                progress=progress,
+                subscribers=[progress],
                 accept=accept,
             )
         else:
@@ -218,10 +221,12 @@ def run(
                 seed=seed,
                 time_scale=time_scale or 0.0,
                 stop=stop,
-                progress=progress,
+                subscribers=[progress],
                 accept=accept,
             )
     finally:
+        if isinstance(progress, BarProgress):
+            progress.close()
         for signum, handler in previous.items():
             signal.signal(signum, handler)
     if outcome.summary is None:

@@ -4,8 +4,10 @@ started afresh or resumed from the database."""
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import json
 import threading
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import IO
@@ -19,9 +21,17 @@ from cellcal.clock import Clock, SimulatedClock, WallClock
 from cellcal.config import CellConfig, config_from_dict, upgrade_stored
 from cellcal.daemon.analysis import CampaignSummary, analyse
 from cellcal.daemon.devices import Devices, build_devices
-from cellcal.daemon.engine import Acquisition, Progress, acquire
+from cellcal.daemon.engine import Acquisition, acquire
 from cellcal.daemon.plan import CALIBRATION, VALIDATION, Plan, make_plan
+from cellcal.daemon.records import (
+    CampaignEnded,
+    CampaignEvent,
+    CampaignStarted,
+    RecordStream,
+    Subscriber,
+)
 from cellcal.daemon.store import Store, StoreError
+from cellcal.daemon.store_writer import StoreWriter
 from cellcal.errors import AcceptanceError, CampaignError, UserError
 from cellcal.modelfiles import load_model
 
@@ -103,16 +113,32 @@ class _RunLock:
             self.fh.close()
 
 
-def _record(store: Store, campaign_id: int, kind: str, message: str) -> None:
+def config_digest(config: CellConfig) -> str:
+    """A short fingerprint of the configuration a campaign runs with."""
+    return hashlib.sha256(config.model_dump_json().encode()).hexdigest()[:16]
+
+
+def _stream(store: Store, subscribers: Sequence[Subscriber]) -> RecordStream:
+    """The campaign's record stream: the store first (critical), then the watchers."""
+    stream = RecordStream()
+    stream.subscribe(StoreWriter(store), critical=True)
+    for subscriber in subscribers:
+        stream.subscribe(subscriber)
+    return stream
+
+
+def _fail(stream: RecordStream, campaign_id: int, total: int, kind: str, message: str) -> None:
     """Note a failure and mark the campaign resumable — if the database still takes
     writes (a full disk may not): the failure itself is what the user must see."""
     with contextlib.suppress(StoreError):
-        store.add_event(campaign_id, kind, message)
-        store.set_status(campaign_id, "interrupted")
+        stream.emit(CampaignEvent(campaign_id, kind, message))
+    with contextlib.suppress(StoreError):
+        stream.emit(CampaignEnded(campaign_id, "interrupted", -1, total, message))
 
 
 def _run(
     store: Store,
+    stream: RecordStream,
     campaign_id: int,
     config: CellConfig,
     plan: Plan,
@@ -121,53 +147,64 @@ def _run(
     clock: Clock,
     *,
     stop: threading.Event | None,
-    progress: Progress | None,
-    accept: bool = False,
+    accept: bool,
+    resumed: bool,
+    close_devices: bool,
 ) -> CampaignOutcome:
     hint = (
         f"campaign {campaign_id} is resumable: cellcal run --resume {campaign_id} --db {store.path}"
     )
+    total = len(plan.poses)
     try:
+        done = store.completed_indices(campaign_id)
+        stream.emit(
+            CampaignStarted(
+                campaign_id, plan, config_digest(config), len(done), resumed, clock.now()
+            )
+        )
         acquisition = acquire(
-            store,
-            campaign_id,
             plan,
             devices.robot,
             devices.sensors,
             clock,
+            campaign_id=campaign_id,
+            done=done,
+            stream=stream,
             dwell_s=config.campaign.dwell_s,
             samples_per_pose=config.campaign.samples_per_pose,
             speed=config.robot.speed,
             stop=stop,
-            progress=progress,
         )
     except UserError as exc:
-        _record(store, campaign_id, "error", f"{type(exc).__name__}: {exc}")
+        _fail(stream, campaign_id, total, "error", f"{type(exc).__name__}: {exc}")
         raise CampaignError(f"{exc}; {hint}") from exc
     except BaseException as exc:
-        _record(store, campaign_id, "error", f"{type(exc).__name__}: {exc}")
+        _fail(stream, campaign_id, total, "error", f"{type(exc).__name__}: {exc}")
         raise
     finally:
-        devices.close()
+        if close_devices:
+            devices.close()
+    n = acquisition.stored
     if acquisition.interrupted:
-        store.add_event(campaign_id, "interrupted", f"stopped after {acquisition.stored} poses")
-        store.set_status(campaign_id, "interrupted")
+        message = f"stopped after {n} poses"
+        stream.emit(CampaignEvent(campaign_id, "interrupted", message))
+        stream.emit(CampaignEnded(campaign_id, "interrupted", n, total, message))
         return CampaignOutcome(campaign_id, store.path, config, plan, acquisition, None)
     try:
         summary = analyse(store, campaign_id, nominal, config.reference_sensor.name, accept=accept)
     except AcceptanceError as exc:
-        store.add_event(campaign_id, "refused", str(exc))
-        store.set_status(campaign_id, "refused")
+        stream.emit(CampaignEvent(campaign_id, "refused", str(exc)))
+        stream.emit(CampaignEnded(campaign_id, "refused", n, total, str(exc)))
         raise AcceptanceError(
             exc.check,
             f"{exc.message}; every sample is stored (campaign {campaign_id} in {store.path}); "
             f"cellcal run --resume {campaign_id} --accept analyses it anyway",
         ) from exc
     except UserError as exc:
-        store.add_event(campaign_id, "analysis-failed", str(exc))
-        store.set_status(campaign_id, "interrupted")
+        stream.emit(CampaignEvent(campaign_id, "analysis-failed", str(exc)))
+        stream.emit(CampaignEnded(campaign_id, "interrupted", n, total, str(exc)))
         raise CampaignError(f"analysis failed: {exc}; every pose is stored; {hint}") from exc
-    store.set_status(campaign_id, "complete")
+    stream.emit(CampaignEnded(campaign_id, "complete", n, total, "complete", summary))
     return CampaignOutcome(campaign_id, store.path, config, plan, acquisition, summary)
 
 
@@ -180,17 +217,30 @@ def start_campaign(
     seed: int | None = None,
     time_scale: float = 0.0,
     stop: threading.Event | None = None,
-    progress: Progress | None = None,
+    subscribers: Sequence[Subscriber] = (),
     accept: bool = False,
+    devices: Devices | None = None,
+    clock: Clock | None = None,
 ) -> CampaignOutcome:
     """Plan, connect the devices, create a new campaign in ``db_path``, acquire and
-    analyse it. Nothing is written before the plan and the devices are ready."""
+    analyse it. Nothing is written before the plan and the devices are ready.
+
+    ``devices`` (with the ``clock`` they take time on): devices the caller holds, which
+    the campaign runs on and leaves open; by default it builds and closes its own."""
     config = with_seed(config, seed)
     plan, nominal = _plan(config)
-    clock: Clock = SimulatedClock(time_scale) if mock else WallClock()
+    if clock is None:
+        clock = SimulatedClock(time_scale) if mock else WallClock()
     with _RunLock(db_path):
-        devices = build_devices(config, nominal, clock, mock=mock, seed=config.simulation.seed)
-        store = Store(db_path)
+        own = devices is None
+        if devices is None:
+            devices = build_devices(config, nominal, clock, mock=mock, seed=config.simulation.seed)
+        try:
+            store = Store(db_path)
+        except BaseException:
+            if own:
+                devices.close()
+            raise
         try:
             campaign_id = store.create_campaign(
                 config_json=config.model_dump_json(),
@@ -205,15 +255,19 @@ def start_campaign(
                 dwell_s=config.campaign.dwell_s,
                 plan_digest=plan.digest,
             )
+            stream = _stream(store, subscribers)
             for u in plan.unreachable:
-                store.add_event(
-                    campaign_id,
-                    "unreachable",
-                    f"{u.role} pose in {u.region} at "
-                    f"{np.round(u.target_mm, 1).tolist()} mm: {u.reason}",
+                stream.emit(
+                    CampaignEvent(
+                        campaign_id,
+                        "unreachable",
+                        f"{u.role} pose in {u.region} at "
+                        f"{np.round(u.target_mm, 1).tolist()} mm: {u.reason}",
+                    )
                 )
             return _run(
                 store,
+                stream,
                 campaign_id,
                 config,
                 plan,
@@ -221,9 +275,15 @@ def start_campaign(
                 devices,
                 clock,
                 stop=stop,
-                progress=progress,
                 accept=accept,
+                resumed=False,
+                close_devices=own,
             )
+        except BaseException:
+            if own:
+                with contextlib.suppress(Exception):
+                    devices.close()
+            raise
         finally:
             store.close()
 
@@ -234,7 +294,7 @@ def resume_campaign(
     *,
     time_scale: float | None = None,
     stop: threading.Event | None = None,
-    progress: Progress | None = None,
+    subscribers: Sequence[Subscriber] = (),
     accept: bool = False,
 ) -> CampaignOutcome:
     """Continue an interrupted (or refused) campaign from its last stored pose, with its stored
@@ -272,10 +332,15 @@ def resume_campaign(
                 seed=config.simulation.seed,
                 noise_stream=stored,
             )
-            store.add_event(campaign_id, "resumed", f"{stored} poses stored")
-            store.set_status(campaign_id, "running")
+            stream = _stream(store, subscribers)
+            try:
+                stream.emit(CampaignEvent(campaign_id, "resumed", f"{stored} poses stored"))
+            except BaseException:
+                devices.close()
+                raise
             return _run(
                 store,
+                stream,
                 campaign_id,
                 config,
                 plan,
@@ -283,8 +348,9 @@ def resume_campaign(
                 devices,
                 clock,
                 stop=stop,
-                progress=progress,
                 accept=accept,
+                resumed=True,
+                close_devices=True,
             )
         finally:
             store.close()

@@ -21,8 +21,6 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Union
 
-import numpy as np
-
 from cellcal.calib.geometry import Array
 from cellcal.daemon.plan import Plan, PlannedPose
 from cellcal.drivers.base import Series
@@ -131,26 +129,27 @@ class RecordStream:
         return unsubscribe
 
     def emit(self, record: Record) -> None:
+        """Hand the record to every subscriber; then re-raise the first failure of a
+        critical one (the others have seen the record all the same)."""
         with self._lock:
             subscribers = list(self._subscribers)
+        failure: Exception | None = None
         for subscriber, critical in subscribers:
             try:
                 subscriber(record)
             except Exception as exc:
                 if critical:
-                    raise
+                    failure = failure or exc
+                    continue
                 why = f"{_name(subscriber)}: {type(exc).__name__}: {exc}"
                 log.warning("record subscriber dropped after a failure: %s", why)
                 self.dropped.append(why)
                 with self._lock:
                     if (subscriber, critical) in self._subscribers:
                         self._subscribers.remove((subscriber, critical))
+        if failure is not None:
+            raise failure
 
 
 def _name(subscriber: Subscriber) -> str:
     return getattr(subscriber, "__qualname__", type(subscriber).__name__)
-
-
-def rounded(values: Array, decimals: int = 4) -> list[float]:
-    """Numbers for a person or a JSON line."""
-    return [float(v) for v in np.round(np.asarray(values, dtype=np.float64), decimals)]

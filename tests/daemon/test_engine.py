@@ -13,7 +13,9 @@ from cellcal.config import config_from_dict
 from cellcal.daemon.devices import build_devices
 from cellcal.daemon.engine import acquire
 from cellcal.daemon.plan import make_plan
-from cellcal.daemon.store import Store
+from cellcal.daemon.records import CampaignEvent, PoseStored, RecordStream
+from cellcal.daemon.store import Store, StoreError
+from cellcal.daemon.store_writer import StoreWriter
 from cellcal.errors import DeviceError
 from cellcal.modelfiles import load_model
 
@@ -56,15 +58,20 @@ def _setup(tmp_path, clock):
     return plan, devices, store, cid
 
 
-def _acquire(store, cid, plan, devices, clock, **kw):
+def _acquire(store, cid, plan, devices, clock, *, subscribers=(), **kw):
+    stream = RecordStream()
+    stream.subscribe(StoreWriter(store), critical=True)
+    for s in subscribers:
+        stream.subscribe(s)
     return acquire(
-        store,
-        cid,
         plan,
         devices.robot,
         devices.sensors,
         clock,
-        dwell_s=7.0,
+        campaign_id=cid,
+        done=store.completed_indices(cid),
+        stream=stream,
+        dwell_s=kw.pop("dwell_s", 7.0),
         samples_per_pose=20,
         speed=0.25,
         **kw,
@@ -132,18 +139,11 @@ def test_stop_leaves_a_resumable_campaign(tmp_path):
     plan, devices, store, cid = _setup(tmp_path, clock)
     stop = threading.Event()
 
-    class StopAfter:
-        def start(self, total, done):
-            pass
+    def stop_after_4(record):
+        if isinstance(record, PoseStored) and record.done == 4:
+            stop.set()
 
-        def advance(self, pose, done, total):
-            if done == 4:
-                stop.set()
-
-        def finish(self):
-            pass
-
-    out = _acquire(store, cid, plan, devices, clock, stop=stop, progress=StopAfter())
+    out = _acquire(store, cid, plan, devices, clock, stop=stop, subscribers=[stop_after_4])
     assert out.interrupted and out.stored == 4
     assert store.completed_indices(cid) == {0, 1, 2, 3}
     again = _acquire(store, cid, plan, devices, clock)
@@ -188,3 +188,103 @@ def test_a_failing_sensor_is_asked_again_and_the_event_kept(tmp_path):
     events = store.events(cid)
     assert [(e["kind"], e["pose_idx"]) for e in events] == [("sensor-retry", 3)]
     devices.close()
+
+
+def test_every_pose_and_event_is_a_record_and_a_failing_watcher_stops_nothing(tmp_path):
+    clock = SimulatedClock()
+    plan, devices, store, cid = _setup(tmp_path, clock)
+    rig = next(s.sensor for s in devices.sensors if s.sensor.name == "rig")
+    original = rig.measure
+    calls = {"n": 0}
+
+    def flaky(n, rate):
+        calls["n"] += 1
+        if calls["n"] == 2:
+            raise DeviceError("rig: camera 1 timed out")
+        return original(n, rate)
+
+    rig.measure = flaky
+    seen = []
+
+    def broken(record):
+        if isinstance(record, PoseStored) and record.done == 3:
+            raise RuntimeError("the watcher's socket went away")
+        seen.append(("broken", record))
+
+    out = _acquire(
+        store, cid, plan, devices, clock, subscribers=[lambda r: seen.append(("ok", r)), broken]
+    )
+    assert out.stored == 10 and store.completed_indices(cid) == set(range(10))
+    ok = [r for who, r in seen if who == "ok"]
+    poses = [r for r in ok if isinstance(r, PoseStored)]
+    assert [r.done for r in poses] == list(range(1, 11)) and poses[0].total == 10
+    assert [r.pose.idx for r in poses] == [p.idx for p in plan.poses]
+    # The pose records are what the store kept: the same means, to the last bit.
+    row = store.conn.execute(
+        "SELECT AVG(x), AVG(y), AVG(z) FROM samples s JOIN poses p ON s.pose_id = p.id "
+        "WHERE p.idx = ? AND s.sensor = 'tracker'",
+        (poses[4].pose.idx,),
+    ).fetchone()
+    stats = {st.sensor: st for st in poses[4].statistics}
+    np.testing.assert_allclose(row, stats["tracker"].mean, rtol=0, atol=1e-9)
+    assert stats["tracker"].n == 20 and (stats["tracker"].std > 0).all()
+    retry = [r for r in ok if isinstance(r, CampaignEvent)]
+    assert [(e.kind, e.pose_idx) for e in retry] == [("sensor-retry", plan.poses[1].idx)]
+    assert poses[1].retries == 1 and poses[0].retries == 0
+    # The broken watcher saw the first two poses, then was dropped; nothing else noticed.
+    assert len([r for who, r in seen if who == "broken" and isinstance(r, PoseStored)]) == 2
+    devices.close()
+
+
+def test_a_store_that_cannot_write_ends_the_acquisition(tmp_path):
+    clock = SimulatedClock()
+    plan, devices, _store, cid = _setup(tmp_path, clock)
+    stream = RecordStream()
+    written = []
+
+    def full_disk(record):
+        if isinstance(record, PoseStored):
+            if len(written) == 2:
+                raise StoreError("database or disk is full")
+            written.append(record.pose.idx)
+
+    stream.subscribe(full_disk, critical=True)
+    watcher = []
+    stream.subscribe(watcher.append)
+    with pytest.raises(StoreError, match="disk is full"):
+        acquire(
+            plan, devices.robot, devices.sensors, clock, campaign_id=cid, done=set(),
+            stream=stream, dwell_s=7.0, samples_per_pose=5, speed=0.25,
+        )  # fmt: skip
+    assert len(written) == 2 and len(watcher) == 3  # the watcher saw the third all the same
+    devices.close()
+
+
+@pytest.mark.timeout(60)
+def test_a_stop_request_cuts_the_dwell_short(tmp_path):
+    """With time paced (time_scale 1: a 7 s dwell is 7 wall seconds), a stop request
+    during the dwell ends the acquisition at once, the pose unstored."""
+    clock = SimulatedClock(time_scale=1.0)
+    plan, devices, store, cid = _setup(tmp_path, clock)
+    stop = threading.Event()
+    timer = threading.Timer(0.3, stop.set)
+    timer.start()
+    wall = time.monotonic()
+    out = _acquire(store, cid, plan, devices, clock, stop=stop, dwell_s=7.0)
+    took = time.monotonic() - wall
+    timer.join()
+    assert out.interrupted and out.stored == 0 and store.completed_indices(cid) == set()
+    assert took < 5.0  # not the 7 s of the dwell
+    devices.close()
+
+
+def test_simulated_clock_wait_is_cut_by_the_event_and_advances_by_what_was_waited():
+    clock = SimulatedClock(time_scale=0.01)
+    ev = threading.Event()
+    assert clock.wait(ev, 2.0) is False and clock.now() == pytest.approx(2.0)
+    ev.set()
+    assert clock.wait(ev, 5.0) is True and clock.now() == pytest.approx(2.0)
+    ev.clear()
+    threading.Timer(0.02, ev.set).start()  # 2 simulated seconds into a 100 s wait
+    assert clock.wait(ev, 100.0) is True
+    assert 2.0 < clock.now() < 60.0

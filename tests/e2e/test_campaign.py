@@ -325,3 +325,50 @@ def test_ur10e_cell_through_ur_rtde(tmp_path):
     assert doc["n_calibration_poses"] == 80
     assert doc["rms_after_mm"] < doc["rms_before_mm"] / 10
     assert doc["calibration"]["unidentifiable"] == ["theta1", "d1", "theta6", "d6", "a6", "alpha6"]
+
+
+def test_campaigns_run_on_devices_they_are_handed_and_leave_them_open(tmp_path):
+    """A service holds its devices for its life: two campaigns on the same devices, which
+    stay connected between them; every record of both reached the watcher."""
+    from cellcal.clock import SimulatedClock
+    from cellcal.daemon.devices import build_devices
+    from cellcal.daemon.records import CampaignEnded, CampaignStarted, PoseStored
+
+    config, _ = bundled_mock_cell()
+    config = config.model_copy(
+        update={
+            "campaign": config.campaign.model_copy(
+                update={"grid": [3, 3, 3], "validation_inside": 4, "validation_per_region": 1}
+            )
+        }
+    )
+    nominal = load_model(config.robot.model).model
+    clock = SimulatedClock()
+    devices = build_devices(config, nominal, clock, mock=True, seed=config.simulation.seed)
+    seen = []
+    try:
+        outs = [
+            start_campaign(
+                config,
+                str(tmp_path / "c.db"),
+                config_path=None,
+                mock=True,
+                devices=devices,
+                clock=clock,
+                subscribers=[seen.append],
+            )
+            for _ in range(2)
+        ]
+        assert [o.campaign_id for o in outs] == [1, 2]
+        assert all(o.summary is not None for o in outs)
+        devices.robot.move_joints(np.radians(config.robot.home_deg), 0.25)  # still connected
+    finally:
+        devices.close()
+    starts = [r for r in seen if isinstance(r, CampaignStarted)]
+    ends = [r for r in seen if isinstance(r, CampaignEnded)]
+    poses = [r for r in seen if isinstance(r, PoseStored)]
+    assert [r.campaign_id for r in starts] == [1, 2] and [r.status for r in ends] == 2 * [
+        "complete"
+    ]
+    assert len(poses) == 2 * len(outs[0].plan.poses) and ends[0].summary is outs[0].summary
+    assert starts[0].config_digest == starts[1].config_digest
