@@ -4,10 +4,10 @@ Prints, in one run:
 
 1. cellcal against the peer FIGAROH (calibration on Pinocchio) on the same simulated data:
    a robot with injected errors (lengths ±0.3 mm, angles ±0.03°, β on the parallel pair),
-   an unknown instrument frame about 3 m away and an unknown target offset, noise
+   an unknown sensor frame about 3 m away and an unknown target offset, noise
    0.01 mm per axis, 80 well-spread calibration poses and 500 held-out poses. Held-out
    RMS / mean / max error against the noise-free truth and against noisy measurements,
-   the "before" baseline (nominal geometry, best-fit instrument frame and target offset),
+   the "before" baseline (nominal geometry, best-fit sensor frame and target offset),
    wall time of the calibration and number of identified parameters.
 2. The noise-limited bound: the first-order RMS error at the held-out poses,
    E|δp|² = trace(J(x) C J(x)ᵀ) with C the covariance of the identified parameters for
@@ -126,7 +126,7 @@ class Scenario:
 
 
 def make_scenario(nominal: RobotModel, rng: np.random.Generator, n: int, n_val: int) -> Scenario:
-    cell = random_cell(nominal, rng, tool_mm=TOOL_MM, distance_mm=INSTRUMENT_MM)
+    cell = random_cell(nominal, rng, target_offset_mm=TOOL_MM, distance_mm=INSTRUMENT_MM)
     q = random_joints(nominal, rng, n)
     q_val = random_joints(nominal, rng, n_val)
     return Scenario(
@@ -155,7 +155,7 @@ class Accuracy:
 
 
 def before_prediction(nominal: RobotModel, q: Array, measured: Array, q_val: Array) -> Array:
-    """The baseline: nominal geometry with best-fit instrument frame and target offset."""
+    """The baseline: nominal geometry with best-fit sensor frame and target offset."""
     return predict(fit_frames(nominal, q, measured), q_val)
 
 
@@ -349,7 +349,7 @@ class FigarohRun:
         return self.load_s + self.init_s + self.solve_s
 
     def predict(self, q: Array, x: Array | None = None, names: list[str] | None = None) -> Array:
-        """Target positions (mm) in the instrument frame for q (rad)."""
+        """Target positions (mm) in the sensor frame for q (rad)."""
         cfg = dict(self.calib.calib_config, NbSample=len(q))
         if names is not None:
             cfg["param_name"] = names
@@ -482,7 +482,7 @@ def compare(
         p0 = run.predict(sc.q_val, np.zeros(0), [])
         cmp.fk_agree_mm = float(np.max(np.abs(p0 - k.p)))
         tool_run = run_figaroh(
-            fg, nominal, sc.q, sc.measured, workdir, urdf_tool=sc.cell.tool, repeats=1
+            fg, nominal, sc.q, sc.measured, workdir, urdf_tool=sc.cell.target_offset, repeats=1
         )
         cmp.figaroh_tool = tool_run
         cmp.figaroh_tool_acc = Accuracy.of(tool_run.predict(sc.q_val), sc)
@@ -502,10 +502,10 @@ def _acc_cells(a: Accuracy) -> str:
 
 def print_comparison(c: Comparison, fg: Figaroh | None) -> None:
     sc = c.sc
-    dist = float(np.linalg.norm(sc.cell.T_instrument_base[:3, 3]))
+    dist = float(np.linalg.norm(sc.cell.T_sensor_base[:3, 3]))
     print(
-        f"   {c.robot}: instrument {dist / 1000:.2f} m from the base, target offset "
-        f"({', '.join(f'{v:g}' for v in sc.cell.tool)}) mm unknown (nominal "
+        f"   {c.robot}: sensor {dist / 1000:.2f} m from the base, target offset "
+        f"({', '.join(f'{v:g}' for v in sc.cell.target_offset)}) mm unknown (nominal "
         f"({', '.join(f'{v:g}' for v in sc.nominal.tool)}))"
     )
     print(
@@ -596,7 +596,7 @@ def print_comparison(c: Comparison, fg: Figaroh | None) -> None:
 @dataclass(frozen=True)
 class Bound:
     bound_mm: float
-    bound_origin_mm: float  # with the frame rotation about the instrument origin
+    bound_origin_mm: float  # with the frame rotation about the sensor origin
     std_agree: float  # max relative diff of cellcal's std·σ/σ₀ and √diag C
     sigma0_ratio: float
     measured_mm: float
@@ -624,8 +624,8 @@ def bound_sq(
 
 def noise_bound(c: Comparison, rng: np.random.Generator, draws: int) -> Bound:
     sc, res = c.sc, c.result
-    # calibrate() turns the instrument frame about the measurements' centroid.
-    T_ib = res.T_instrument_base
+    # calibrate() turns the sensor frame about the measurements' centroid.
+    T_ib = res.T_sensor_base
     pivot = State(res.calibrated, res.tool, T_ib[:3, :3], T_ib[:3, 3], sc.measured.mean(axis=0))
     b2, C = bound_sq(pivot, res, sc.q, sc.q_val)
     b2_origin, _ = bound_sq(res.state, res, sc.q, sc.q_val)
@@ -673,7 +673,7 @@ def print_bound(c: Comparison, b: Bound) -> None:
     )
     rel = abs(b.bound_origin_mm - b.bound_mm) / b.bound_mm
     print(
-        f"   the same with the frame turning about the instrument origin (result.state): "
+        f"   the same with the frame turning about the sensor origin (result.state): "
         f"{b.bound_origin_mm:.5f} mm, relative difference {rel:.1e} (a reparameterisation)"
     )
     print(
@@ -940,7 +940,7 @@ def print_conclusion(
         off = np.linalg.norm(np.asarray(TOOL_MM) - fixed.result.tool)
         print(
             "   At one flange orientation the target offset moves every point by the same "
-            "vector, so the instrument translation absorbs it: the model keeps the nominal "
+            "vector, so the sensor translation absorbs it: the model keeps the nominal "
             f"offset, {off:.1f} mm from the true one, and is valid at that orientation only."
         )
     t80 = comps[0].cellcal_s
@@ -1008,7 +1008,7 @@ def main(argv: list[str] | None = None) -> int:
         )
         print(
             f"   {N_CALIBRATION} calibration poses and {N_HELD_OUT} held-out poses "
-            "(random_joints); before = nominal geometry with best-fit instrument frame and "
+            "(random_joints); before = nominal geometry with best-fit sensor frame and "
             "target offset"
         )
         comps = []

@@ -4,7 +4,7 @@ on a real cell and no wall time in CI, while the plan still says 7 s.
 ``SimulatedClock`` keeps virtual time: ``sleep(dt)`` moves it forward by dt. Work that
 runs side by side (the sensors of one pose, each in its own thread) runs inside
 ``branch(start)``: each branch keeps its own time from the common start, and the clock
-moves to the latest time any branch reached — two instruments that each measure for
+moves to the latest time any branch reached — two sensors that each measure for
 2 s side by side cost 2 s, not 4. With ``time_scale`` > 0 every sleep also waits
 ``dt × time_scale`` wall seconds (0.01: a hundred times faster than the real cell).
 """

@@ -152,7 +152,7 @@ class CellConfig(Strict):
         if len(refs) != 1:
             raise ValueError(
                 "exactly one sensor must have reference = true (the calibration "
-                f"instrument); got {len(refs)}"
+                f"sensor); got {len(refs)}"
             )
         return self
 

@@ -45,7 +45,7 @@ class RobotOptions(Strict):
 
 
 class SensorOptions(Strict):
-    """A ``[[sensor]]`` table every sensor driver shares: the instrument's name, kind and
+    """A ``[[sensor]]`` table every sensor driver shares: the sensor's name, kind and
     driver, where it is, how fast it samples, and the target it follows on the flange."""
 
     name: Name

@@ -1,11 +1,11 @@
 """The calibration data files of the public contract, read at the edge.
 
 Measurements: ``q1..qn,x,y,z`` — joint readings in degrees as the controller reports
-them, target position in mm in the instrument frame — with optional columns ``name``,
+them, target position in mm in the sensor frame — with optional columns ``name``,
 ``sx,sy,sz`` (1σ, mm), ``target`` (which target, when several are measured: each gets
-its own offset), ``session`` (which instrument set-up: each gets its own frame) and
-``ori_w,ori_x,ori_y,ori_z`` (the target's orientation in the instrument frame, a unit
-quaternion, from a 6-DOF instrument). Joints: ``q1..qn`` (deg), with optional
+its own offset), ``session`` (which sensor set-up: each gets its own frame) and
+``ori_w,ori_x,ori_y,ori_z`` (the target's orientation in the sensor frame, a unit
+quaternion, from a 6-DOF sensor). Joints: ``q1..qn`` (deg), with optional
 ``target`` and ``session``. Angles become radians here.
 """
 

@@ -37,14 +37,14 @@ FORMAT_VERSION = 1
 @dataclass(frozen=True)
 class LoadedModel:
     """A model as read from ``--model``: the geometry, the target offset, and for a
-    calibrated file the instrument frame (``T_instrument_base``, else None). A calibrated
+    calibrated file the sensor frame (``T_sensor_base``, else None). A calibrated
     file of several targets or sessions also gives each one's offset (``targets``) and
-    frame (``sessions``), by name; the first of each is ``tool`` and ``T_instrument_base``."""
+    frame (``sessions``), by name; the first of each is ``tool`` and ``T_sensor_base``."""
 
     source: str
     model: RobotModel
     tool: Array
-    T_instrument_base: Array | None
+    T_sensor_base: Array | None
     calibrated: bool
     targets: dict[str, Array] | None = None
     sessions: dict[str, Array] | None = None
@@ -83,12 +83,14 @@ def load_model(spec: str) -> LoadedModel:
             raise FileFormatError(f"{spec}: calibrated-model format_version {version!r} unknown")
         try:
             geometry = {k: data[k] for k in ("name", "convention", "joint")}
-            matrix = np.array(data["instrument"]["matrix"], dtype=np.float64)
+            # [instrument]: what earlier versions called the sensor frame's table.
+            frame = data["sensor"] if "sensor" in data else data["instrument"]
+            matrix = np.array(frame["matrix"], dtype=np.float64)
             tool = np.array(data["tool"]["xyz"], dtype=np.float64)
         except (KeyError, TypeError, ValueError) as exc:
             raise FileFormatError(f"{spec}: incomplete calibrated model ({exc})") from None
         if matrix.shape != (4, 4) or tool.shape != (3,) or not np.isfinite(matrix).all():
-            raise FileFormatError(f"{spec}: instrument.matrix must be 4×4, tool.xyz 3 numbers")
+            raise FileFormatError(f"{spec}: sensor.matrix must be 4×4, tool.xyz 3 numbers")
         model = model_from_dict(geometry, spec)
         targets = _named(data, "target", spec, "xyz", (3,))
         sessions = _named(data, "session", spec, "matrix", (4, 4))
@@ -164,7 +166,7 @@ def calibrated_document(
     """The calibrated-model TOML document (mm, deg); ``points``: the per-point residuals
     of the fit (default: computed from the result, named by row number)."""
     geometry = model_to_dict(result.calibrated)
-    T = result.T_instrument_base
+    T = result.T_sensor_base
     doc: dict[str, Any] = {
         "format": CALIBRATED_FORMAT,
         "format_version": FORMAT_VERSION,
@@ -175,7 +177,7 @@ def calibrated_document(
         "convention": geometry["convention"],
         "joint": geometry["joint"],
         "tool": {"xyz": result.tool, "std_mm": result.tool_std},
-        "instrument": {
+        "sensor": {
             "matrix": T,
             "rotation_vector_deg": np.degrees(so3_log(T[:3, :3])),
             "translation_mm": T[:3, 3],

@@ -44,12 +44,15 @@ def test_calibrated_model_round_trip(tmp_path):
         )
     assert loaded.model.parallel == res.calibrated.parallel
     np.testing.assert_allclose(loaded.tool, res.tool)
-    np.testing.assert_allclose(loaded.T_instrument_base, res.T_instrument_base)
+    np.testing.assert_allclose(loaded.T_sensor_base, res.T_sensor_base)
     text = out.read_text()
     assert 'format = "cellcal-calibrated-model"' in text
     assert "[nominal]" in text and "[[parameter]]" in text and "[fit]" in text
-    # A calibrated file whose instrument block is damaged is refused.
-    out.write_text(text.replace("[instrument]", "[instrumentx]"))
+    # A file written by an earlier version names the sensor frame's table [instrument].
+    out.write_text(text.replace("[sensor]", "[instrument]"))
+    np.testing.assert_allclose(load_model(str(out)).T_sensor_base, res.T_sensor_base)
+    # A calibrated file whose sensor block is damaged is refused.
+    out.write_text(text.replace("[sensor]", "[sensorx]"))
     with pytest.raises(FileFormatError, match="incomplete"):
         load_model(str(out))
 

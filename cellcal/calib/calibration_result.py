@@ -37,11 +37,11 @@ class ParameterEstimate:
 
 @dataclass(frozen=True)
 class CalibrationResult:
-    """Everything a calibration produced. Lengths mm; ``T_instrument_base`` maps robot-base
-    coordinates into the instrument frame. ``rms_before``/``residuals_before`` are those of
-    the nominal model with best-fit instrument frame and target offset.
+    """Everything a calibration produced. Lengths mm; ``T_sensor_base`` maps robot-base
+    coordinates into the sensor frame. ``rms_before``/``residuals_before`` are those of
+    the nominal model with best-fit sensor frame and target offset.
 
-    ``tool``, ``tool_std``, ``T_instrument_base`` and ``frame_std`` are those of the first
+    ``tool``, ``tool_std``, ``T_sensor_base`` and ``frame_std`` are those of the first
     target and session; with several (``groups``), ``tools`` (T×3), ``tools_std``,
     ``frames`` (S×4×4) and ``frames_std`` hold each one's. A 6-DOF fit adds each target's
     orientation on the flange (``tool_rotations``, T×3×3) and the orientation residuals
@@ -51,7 +51,7 @@ class CalibrationResult:
     calibrated: RobotModel
     tool: Array
     tool_std: Array
-    T_instrument_base: Array
+    T_sensor_base: Array
     frame_std: Array  # rotation vector (rad, 3) then translation (mm, 3), of T at its origin
     parameters: tuple[ParameterEstimate, ...]
     identifiability: Identifiability
@@ -109,7 +109,7 @@ class CalibrationResult:
     @property
     def state(self) -> State:
         tools = self.tools if self.tools is not None else self.tool
-        frames = self.frames if self.frames is not None else self.T_instrument_base[None]
+        frames = self.frames if self.frames is not None else self.T_sensor_base[None]
         return State(
             self.calibrated,
             tools,
@@ -120,7 +120,7 @@ class CalibrationResult:
         )
 
     def predict(self, q: Array, groups: Groups | None = None) -> Array:
-        """Target positions in the instrument frame (mm) for joint readings ``q`` (rad)
+        """Target positions in the sensor frame (mm) for joint readings ``q`` (rad)
         (of the first target and session, unless ``groups`` says otherwise)."""
         return predict(self.state, q, groups)
 

@@ -1,12 +1,12 @@
 """The error model: which parameters a calibration may estimate, and their Jacobian.
 
-A measurement is the target position in the instrument's frame,
+A measurement is the target position in the sensor's frame,
 
-    m = T_instrument_base[s] · FK(q; geometry) · tool[t],
+    m = T_sensor_base[s] · FK(q; geometry) · tool[t],
 
-for the measurement's session s (an instrument set-up) and target t (e.g. one of three
-SMRs); with a 6-DOF instrument also the target's orientation
-R_instrument_base[s] · R_base_flange(q) · R_flange_target[t]. The parameters are, in
+for the measurement's session s (a sensor set-up) and target t (e.g. one of three
+SMRs); with a 6-DOF sensor also the target's orientation
+R_sensor_base[s] · R_base_flange(q) · R_flange_target[t]. The parameters are, in
 this order:
 
 * per joint i: θᵢ, then dᵢ — or βᵢ where the row's axes are parallel (Hayati) — then
@@ -15,8 +15,8 @@ this order:
   and for 6-DOF measurements its orientation ``tool_rx/ry/rz`` (rad, a rotation vector
   applied in the flange frame); a target's parameters are named ``tool_x:NAME`` when
   there are several targets;
-* per session, the instrument frame ``T_instrument_base``: a rotation vector
-  ``frame_rx/ry/rz`` (rad, applied on the left, about the instrument's axes through a
+* per session, the sensor frame ``T_sensor_base``: a rotation vector
+  ``frame_rx/ry/rz`` (rad, applied on the left, about the sensor's axes through a
   pivot — the centroid of the session's measurements — so that rotation and translation
   are not needlessly correlated) and a translation ``frame_x/y/z`` (mm); named
   ``frame_x:NAME`` when there are several sessions.
@@ -73,7 +73,7 @@ Index = NDArray[np.intp]
 
 @dataclass(frozen=True)
 class Groups:
-    """Which target and which session (instrument set-up) each measurement belongs to:
+    """Which target and which session (sensor set-up) each measurement belongs to:
     ``target``/``session`` are N indices into ``targets``/``sessions`` (their names, in
     order of first appearance; ``("",)`` for a file without the column)."""
 
@@ -171,9 +171,9 @@ def _stack(a: Array, shape: tuple[int, ...]) -> Array:
 
 @dataclass(frozen=True)
 class State:
-    """Geometry, target offsets and instrument frames, in mm and rad. Per target:
+    """Geometry, target offsets and sensor frames, in mm and rad. Per target:
     ``tools`` (T×3) and, for 6-DOF fits, ``tool_rotations`` (T×3×3, R_flange_target); per session:
-    ``Rs`` (S×3×3), ``ts`` (S×3) and ``pivots`` (S×3), the point (instrument frame) that
+    ``Rs`` (S×3×3), ``ts`` (S×3) and ``pivots`` (S×3), the point (sensor frame) that
     frame rotations turn about. A single target's or session's arrays may be given
     unstacked; ``tool``, ``R``, ``t``, ``pivot`` are those of the first."""
 
@@ -213,11 +213,11 @@ class State:
         return out
 
     @property
-    def T_instrument_base(self) -> Array:
+    def T_sensor_base(self) -> Array:
         return self.frame(0)
 
     def frame(self, session: int) -> Array:
-        """T_instrument_base of a session (4×4)."""
+        """T_sensor_base of a session (4×4)."""
         T = np.eye(4)
         T[:3, :3] = self.Rs[session]
         T[:3, 3] = self.ts[session]
@@ -231,7 +231,7 @@ def _per_point(state: State, groups: Groups | None, n: int) -> tuple[Array, Arra
 
 
 def predict(state: State, q: Array, groups: Groups | None = None) -> Array:
-    """Target positions in the instrument frame (N×3, mm) for joint readings q (rad)."""
+    """Target positions in the sensor frame (N×3, mm) for joint readings q (rad)."""
     q = np.atleast_2d(q)
     Rp, tp, tool = _per_point(state, groups, len(q))
     k = target_kinematics(state.model, q, tool, jacobian=False)
@@ -240,7 +240,7 @@ def predict(state: State, q: Array, groups: Groups | None = None) -> Array:
 
 
 def predict_orientation(state: State, q: Array, groups: Groups | None = None) -> Array:
-    """Target orientations R_instrument_target (N×3×3) for joint readings q (rad)."""
+    """Target orientations R_sensor_target (N×3×3) for joint readings q (rad)."""
     q = np.atleast_2d(q)
     g = groups if groups is not None else Groups.single(len(q))
     k = target_kinematics(state.model, q, np.zeros(3), jacobian=False)
@@ -250,7 +250,7 @@ def predict_orientation(state: State, q: Array, groups: Groups | None = None) ->
 
 
 def orientation_residuals(measured_R: Array, predicted_R: Array) -> Array:
-    """Rotation vectors (N×3, rad, instrument frame) taking predicted onto measured."""
+    """Rotation vectors (N×3, rad, sensor frame) taking predicted onto measured."""
     out: Array = Rotation.from_matrix(measured_R @ np.swapaxes(predicted_R, 1, 2)).as_rotvec()
     return out
 
@@ -262,7 +262,7 @@ def jacobian(
     groups: Groups | None = None,
     orientation: bool = False,
 ) -> tuple[Array, Array]:
-    """Predicted positions (N×3) and ∂m/∂parameters (N×3×P, instrument frame); with
+    """Predicted positions (N×3) and ∂m/∂parameters (N×3×P, sensor frame); with
     ``orientation`` N×6×P, rows 3–5 the angular velocity of the target's orientation."""
     g = groups if groups is not None else Groups.single(len(q))
     Rp, tp, tool = _per_point(state, g, len(q))
@@ -272,7 +272,7 @@ def jacobian(
     J = np.zeros((N, 6 if orientation else 3, len(specs)))
     assert k.W_rows is not None
 
-    def turn(v: Array) -> Array:  # base-frame vectors (N×3) into the instrument frame
+    def turn(v: Array) -> Array:  # base-frame vectors (N×3) into the sensor frame
         out: Array = np.einsum("nij,nj->ni", Rp, v)
         return out
 

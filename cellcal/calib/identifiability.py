@@ -2,7 +2,7 @@
 
 The identification Jacobian (measurement weights applied) has its columns scaled to
 unit length, so that millimetres and radians compare. Parameters are then chosen group
-by group, in order of priority — the instrument frame, then the target offset, then
+by group, in order of priority — the sensor frame, then the target offset, then
 the kinematic corrections — each group by a column-pivoted QR of its columns with the
 directions already chosen projected out. A column whose remaining length is below
 ``tol`` adds nothing the chosen ones cannot explain: it is not identifiable from these
@@ -125,7 +125,7 @@ def analyse(
         k = int(np.count_nonzero(d > tol))
         if specs[group[0]].kind.startswith("frame") and k < len(group):
             raise DegenerateGeometryError(
-                "the measurements do not determine the instrument frame (they lie on a "
+                "the measurements do not determine the sensor frame (they lie on a "
                 "line or are too few); spread the poses over a volume"
             )
         chosen += [group[int(i)] for i in piv[:k]]

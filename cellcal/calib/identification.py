@@ -1,14 +1,14 @@
-"""Identification of kinematic errors from target positions measured by an instrument.
+"""Identification of kinematic errors from target positions measured by a sensor.
 
 ``calibrate(nominal, q, measured)`` estimates, together, the identifiable kinematic
-corrections, the target offset on the flange and the instrument frame — the last two
+corrections, the target offset on the flange and the sensor frame — the last two
 are unknown at the start. It starts from a closed-form registration of the nominal
 model's positions to the measurements (SVD, then a linear solve for the target offset),
-fits the instrument frame and target offset alone (the "before" model: nominal
+fits the sensor frame and target offset alone (the "before" model: nominal
 geometry, best-fit frames), chooses the identifiable parameters from the Jacobian at
 that point, and runs Levenberg–Marquardt (scipy.optimize.least_squares) on them.
 Standard uncertainties come from the a-posteriori covariance σ₀²(JᵀJ)⁻¹. Several
-targets (one offset each), several sessions (one instrument frame each) and measured
+targets (one offset each), several sessions (one sensor frame each) and measured
 orientations are carried by ``cellcal.calib.observations.Data``.
 """
 
@@ -118,7 +118,7 @@ def fit_frames(
     sigma: Array | None = None,
     groups: Groups | None = None,
 ) -> State:
-    """The nominal geometry with best-fit instrument frames and target offsets (the
+    """The nominal geometry with best-fit sensor frames and target offsets (the
     "before" model of a calibration, and the baseline of validation)."""
     q, measured, sigma = check_measurements(model, q, measured, sigma)
     data = Data(q, measured, groups if groups is not None else Groups.single(len(q)))
@@ -202,15 +202,15 @@ def calibrate(
     groups: Groups | None = None,
     orientations: Array | None = None,
 ) -> CalibrationResult:
-    """Identify kinematic errors, target offsets and instrument frames together.
+    """Identify kinematic errors, target offsets and sensor frames together.
 
-    ``q``: joint readings (N×n, rad); ``measured``: target positions in the instrument
+    ``q``: joint readings (N×n, rad); ``measured``: target positions in the sensor
     frame (N×3, mm); ``sigma``: their 1σ per axis (N×3, mm) to weight the fit;
     ``robust``: a robust loss (huber, soft_l1, cauchy) after the least-squares fit;
     ``paper_parameters``: the paper's θ, d, a, α on every row (no β); ``fix``: parameter
     names (or ``kinematics``, ``tool``) pinned at nominal; ``groups``: the target and the
-    session (instrument set-up) of each row, each with its own offset or frame;
-    ``orientations``: measured target orientations (N×3×3) of a 6-DOF instrument. A
+    session (sensor set-up) of each row, each with its own offset or frame;
+    ``orientations``: measured target orientations (N×3×3) of a 6-DOF sensor. A
     result that fails an acceptance check raises :class:`AcceptanceError` unless
     ``accept`` (then the failures are among the warnings); ``alternatives``: other models
     to try when diagnosing data that do not fit.
@@ -380,7 +380,7 @@ def calibrate(
         calibrated=state.model,
         tool=state.tool,
         tool_std=tool_std[0],
-        T_instrument_base=state.T_instrument_base,
+        T_sensor_base=state.T_sensor_base,
         frame_std=frame_std[0],
         parameters=tuple(estimates),
         identifiability=ident,
@@ -405,8 +405,8 @@ def calibrate(
 
 
 def _frame_std(state: State, sel: tuple[ParameterSpec, ...], cov: Array, session: int = 0) -> Array:
-    """Standard uncertainty of a session's T_instrument_base rotation vector and
-    translation (at the instrument origin), from the covariance of the pivot
+    """Standard uncertainty of a session's T_sensor_base rotation vector and
+    translation (at the sensor origin), from the covariance of the pivot
     parameterisation."""
     idx = [k for k, s in enumerate(sel) if s.kind.startswith("frame") and s.group == session]
     if len(idx) != 6:

@@ -1,5 +1,5 @@
 """What a fit reads, checked: joint readings, positions, their targets and sessions, the
-measured orientations of a 6-DOF instrument, their weights, and the closed-form start.
+measured orientations of a 6-DOF sensor, their weights, and the closed-form start.
 
 ``cellcal.calib.identification`` fits; this module holds the data side of the fit so
 that both stay readable.
@@ -64,25 +64,25 @@ def check_measurements(
 
 
 def check_sessions(measured: Array, groups: Groups) -> None:
-    """Each session's measurements must determine its instrument frame: at least 3, not
+    """Each session's measurements must determine its sensor frame: at least 3, not
     on a line or at one point."""
     for s, name in enumerate(groups.sessions):
         m_s = measured[groups.session == s]
         if len(groups.sessions) > 1 and len(m_s) < 3:
             raise DegenerateGeometryError(
-                f"session {name!r} has {len(m_s)} measurement(s); each instrument set-up "
+                f"session {name!r} has {len(m_s)} measurement(s); each sensor set-up "
                 "needs at least 3 (spread over a volume)"
             )
         sv = np.linalg.svd(m_s - m_s.mean(axis=0), compute_uv=False)
         if not sv[1] > 1e-9 * sv[0]:
             raise DegenerateGeometryError(
-                "the measurements do not determine the instrument frame (they lie on a line "
+                "the measurements do not determine the sensor frame (they lie on a line "
                 "or at one point); spread the poses over a volume"
             )
 
 
 def register_sessions(p_base: Array, measured: Array, groups: Groups) -> tuple[Array, Array]:
-    """Each session's instrument frame (Rs S×3×3, ts S×3) registering the base-frame
+    """Each session's sensor frame (Rs S×3×3, ts S×3) registering the base-frame
     positions ``p_base`` (N×3) to the measurements (SVD)."""
     S = len(groups.sessions)
     Rs, ts = np.empty((S, 3, 3)), np.empty((S, 3))
@@ -144,7 +144,7 @@ def weights(sigma: Array | None, n: int, orientation: bool = False) -> Array:
 @dataclass(frozen=True)
 class Data:
     """What a fit reads: joint readings (rad), positions (mm), their groups, and the
-    measured orientations (N×3×3) of a 6-DOF instrument or None."""
+    measured orientations (N×3×3) of a 6-DOF sensor or None."""
 
     q: Array
     measured: Array

@@ -1,6 +1,6 @@
 """Validation: position errors on points the calibration did not see.
 
-"Before" is always the nominal geometry with the best-fit instrument frame and target
+"Before" is always the nominal geometry with the best-fit sensor frame and target
 offset, fitted on the same calibration points as "after"; both predict the held-out
 points. k-fold cross-validation fits k times, each time holding one fold out.
 """
@@ -120,7 +120,7 @@ def validate_on(
         # Far off: is it the model, or were these points measured from somewhere else?
         try:
             one = None
-            if groups is not None:  # the same targets, one new instrument frame
+            if groups is not None:  # the same targets, one new sensor frame
                 one = Groups(groups.target, np.zeros(len(q), dtype=np.intp), groups.targets)
             own = ErrorStats.of(
                 measured - predict(fit_frames(result.calibrated, q, measured, None, one), q, one)
@@ -131,7 +131,7 @@ def validate_on(
             raise InputError(
                 f"the validation points are {off:.0f} mm (RMS) from the model's prediction but "
                 f"fit it within {own.rms:.3g} mm once re-registered: they come from another "
-                "set-up (instrument moved, another target); re-register that set-up with "
+                "set-up (sensor moved, another target); re-register that set-up with "
                 "cellcal calibrate --model CALIBRATED.toml --fix kinematics --data FILE"
             )
     return Validation("file", ErrorStats.of(eb), ErrorStats.of(ea), eb, ea)

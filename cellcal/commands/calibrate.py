@@ -72,7 +72,7 @@ def _report(
     click.echo(f"calibrate: {m.name} ({m.convention}), {res.n_points} points from {data_path}")
     n_all = len(res.parameters)
     click.echo(
-        f"identified {len(res.identified)} of {n_all} parameters, plus the instrument frame; "
+        f"identified {len(res.identified)} of {n_all} parameters, plus the sensor frame; "
         f"left at nominal: {at_nominal_text(res)}"
     )
     line = f"condition number {res.condition_number:.3g}"
@@ -111,13 +111,13 @@ def _report(
         if p.identified:
             click.echo(f"  {p.name:<{width}}{p.value:+13.5f} ± {p.std:.5f} {p.unit}")
     echo_points(points, "per-point residuals after the fit")
-    frames = res.frames if res.frames is not None else res.T_instrument_base[None]
+    frames = res.frames if res.frames is not None else res.T_sensor_base[None]
     stds = res.frames_std if res.frames_std is not None else res.frame_std[None]
     for name, T, sd in zip(res.sessions, frames, stds, strict=True):
         rv = np.degrees(so3_log(T[:3, :3]))
         label = f" of session {name}" if name else ""
         click.echo(
-            f"instrument frame{label} T_instrument_base: rotation vector ({rv[0]:.5f}, "
+            f"sensor frame{label} T_sensor_base: rotation vector ({rv[0]:.5f}, "
             f"{rv[1]:.5f}, {rv[2]:.5f})° ± ({', '.join(f'{v:.2g}' for v in np.degrees(sd[:3]))})°, "
             f"translation ({T[0, 3]:.4f}, {T[1, 3]:.4f}, {T[2, 3]:.4f}) mm ± "
             f"({', '.join(f'{v:.2g}' for v in sd[3:])}) mm"
@@ -136,7 +136,7 @@ def _report(
     "data_path",
     required=True,
     help="CSV q1..qN,x,y,z (deg, mm); optional columns name, sx,sy,sz (1σ), target (one "
-    "offset per target), session (one instrument frame per set-up), ori_w..ori_z (6-DOF).",
+    "offset per target), session (one sensor frame per set-up), ori_w..ori_z (6-DOF).",
 )
 @click.option("--out", "out_path", help="Write the calibrated model (TOML) here.")
 @click.option(
@@ -189,7 +189,7 @@ def calibrate(
     axis) and couple = { joint = J, factor = F } (e.g. FANUC's J2/J3 coupling)); a
     calibrated model written by --out is accepted too, e.g. with --fix kinematics to
     re-register a new set-up. Several targets (a target column) each get their own
-    offset, several sessions (a session column) their own instrument frame, and 6-DOF
+    offset, several sessions (a session column) their own sensor frame, and 6-DOF
     measurements (ori_w..ori_z) are fitted in orientation too. A result that
     fails an acceptance check (the target does not follow the robot, units that do not
     fit, corrections beyond manufacturing tolerances, no convergence) exits 3 and writes
@@ -253,8 +253,8 @@ def calibrate(
                 }
                 for p in res.parameters
             ],
-            "tool_mm": res.tool,
-            "T_instrument_base": res.T_instrument_base,
+            "target_offset_mm": res.tool,
+            "T_sensor_base": res.T_sensor_base,
             "targets": {
                 name: xyz
                 for name, xyz in zip(
@@ -265,7 +265,7 @@ def calibrate(
                 name: T
                 for name, T in zip(
                     res.sessions,
-                    res.frames if res.frames is not None else [res.T_instrument_base],
+                    res.frames if res.frames is not None else [res.T_sensor_base],
                     strict=True,
                 )
             },

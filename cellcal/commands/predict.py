@@ -44,21 +44,21 @@ def _pick(
     "joints_path",
     required=True,
     help="CSV q1..qn in degrees; optional target and session columns pick a calibrated "
-    "model's target offset and instrument frame by name.",
+    "model's target offset and sensor frame by name.",
 )
 @click.option("--out", "out_path", help="Write the CSV here instead of stdout.")
 def predict(model_spec: str, joints_path: str, out_path: str | None) -> None:
     """Positions of the target (mm) for joint readings.
 
     With a calibrated model (from `cellcal calibrate --out`) the positions are in the
-    measuring instrument's frame (of its first session and target, or those the
+    measuring sensor's frame (of its first session and target, or those the
     joints file names); with a nominal model, in the robot base frame with the model's
     [tool] offset.
     """
     loaded = load_model(model_spec)
     q, targets, sessions = read_joints_labelled(joints_path, loaded.model.dof)
     check_measurements(loaded.model, q, np.zeros((len(q), 3)), None)
-    T0 = np.eye(4) if loaded.T_instrument_base is None else loaded.T_instrument_base
+    T0 = np.eye(4) if loaded.T_sensor_base is None else loaded.T_sensor_base
     tools, t_idx = _pick(len(q), targets, loaded.targets, loaded.tool, "target")
     frames, s_idx = _pick(len(q), sessions, loaded.sessions, T0, "session")
     groups = Groups(t_idx, s_idx)

@@ -1,5 +1,5 @@
 """After acquisition: register each sensor to the robot base, calibrate the robot from
-the reference instrument, and validate on the validation poses inside and outside the
+the reference sensor, and validate on the validation poses inside and outside the
 cube. Reads the store, writes its results back, returns a summary."""
 
 from __future__ import annotations
@@ -195,7 +195,7 @@ def analyse(
             )
         after = fit_frames(result.calibrated, q_cal, m, s)
         e_cal = m - predict(after, q_cal)
-        T = base.T_instrument_base
+        T = base.T_sensor_base
         registrations.append(
             SensorRegistration(
                 sensor=sensor,
@@ -205,7 +205,7 @@ def analyse(
                 rms_nominal_mm=_rms(e_nom),
                 max_nominal_mm=float(np.max(np.linalg.norm(e_nom, axis=1))),
                 rms_calibrated_mm=_rms(e_cal),
-                T_sensor_base_calibrated=after.T_instrument_base,
+                T_sensor_base_calibrated=after.T_sensor_base,
                 target_offset_calibrated_mm=after.tool,
             )
         )
@@ -216,7 +216,7 @@ def analyse(
         writes.append(
             (
                 sensor,
-                ("calibrated", n_cal, _rms(e_cal), e_max_cal, after.T_instrument_base, after.tool),
+                ("calibrated", n_cal, _rms(e_cal), e_max_cal, after.T_sensor_base, after.tool),
             )
         )
 

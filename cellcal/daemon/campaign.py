@@ -63,8 +63,8 @@ def _plan(config: CellConfig) -> tuple[Plan, RobotModel]:
     home = np.radians(np.asarray(config.robot.home_deg, dtype=np.float64))
     if len(home) != nominal.dof:
         raise CampaignError(f"robot.home_deg has {len(home)} joints, the model {nominal.dof}")
-    tool = np.asarray(config.reference_sensor.target_offset_mm, dtype=np.float64)
-    plan = make_plan(config.campaign, nominal, home, tool)
+    target_offset = np.asarray(config.reference_sensor.target_offset_mm, dtype=np.float64)
+    plan = make_plan(config.campaign, nominal, home, target_offset)
     n_cal = plan.count(CALIBRATION)
     if n_cal == 0:
         raise CampaignError("no calibration pose of the plan is reachable; check the cube")
@@ -72,7 +72,7 @@ def _plan(config: CellConfig) -> tuple[Plan, RobotModel]:
         raise CampaignError("no validation pose of the plan is reachable")
     # Refuse before any motion a plan that cannot identify what it will need to.
     q = np.array([p.q for p in plan.poses if p.role == CALIBRATION])
-    state = State(nominal, tool, np.eye(3), np.zeros(3), np.zeros(3))
+    state = State(nominal, target_offset, np.eye(3), np.zeros(3), np.zeros(3))
     specs = parameter_specs(nominal)
     _, J = jacobian(state, q, specs)
     needed = len(analyse_identifiability(J.reshape(-1, len(specs)), specs).identified)

@@ -85,7 +85,7 @@ def _build(
                 "it needs --mock"
             )
         if not options.address:
-            what = "controller" if family.role == "robot" else "instrument"
+            what = "controller" if family.role == "robot" else "sensor"
             raise DeviceError(
                 f"{_where(options)}.address is empty: where is the {what} "
                 f'(driver = "{family.driver}")?'

@@ -96,11 +96,11 @@ def _orientations(rng: np.random.Generator, R0: Array, n: int, deg: float) -> Ar
     return np.array([so3_exp(w) @ R0 for w in v])
 
 
-def make_plan(cfg: CampaignConfig, model: RobotModel, home_q: Array, tool: Array) -> Plan:
+def make_plan(cfg: CampaignConfig, model: RobotModel, home_q: Array, target_offset: Array) -> Plan:
     """The campaign's poses for ``model`` starting from ``home_q`` (rad), with the target
-    at ``tool`` (mm, flange frame)."""
+    at ``target_offset`` (mm, flange frame)."""
     rng = np.random.default_rng(cfg.seed)
-    R0 = target_kinematics(model, home_q[None], tool, jacobian=False).R_flange[0]
+    R0 = target_kinematics(model, home_q[None], target_offset, jacobian=False).R_flange[0]
     lo_box = np.asarray(cfg.workspace_min_mm)
     hi_box = np.asarray(cfg.workspace_max_mm)
     groups: list[tuple[str, str, Array, Array]] = []
@@ -143,12 +143,12 @@ def make_plan(cfg: CampaignConfig, model: RobotModel, home_q: Array, tool: Array
         if len(pts) == 0:
             continue
         # Seed from the group's centre, solved from home: neighbouring poses, short moves.
-        centre_sol = solve(model, tool, pts.mean(axis=0)[None], R0, home_q)
+        centre_sol = solve(model, target_offset, pts.mean(axis=0)[None], R0, home_q)
         seed = centre_sol.q[0] if centre_sol.ok[0] else home_q
-        sol = solve(model, tool, pts, Rs, seed)
+        sol = solve(model, target_offset, pts, Rs, seed)
         retry = ~sol.ok
         if retry.any():  # a second chance from home for the ones that failed
-            again = solve(model, tool, pts[retry], Rs[retry], home_q)
+            again = solve(model, target_offset, pts[retry], Rs[retry], home_q)
             q = sol.q.copy()
             q[retry] = again.q
             ok = sol.ok.copy()

@@ -95,7 +95,7 @@ class Robot(Protocol):
 
 
 class PositionSensor(Protocol):
-    """An instrument that measures the position of its target (laser tracker,
+    """A sensor that measures the position of its target (laser tracker,
     photogrammetry rig)."""
 
     name: str

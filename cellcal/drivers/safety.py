@@ -30,7 +30,7 @@ class GuardedRobot:
         self,
         robot: Robot,
         model: RobotModel,
-        tool: Array,
+        target_offset: Array,
         box_min_mm: Array,
         box_max_mm: Array,
         max_speed: float,
@@ -38,7 +38,7 @@ class GuardedRobot:
         self.robot = robot
         self.name = robot.name
         self.model = model
-        self.tool = np.asarray(tool, dtype=np.float64)
+        self.target_offset = np.asarray(target_offset, dtype=np.float64)
         self.box_min = np.asarray(box_min_mm, dtype=np.float64)
         self.box_max = np.asarray(box_max_mm, dtype=np.float64)
         self.max_speed = max_speed
@@ -61,7 +61,7 @@ class GuardedRobot:
                 f"{self.name}: refused a move: joint {j + 1} to {math.degrees(q[j]):.3f}° is "
                 f"outside [{math.degrees(lo[j]):.1f}°, {math.degrees(hi[j]):.1f}°]"
             )
-        p = target_kinematics(self.model, q[None], self.tool, jacobian=False).p[0]
+        p = target_kinematics(self.model, q[None], self.target_offset, jacobian=False).p[0]
         if (p < self.box_min).any() or (p > self.box_max).any():
             raise SafetyError(
                 f"{self.name}: refused a move: the target would be at "

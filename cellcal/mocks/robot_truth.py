@@ -1,5 +1,5 @@
 """Ground truth of a simulated robot: a nominal model with seeded kinematic errors, an
-instrument placed somewhere in the cell, a target offset on the flange, and noisy
+sensor placed somewhere in the cell, a target offset on the flange, and noisy
 measurements of the target. Every function takes a numpy Generator: same seed, same
 robot, same measurements."""
 
@@ -17,16 +17,16 @@ from cellcal.calib.robot_model import RobotModel
 
 @dataclass(frozen=True)
 class TrueCell:
-    """The simulated truth: real geometry, target offset (mm) and T_instrument_base."""
+    """The simulated truth: real geometry, target offset (mm) and T_sensor_base."""
 
     model: RobotModel
-    tool: Array
-    T_instrument_base: Array
+    target_offset: Array
+    T_sensor_base: Array
 
     def positions(self, q: Array) -> Array:
-        """Noise-free target positions in the instrument frame (mm) for q (rad)."""
-        p = target_kinematics(self.model, q, self.tool, jacobian=False).p
-        out: Array = p @ self.T_instrument_base[:3, :3].T + self.T_instrument_base[:3, 3]
+        """Noise-free target positions in the sensor frame (mm) for q (rad)."""
+        p = target_kinematics(self.model, q, self.target_offset, jacobian=False).p
+        out: Array = p @ self.T_sensor_base[:3, :3].T + self.T_sensor_base[:3, 3]
         return out
 
 
@@ -59,18 +59,18 @@ def random_cell(
     nominal: RobotModel,
     rng: np.random.Generator,
     *,
-    tool_mm: tuple[float, float, float] = (25.0, -40.0, 130.0),
+    target_offset_mm: tuple[float, float, float] = (25.0, -40.0, 130.0),
     distance_mm: float = 3000.0,
     length_mm: float = 0.3,
     angle_deg: float = 0.03,
 ) -> TrueCell:
-    """A perturbed robot seen by an instrument about ``distance_mm`` away, in a random
+    """A perturbed robot seen by a sensor about ``distance_mm`` away, in a random
     orientation."""
     model = perturbed_model(nominal, rng, length_mm=length_mm, angle_deg=angle_deg)
     T = np.eye(4)
     T[:3, :3] = so3_exp(rng.normal(size=3))
     T[:3, 3] = rng.normal(size=3) / math.sqrt(3) * distance_mm
-    return TrueCell(model, np.asarray(tool_mm, dtype=np.float64), T)
+    return TrueCell(model, np.asarray(target_offset_mm, dtype=np.float64), T)
 
 
 def random_joints(
@@ -87,7 +87,7 @@ def random_joints(
 
 
 def measure(cell: TrueCell, q: Array, rng: np.random.Generator, sigma_mm: float) -> Array:
-    """Positions in the instrument frame with isotropic Gaussian noise (mm)."""
+    """Positions in the sensor frame with isotropic Gaussian noise (mm)."""
     p = cell.positions(q)
     out: Array = p + rng.normal(0.0, sigma_mm, p.shape)
     return out

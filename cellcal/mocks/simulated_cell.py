@@ -1,8 +1,8 @@
 """The simulated cell: one ground truth that every simulated device reads.
 
-A robot whose real geometry differs from nominal by seeded errors, each instrument's
+A robot whose real geometry differs from nominal by seeded errors, each sensor's
 pose in the cell, each target's real offset on the flange (the nominal offset in the
-configuration is only a guess, off by up to 0.5 mm), and the instruments' noise:
+configuration is only a guess, off by up to 0.5 mm), and the sensors' noise:
 
 * laser tracker: 10 µm along the beam (distance meter) and 6 µm per metre of range
   across it (angle encoders), 1σ per sample — the class of a FARO / Leica tracker;
@@ -30,13 +30,13 @@ from cellcal.mocks.robot_truth import perturbed_model
 
 @dataclass(frozen=True)
 class SensorTruth:
-    """Where an instrument is (T_sensor_base), where its target really is on the flange,
+    """Where a sensor is (T_sensor_base), where its target really is on the flange,
     and its noise (kind, σ values in mm)."""
 
     name: str
     kind: str
     T_sensor_base: Array
-    tool: Array
+    target_offset: Array
     sigma_radial: float
     sigma_transverse_per_mm: float
     sigma_isotropic: float
@@ -85,20 +85,22 @@ class SimulatedCell:
         s: SensorOptions, config: CellConfig, rng: np.random.Generator
     ) -> SensorTruth:
         sim = config.simulation
-        tool = np.asarray(s.target_offset_mm, dtype=np.float64) + rng.uniform(-0.5, 0.5, 3)
+        offset = np.asarray(s.target_offset_mm, dtype=np.float64) + rng.uniform(-0.5, 0.5, 3)
         if s.kind == "laser-tracker":
             T_base_sensor = _pose(sim.tracker_position_mm, sim.tracker_rotation_deg)
             return SensorTruth(
                 s.name,
                 s.kind,
                 invert(T_base_sensor),
-                tool,
+                offset,
                 sim.tracker_radial_um / 1000.0,
                 sim.tracker_transverse_um_per_m / 1000.0 / 1000.0,
                 0.0,
             )
         T_base_sensor = _pose(sim.rig_position_mm, sim.rig_rotation_deg)
-        return SensorTruth(s.name, s.kind, invert(T_base_sensor), tool, 0.0, 0.0, sim.rig_noise_mm)
+        return SensorTruth(
+            s.name, s.kind, invert(T_base_sensor), offset, 0.0, 0.0, sim.rig_noise_mm
+        )
 
     @property
     def q(self) -> Array:
@@ -129,7 +131,7 @@ class SimulatedCell:
         """Noise-free target position of ``sensor`` in its frame (mm)."""
         s = self.sensors[sensor]
         qq = self.q if q is None else q
-        p = target_kinematics(self.model, np.atleast_2d(qq), s.tool, jacobian=False).p
+        p = target_kinematics(self.model, np.atleast_2d(qq), s.target_offset, jacobian=False).p
         out: Array = p @ s.T_sensor_base[:3, :3].T + s.T_sensor_base[:3, 3]
         return out if q is not None and np.ndim(q) == 2 else out[0]
 

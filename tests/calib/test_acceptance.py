@@ -86,7 +86,7 @@ def test_corrections_beyond_tolerances_are_refused_unless_accepted():
     d = well_spread("kuka-kr5-arc")
     joints = list(d.cell.model.joints)
     joints[1] = replace(joints[1], a=joints[1].a + 15.0)  # a2 15 mm longer than nominal
-    cell = TrueCell(KR5.with_joints(tuple(joints)), d.cell.tool, d.cell.T_instrument_base)
+    cell = TrueCell(KR5.with_joints(tuple(joints)), d.cell.target_offset, d.cell.T_sensor_base)
     m = measure(cell, d.q, np.random.default_rng(3), NOISE_MM)
     r = _refusal(d.q, m)
     assert r.check == CHECK_TOLERANCE and re.search(r"a2 \+1[45]", r.message)

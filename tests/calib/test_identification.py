@@ -32,7 +32,7 @@ def test_recovers_injected_errors_within_noise(robot):
     assert held_out < 3 * NOISE_MM
     assert before / held_out > 10.0
     assert res.sigma0 == pytest.approx(NOISE_MM, rel=0.25)
-    # θ1, d1 are absorbed by the instrument frame; the last row by the target offset.
+    # θ1, d1 are absorbed by the sensor frame; the last row by the target offset.
     assert set(res.unidentifiable) == {"theta1", "d1", "theta6", "d6", "a6", "alpha6"}
     assert res.condition_number < 200
     # The parallel pair is described by β, and β is found.
@@ -97,7 +97,7 @@ def test_paper_fixed_orientation_cube_is_ill_conditioned_but_still_helps():
     res = calibrate(nominal, d.q, d.m)
     assert res.condition_number > 1e3
     assert any("ill-conditioned" in w for w in res.warnings)
-    # With one orientation the target offset cannot be told from the instrument's origin.
+    # With one orientation the target offset cannot be told from the sensor's origin.
     assert {"tool_x", "tool_y", "tool_z"} <= set(res.unidentifiable)
     base = fit_frames(nominal, d.q, d.m)
     before = _rms(predict(base, d.q_val) - d.m_val_true)

@@ -1,4 +1,4 @@
-"""Several targets, several instrument set-ups (sessions), 6-DOF measurements, and joint
+"""Several targets, several sensor set-ups (sessions), 6-DOF measurements, and joint
 readings that are not the joint angles (reversed axes, FANUC's J2/J3 coupling)."""
 
 from __future__ import annotations
@@ -47,7 +47,7 @@ def test_three_targets_each_get_their_own_offset():
     q = random_joints(nominal, rng, 90)
     labels = [("A", "B", "C")[k % 3] for k in range(len(q))]
     g = Groups.of(len(q), labels)
-    truth = _truth(g, cell, SMRS, cell.T_instrument_base[None])
+    truth = _truth(g, cell, SMRS, cell.T_sensor_base[None])
     m = predict(truth, q, g) + rng.normal(0, NOISE, (len(q), 3))
     res = calibrate(nominal, q, m, groups=g)
     assert res.targets == ("A", "B", "C")
@@ -70,7 +70,7 @@ def test_three_targets_each_get_their_own_offset():
     assert _rms(res.predict(q_val, gb) - predict(truth, q_val, gb)) < 3 * NOISE
 
 
-def test_each_session_gets_its_own_instrument_frame():
+def test_each_session_gets_its_own_sensor_frame():
     nominal = load_model("kuka-kr5-arc").model
     rng = np.random.default_rng(5)
     cell = random_cell(nominal, rng)
@@ -78,7 +78,7 @@ def test_each_session_gets_its_own_instrument_frame():
     sessions = ["monday" if k < 60 else "tuesday" for k in range(len(q))]
     g = Groups.of(len(q), None, sessions)
     frames = np.stack([_frame(rng), _frame(rng)])
-    truth = _truth(g, cell, cell.tool, frames)
+    truth = _truth(g, cell, cell.target_offset, frames)
     m = predict(truth, q, g) + rng.normal(0, NOISE, (len(q), 3))
     res = calibrate(nominal, q, m, groups=g)
     assert res.sessions == ("monday", "tuesday")
@@ -112,8 +112,8 @@ def test_orientations_are_fitted_and_recover_the_target_orientation():
     cell = random_cell(nominal, rng)
     q = random_joints(nominal, rng, 40)
     R_ft = so3_exp(np.radians([10.0, -20.0, 35.0]))
-    k = target_kinematics(cell.model, q, cell.tool, jacobian=False)
-    R_it = cell.T_instrument_base[:3, :3] @ k.R_flange @ R_ft
+    k = target_kinematics(cell.model, q, cell.target_offset, jacobian=False)
+    R_it = cell.T_sensor_base[:3, :3] @ k.R_flange @ R_ft
     noise_rad = math.radians(0.005)
     R_meas = np.stack([so3_exp(rng.normal(0, noise_rad, 3)) for _ in q]) @ R_it
     m = cell.positions(q) + rng.normal(0, NOISE, (len(q), 3))
@@ -125,8 +125,8 @@ def test_orientations_are_fitted_and_recover_the_target_orientation():
     assert math.degrees(err) < 0.1
     # ...and the orientation at held-out poses, to the noise.
     q_ho = random_joints(nominal, rng, 30)
-    k_ho = target_kinematics(cell.model, q_ho, cell.tool, jacobian=False)
-    R_true = cell.T_instrument_base[:3, :3] @ k_ho.R_flange @ R_ft
+    k_ho = target_kinematics(cell.model, q_ho, cell.target_offset, jacobian=False)
+    R_true = cell.T_sensor_base[:3, :3] @ k_ho.R_flange @ R_ft
     R_pred = predict_orientation(res6.state, q_ho)
     held = Rotation.from_matrix(R_pred @ np.swapaxes(R_true, 1, 2)).magnitude()
     assert math.degrees(float(np.sqrt(np.mean(held**2)))) < 3 * math.degrees(noise_rad)

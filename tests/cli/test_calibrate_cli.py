@@ -87,7 +87,7 @@ def test_human_report(capsys, data_csv):
     assert code == 0
     assert "validation (k-fold k=3" in out
     assert "left at nominal: theta1, d1, theta6, d6, a6, alpha6" in out
-    assert "beta2" in out and "instrument frame" in out
+    assert "beta2" in out and "sensor frame" in out
     assert "0.200 mm with its registration vs 0.436 mm with another (2.18×" in out
 
 

@@ -41,7 +41,7 @@ def cell():
     nominal = load_model("kuka-kr5-arc").model
     rng = np.random.default_rng(21)
     truth = random_cell(nominal, rng)
-    frames = np.stack([truth.T_instrument_base, np.eye(4)])
+    frames = np.stack([truth.T_sensor_base, np.eye(4)])
     frames[1][:3, :3] = so3_exp(np.array([0.3, -1.2, 0.4]))
     frames[1][:3, 3] = [2500.0, -800.0, 300.0]
     return nominal, rng, truth, frames
@@ -52,7 +52,7 @@ def _measure(cell, n, targets, sessions):
     q = random_joints(nominal, rng, n)
     g = Groups.of(n, targets, sessions)
     names_t = sorted(set(targets)) if targets else ["t"]
-    tools = SMRS[[names_t.index(t) for t in g.targets]] if targets else truth.tool
+    tools = SMRS[[names_t.index(t) for t in g.targets]] if targets else truth.target_offset
     names_s = sorted(set(sessions)) if sessions else ["s"]
     state = State(
         truth.model,
@@ -110,8 +110,8 @@ def test_orientation_columns_through_calibrate(capsys, tmp_path, cell):
     nominal, rng, truth, _ = cell
     q = random_joints(nominal, rng, 50)
     R_ft = so3_exp(np.radians([5.0, 10.0, -15.0]))
-    k = target_kinematics(truth.model, q, truth.tool, jacobian=False)
-    R = truth.T_instrument_base[:3, :3] @ k.R_flange @ R_ft
+    k = target_kinematics(truth.model, q, truth.target_offset, jacobian=False)
+    R = truth.T_sensor_base[:3, :3] @ k.R_flange @ R_ft
     xyzw = Rotation.from_matrix(R).as_quat()
     quats = xyzw[:, [3, 0, 1, 2]]
     data = _csv(tmp_path / "m6.csv", q, truth.positions(q), quats=quats)

@@ -83,7 +83,7 @@ def test_a_pose_is_stored_once_and_wholly(tmp_path):
     class Broken(Series):
         @property
         def mean(self):
-            raise RuntimeError("instrument died while its samples were being stored")
+            raise RuntimeError("sensor died while its samples were being stored")
 
     with pytest.raises(RuntimeError):
         _pose(

@@ -29,7 +29,7 @@ def test_contract(family):
         target = home + np.radians([5.0, -4.0, 6.0, 3.0, -5.0, 10.0])
         robot.move_joints(target, 0.25)
         np.testing.assert_allclose(robot.actual_joints(), target, atol=1e-4)
-        # The simulated cell follows the controller: instruments see where it really is.
+        # The simulated cell follows the controller: sensors see where it really is.
         np.testing.assert_allclose(cell.q, target, atol=1e-4)
         robot.move_joints(home, 0.5)
         np.testing.assert_allclose(robot.actual_joints(), home, atol=1e-4)
