@@ -23,8 +23,9 @@ Behaviour (the spec leaves room; these fill it):
 
 * Status bits: 0 ready (no error, no e-stop), 1 busy, 2 in_position, 3 error, 4 e-stop,
   5 remote (set unless the ``local`` fault is on).
-* The heartbeat increments on every read request (function codes 3, 4, 23), unless the
-  ``stale_heartbeat`` fault is on. Every read also advances the simulation first.
+* The heartbeat counts the controller's 10 ms cycles since it started (wall time, not
+  requests), unless the ``stale_heartbeat`` fault is on. Every read also advances the
+  simulation first.
 * A command is a write request that covers 130 *and* 131. With a sequence number other
   than the last acknowledged one it is accepted (ack = sequence); a write of one of the
   two alone, or a repeated sequence number, is stored and otherwise ignored.
@@ -32,9 +33,9 @@ Behaviour (the spec leaves room; these fill it):
   starts at once (busy, not in position), or after ``start_delay_reads`` reads during
   which it is accepted but not started (not busy, not in position). It lasts
   ``travel / (joint_speed_deg_s × speed) × time_scale`` wall seconds, travel being the
-  largest joint travel (deg); the joints are interpolated in between. It completes only
-  after at least one read has seen busy, so with ``time_scale`` 0 it completes on the
-  read after the first that saw it busy. Then in position, not busy.
+  largest joint travel (deg); the joints are interpolated in between. It is in
+  position (not busy) when the robot arrives, whoever reads or not; with
+  ``time_scale`` 0 it arrives at once.
 * Refusals set the error bit and the error code: 2 target outside the limits (or not
   finite), 3 unsupported command (2 move linear and unknown codes), 4 speed not in
   [0.001, 1]. While the error or the e-stop bit is set, or in local mode, moves are
@@ -99,6 +100,7 @@ log = logging.getLogger("cellcal.mocks.modbus_robot")
 logging.getLogger("pymodbus").addHandler(logging.NullHandler())
 
 MIN_SPEED = 0.001
+HEARTBEAT_PERIOD_S = 0.01
 _READ_CODES = frozenset({3, 4, 23})
 _REGISTER_CODES = frozenset({3, 4, 6, 16, 23})
 _START_TIMEOUT_S = 10.0
@@ -147,7 +149,6 @@ class _Motion:
     duration_s: float
     pending_reads: int
     started_at: float | None
-    seen_busy: bool = False
 
 
 def floats_to_registers(values: np.ndarray | list[float], word_order: str) -> list[int]:
@@ -247,6 +248,7 @@ class ModbusRobotSimulator:
         self._pose = np.zeros(6)
         self._pose_stale = True
         self._heartbeat = 0
+        self._started = time.monotonic()
         self._ack = 0
         self._error_code = 0
         self._estop = False
@@ -405,7 +407,8 @@ class ModbusRobotSimulator:
             if function_code not in _READ_CODES:  # the read-back of a single-register write
                 return None
             if not self.faults.stale_heartbeat:
-                self._heartbeat = (self._heartbeat + 1) & 0xFFFF
+                cycles = (time.monotonic() - self._started) / HEARTBEAT_PERIOD_S
+                self._heartbeat = int(cycles) & 0xFFFF
             self._advance(time.monotonic())
             moved, self._moved = self._moved, None
             q = self._q.copy()
@@ -429,8 +432,6 @@ class ModbusRobotSimulator:
                 self._pose_stale = False
             status = self._publish(registers, start_address)
             covers = range(address, address + count)
-            if status & BUSY and self.map.status in covers and self._motion is not None:
-                self._motion.seen_busy = True
             self._requests.append(
                 ModbusRequest(
                     function_code,
@@ -521,7 +522,7 @@ class ModbusRobotSimulator:
         frac = 1.0 if m.duration_s <= 0 else min(1.0, elapsed / m.duration_s)
         q = m.target_deg if frac >= 1.0 else m.start_deg + (m.target_deg - m.start_deg) * frac
         q = _to_float32(q)
-        if finish and frac >= 1.0 and m.seen_busy:
+        if finish and frac >= 1.0:
             self._motion = None
             self._in_position = True
         if not np.array_equal(q, self._q):

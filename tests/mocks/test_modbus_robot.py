@@ -174,18 +174,27 @@ def test_move_round_trip_and_exact_registers(bench, word_order):
     assert all(r.address not in (130, 131) or r.count == 2 for r in w)
 
 
-def test_time_scale_zero_completes_only_after_busy_was_seen(bench):
+def test_in_position_follows_the_arrival_not_the_reads(bench):
+    """time_scale 0: the robot arrives at once, so the first read after the command sees
+    it in position; with time, busy until it arrives however often it is read."""
     sim = bench.sim()
     robot = bench.robot(sim)
     robot.connect()
     sim.clear_requests()
     robot.move_joints(np.radians(TARGET_DEG), 1.0)
     reads = status_reads(sim.requests)
-    # after the command: busy first, then in position
-    assert reads[0].status is not None and reads[0].status & BUSY
-    assert reads[0].ack == 1
-    last = reads[-1].status or 0
-    assert last & IN_POSITION and not last & BUSY
+    assert reads[0].ack == 1 and (reads[0].status or 0) & IN_POSITION
+    assert not (reads[0].status or 0) & BUSY and len(reads) == 1
+    # 30 deg at 60 deg/s: 0.5 s of robot time, 0.15 s of wall time; nobody reads meanwhile.
+    slow = bench.sim(q0_deg=[0.0] * 6, time_scale=0.3)
+    c = bench.client(slow)
+    c.write_registers(100, f32([30.0, 0, 0, 0, 0, 0], "big"), device_id=1)
+    c.write_registers(124, f32([1.0], "big"), device_id=1)
+    c.write_registers(130, [1, 1], device_id=1)
+    assert c.read_holding_registers(1, count=1, device_id=1).registers[0] & BUSY
+    time.sleep(0.3)
+    status = c.read_holding_registers(1, count=1, device_id=1).registers[0]
+    assert status & IN_POSITION and not status & BUSY
 
 
 def test_busy_clear_before_start_is_not_done(bench):
@@ -201,7 +210,7 @@ def test_busy_clear_before_start_is_not_done(bench):
         (r.ack, bool((r.status or 0) & BUSY), bool((r.status or 0) & IN_POSITION)) for r in reads
     ]
     assert flags[:4] == [(1, False, False)] * 4  # the trap: acknowledged, busy clear
-    assert flags[4] == (1, True, False)
+    assert flags[4] == (1, False, True)  # started at the 5th read; time_scale 0: arrived
     assert flags[-1] == (1, False, True)
     np.testing.assert_allclose(sim.q_deg, TARGET_DEG, atol=1e-4)
 
@@ -433,8 +442,13 @@ def test_bad_arguments_are_input_errors(bench):
 def test_mock_register_semantics(bench):
     sim = bench.sim()
     c = bench.client(sim)
-    hb = [c.read_holding_registers(0, count=4, device_id=1).registers[0] for _ in range(3)]
-    assert hb[1] == hb[0] + 1 and hb[2] == hb[1] + 1
+    # The heartbeat counts 10 ms cycles: it moves with time, not with the reads.
+    t0 = time.monotonic()
+    hb0 = c.read_holding_registers(0, count=4, device_id=1).registers[0]
+    time.sleep(0.1)
+    hb1 = c.read_holding_registers(0, count=4, device_id=1).registers[0]
+    elapsed = time.monotonic() - t0
+    assert 0.1 / 0.01 - 2 <= (hb1 - hb0) % 65536 <= elapsed / 0.01 + 2
     for address in (4, 22, 42, 126, 132, 1000):  # outside every block
         rr = c.read_holding_registers(address, count=1, device_id=1)
         assert rr.isError() and rr.exception_code == 2

@@ -16,7 +16,7 @@ import pytest
 from cellcal.drivers.modbus_map import BUSY, IN_POSITION, READY, REMOTE, ModbusMap
 from cellcal.mocks.modbus_robot_server import ModbusRobotSimulator
 
-pyModbusTCP = pytest.importorskip("pyModbusTCP.client")
+modbus_tcp = pytest.importorskip("pyModbusTCP.client")
 
 pytestmark = pytest.mark.timeout(30)
 
@@ -64,10 +64,10 @@ def twin():
 
 
 def test_pymodbustcp_runs_the_handshake_on_the_configured_map(twin):
-    sim, host, port = twin
-    c = pyModbusTCP.ModbusClient(host=host, port=port, unit_id=7, timeout=2.0, auto_open=True)
+    _, host, port = twin
+    c = modbus_tcp.ModbusClient(host=host, port=port, unit_id=7, timeout=2.0, auto_open=True)
     try:
-        hb, status, code, ack = c.read_holding_registers(MAP.heartbeat, 4)
+        _, status, code, ack = c.read_holding_registers(MAP.heartbeat, 4)
         assert status & READY and status & REMOTE and status & IN_POSITION and code == 0
         joints = c.read_holding_registers(MAP.actual_joints, 12)
         np.testing.assert_allclose(floats(joints, "little"), Q0, atol=1e-5)
