@@ -133,7 +133,7 @@ def _fail(stream: RecordStream, campaign_id: int, total: int, kind: str, message
     with contextlib.suppress(StoreError):
         stream.emit(CampaignEvent(campaign_id, kind, message))
     with contextlib.suppress(StoreError):
-        stream.emit(CampaignEnded(campaign_id, "interrupted", -1, total, message))
+        stream.emit(CampaignEnded(campaign_id, "interrupted", None, total, message))
 
 
 def _run(

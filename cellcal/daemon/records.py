@@ -96,7 +96,7 @@ class CampaignEnded:
 
     campaign_id: int
     status: str
-    stored: int
+    stored: int | None  # None: unknown (the store failed)
     total: int
     message: str
     summary: CampaignSummary | None = None

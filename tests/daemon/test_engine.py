@@ -169,20 +169,25 @@ def test_a_device_fault_propagates_and_keeps_what_was_stored(tmp_path):
     assert store.completed_indices(cid) == {0, 1}
 
 
-def test_a_failing_sensor_is_asked_again_and_the_event_kept(tmp_path):
-    clock = SimulatedClock()
-    plan, devices, store, cid = _setup(tmp_path, clock)
+def _rig_fails_once(devices, on_call: int, message: str) -> None:
+    """The rig's ``on_call``-th measurement raises ``message``; every other one measures."""
     rig = next(s.sensor for s in devices.sensors if s.sensor.name == "rig")
     original = rig.measure
     calls = {"n": 0}
 
     def flaky(n, rate):
         calls["n"] += 1
-        if calls["n"] == 4:
-            raise DeviceError("rig: camera 2 timed out")
+        if calls["n"] == on_call:
+            raise DeviceError(message)
         return original(n, rate)
 
     rig.measure = flaky
+
+
+def test_a_failing_sensor_is_asked_again_and_the_event_kept(tmp_path):
+    clock = SimulatedClock()
+    plan, devices, store, cid = _setup(tmp_path, clock)
+    _rig_fails_once(devices, 4, "rig: camera 2 timed out")
     out = _acquire(store, cid, plan, devices, clock)
     assert out.stored == 10
     events = store.events(cid)
@@ -193,17 +198,7 @@ def test_a_failing_sensor_is_asked_again_and_the_event_kept(tmp_path):
 def test_every_pose_and_event_is_a_record_and_a_failing_watcher_stops_nothing(tmp_path):
     clock = SimulatedClock()
     plan, devices, store, cid = _setup(tmp_path, clock)
-    rig = next(s.sensor for s in devices.sensors if s.sensor.name == "rig")
-    original = rig.measure
-    calls = {"n": 0}
-
-    def flaky(n, rate):
-        calls["n"] += 1
-        if calls["n"] == 2:
-            raise DeviceError("rig: camera 1 timed out")
-        return original(n, rate)
-
-    rig.measure = flaky
+    _rig_fails_once(devices, 2, "rig: camera 1 timed out")
     seen = []
 
     def broken(record):

@@ -12,7 +12,7 @@ from typing import Any
 from cellcal.clock import SimulatedClock
 from cellcal.config import CellConfig, config_from_dict, load_config
 from cellcal.daemon.devices import Devices, build_devices
-from cellcal.families import ROBOT, Family
+from cellcal.families import Family
 from cellcal.modelfiles import load_model
 
 
@@ -52,8 +52,3 @@ def mock_devices(config: CellConfig, seed: int = 5) -> Iterator[Devices]:
         yield devices
     finally:
         devices.close()
-
-
-def robot_tag(family: Family) -> str:
-    assert family.kind == ROBOT
-    return family.tag

@@ -6,6 +6,7 @@ changes them, this test fails and docs/robots.md must be brought up to date."""
 
 from __future__ import annotations
 
+import contextlib
 import socket
 import struct
 import time
@@ -99,13 +100,12 @@ def _mbap(tid, pdu, unit=7, proto=0):
 
 
 def _replies(sock, wait=0.4):
+    """Everything the server sends until it has been silent for ``wait`` seconds."""
     sock.settimeout(wait)
     out = b""
-    try:
+    with contextlib.suppress(TimeoutError):
         while chunk := sock.recv(4096):
             out += chunk
-    except TimeoutError:
-        pass
     return out
 
 
