@@ -180,7 +180,11 @@ def mock_modbus_robot(
     import math
 
     from cellcal.drivers.modbus_robot import ModbusRobotOptions
-    from cellcal.mocks.modbus_robot_server import ModbusRobotFaults, ModbusRobotSimulator
+    from cellcal.mocks.modbus_robot_server import (
+        ModbusRobotFaults,
+        ModbusRobotSimulator,
+        xyzabc,
+    )
     from cellcal.mocks.twins import limits_deg
 
     config, cell = _cell(config_path, seed)
@@ -202,7 +206,7 @@ def mock_modbus_robot(
             no_ack=no_ack, error_code=error_code, estop=estop, stale_heartbeat=stale_heartbeat
         ),
         on_move=cell.set_q,
-        pose_fn=cell.flange_pose,
+        pose_fn=lambda q: xyzabc(cell.flange_pose(q)),
     )
     try:
         host, port = sim.start(*_host_port(listen))
@@ -239,13 +243,13 @@ def mock_ur(host: str, config_path: str | None, seed: int | None, time_scale: fl
 
     import numpy as np
 
-    from cellcal.mocks.ur_server import URSimulator
+    from cellcal.mocks.ur_server import CellInURUnits, URSimulator
 
     ref = resources.files("cellcal") / "data" / "mock-cell-ur10e.toml"
     with resources.as_file(ref) as bundled:
         config, cell = _cell(config_path or str(bundled), seed)
     sim = URSimulator(
-        cell.ur_kinematics(),
+        CellInURUnits(cell),
         q0=np.radians(config.robot.home_deg),
         time_scale=time_scale,
         on_move=cell.set_q,

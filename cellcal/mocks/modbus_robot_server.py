@@ -69,6 +69,7 @@ import numpy as np
 from pymodbus.constants import ExcCodes
 from pymodbus.server import ModbusTcpServer
 from pymodbus.simulator import DataType, SimData, SimDevice
+from scipy.spatial.transform import Rotation
 
 from cellcal.drivers.modbus_map import (
     BLOCKS,
@@ -151,6 +152,14 @@ class _Motion:
     duration_s: float
     pending_reads: int
     started_at: float | None
+
+
+def xyzabc(T_base_flange: np.ndarray) -> np.ndarray:
+    """A flange pose (4×4, mm) as the pose registers hold it: [x, y, z] mm and
+    [A, B, C] deg, Z-Y-X Euler angles (KUKA's convention)."""
+    abc = Rotation.from_matrix(T_base_flange[:3, :3]).as_euler("ZYX", degrees=True)
+    out: np.ndarray = np.concatenate([T_base_flange[:3, 3], abc])
+    return out
 
 
 def floats_to_registers(values: np.ndarray | list[float], word_order: str) -> list[int]:
@@ -570,7 +579,7 @@ def serve(options: ModbusRobotOptions, cell: SimulatedCell, time_scale: float) -
         time_scale=time_scale,
         map=options.map,
         on_move=cell.set_q,
-        pose_fn=cell.flange_pose,
+        pose_fn=lambda q: xyzabc(cell.flange_pose(q)),
     )
     host, port = sim.start(MODBUS_HOST, 0)
     # On loopback the status can be polled faster than a PLC cycle.

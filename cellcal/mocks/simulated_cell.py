@@ -112,16 +112,29 @@ class SimulatedCell:
             self._q = np.asarray(q, dtype=np.float64).copy()
 
     def flange_pose(self, q: Array) -> Array:
-        """What a controller reports: the flange pose from its *nominal* kinematics,
-        [x, y, z] mm and [A, B, C] deg (KUKA's Z-Y-X Euler angles)."""
+        """What a controller reports: T_base_flange (4×4, mm) from its *nominal*
+        kinematics. Each twin converts it to its brand's units and angles."""
         k = target_kinematics(self.nominal, np.atleast_2d(q), np.zeros(3), jacobian=False)
-        abc = Rotation.from_matrix(k.R_flange[0]).as_euler("ZYX", degrees=True)
-        out: Array = np.concatenate([k.p[0], abc])
-        return out
+        T: Array = np.eye(4)
+        T[:3, :3] = k.R_flange[0]
+        T[:3, 3] = k.p[0]
+        return T
 
-    def ur_kinematics(self) -> ControllerKinematics:
-        """The controller's own (nominal) kinematics, in UR's units, for a UR simulator."""
-        return ControllerKinematics(self.nominal)
+    def joints_for(self, T_base_flange: Array, q_seed: Array) -> Array | None:
+        """The controller's inverse kinematics (nominal model): joints (rad) that put the
+        flange at ``T_base_flange`` (4×4, mm), the solution nearest ``q_seed`` turn by
+        turn and within the limits when there is one; None when there is none."""
+        from cellcal.calib.inverse_kinematics import solve
+
+        seed = np.asarray(q_seed, dtype=np.float64)
+        sol = solve(
+            self.nominal, np.zeros(3), T_base_flange[None, :3, 3], T_base_flange[:3, :3], seed
+        )
+        if not sol.ok[0]:
+            return None
+        q: Array = sol.q[0] + np.round((seed - sol.q[0]) / (2 * np.pi)) * 2 * np.pi
+        lo, hi = self.nominal.limits
+        return q if ((q >= lo) & (q <= hi)).all() else sol.q[0]
 
     def target(self, sensor: str) -> CellTarget:
         """The source a protocol-level mock of ``sensor`` serves."""
@@ -164,35 +177,3 @@ class CellTarget:
 
     def sample(self, n: int) -> Array:
         return self.cell.sample(self.sensor, n)
-
-
-class ControllerKinematics:
-    """A controller's forward and inverse kinematics of its flange from the nominal model,
-    in UR's units: pose = [x, y, z] m and a rotation vector (rad)."""
-
-    def __init__(self, model: RobotModel) -> None:
-        self.model = model
-
-    def fk(self, q: Array) -> Array:
-        k = target_kinematics(self.model, np.atleast_2d(q), np.zeros(3), jacobian=False)
-        rv = Rotation.from_matrix(k.R_flange[0]).as_rotvec()
-        out: Array = np.concatenate([k.p[0] / 1000.0, rv])
-        return out
-
-    def ik(self, pose: Array, q_seed: Array) -> Array | None:
-        from cellcal.calib.inverse_kinematics import solve
-
-        R = Rotation.from_rotvec(np.asarray(pose[3:6], dtype=np.float64)).as_matrix()
-        sol = solve(
-            self.model,
-            np.zeros(3),
-            np.asarray(pose[:3], dtype=np.float64)[None] * 1000.0,
-            R,
-            np.asarray(q_seed, dtype=np.float64),
-        )
-        if not sol.ok[0]:
-            return None
-        # The solution nearest the seed, turn by turn.
-        q: Array = sol.q[0] + np.round((q_seed - sol.q[0]) / (2 * np.pi)) * 2 * np.pi
-        lo, hi = self.model.limits
-        return q if ((q >= lo) & (q <= hi)).all() else sol.q[0]

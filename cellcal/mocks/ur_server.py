@@ -147,6 +147,24 @@ class URKinematics(Protocol):
         ...
 
 
+class CellInURUnits:
+    """The simulated cell's controller kinematics (brand-neutral: T_base_flange, 4×4 mm)
+    in UR's units: [x, y, z] m and a rotation vector (rad)."""
+
+    def __init__(self, cell: SimulatedCell) -> None:
+        self.cell = cell
+
+    def fk(self, q: np.ndarray) -> np.ndarray:
+        T = self.cell.flange_pose(q)
+        return np.concatenate([T[:3, 3] / 1000.0, matrix_to_rotvec(T[:3, :3])])
+
+    def ik(self, pose: np.ndarray, q_seed: np.ndarray) -> np.ndarray | None:
+        T = np.eye(4)
+        T[:3, :3] = rotvec_to_matrix(np.asarray(pose[3:6], dtype=np.float64))
+        T[:3, 3] = np.asarray(pose[:3], dtype=np.float64) * 1000.0
+        return self.cell.joints_for(T, q_seed)
+
+
 def _skew(w: Vec) -> Vec:
     return np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
 
@@ -528,7 +546,7 @@ def serve(options: UROptions, cell: SimulatedCell, time_scale: float) -> Running
     last: Exception | None = None
     for host in UR_HOSTS:
         sim = URSimulator(
-            cell.ur_kinematics(),
+            CellInURUnits(cell),
             q0=np.radians(options.home_deg),
             time_scale=time_scale,
             on_move=cell.set_q,
