@@ -19,7 +19,7 @@ import serial
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from cellcal.mocks import tracker_server
+from cellcal.mocks import link_server
 from cellcal.mocks.tracker_server import MockTracker, TrackerFaults
 
 pytestmark = pytest.mark.timeout(30)
@@ -734,7 +734,7 @@ def test_clients_one_after_another_share_the_tracker_state(serve) -> None:
 @pytest.mark.parametrize("watch", ["inotify", "hang-up"])
 def test_pty_transport_serves_the_same_exchange(monkeypatch, watch: str) -> None:
     if watch == "hang-up":  # where there is no inotify, a client's close is a hang-up
-        monkeypatch.setattr(tracker_server, "_inotify_watch", lambda path: None)
+        monkeypatch.setattr(link_server, "_inotify_watch", lambda path: None)
     source = TableSource([[1048.62012, 29.94401, 875.07699], [1048.6199, 29.9442, 875.0768]])
     with MockTracker(source) as tracker:
         path = tracker.start_pty()
@@ -814,7 +814,7 @@ def test_stop_closes_everything_and_is_idempotent() -> None:
     assert client.lines_until_eof() < 10000
     tracker.stop()
     # This tracker's threads are all gone (other tests' trackers may still be winding down).
-    assert [t.name for t in tracker._threads if t.is_alive()] == []
+    assert [t.name for t in tracker.threads] == []
     with pytest.raises(OSError):
         socket.create_connection(addr, timeout=1.0)
     with pytest.raises(RuntimeError):
