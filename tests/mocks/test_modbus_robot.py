@@ -1,4 +1,4 @@
-"""The Modbus TCP robot driver against the pymodbus-simulator mock over real TCP on
+"""The Modbus TCP robot driver against the Modbus twin over real TCP on
 127.0.0.x: the handshake on the wire (one request for command + sequence, exact
 registers in both word orders), waiting past "busy clear but not started", every fault
 (no acknowledgement, error bit, e-stop, stale heartbeat, local mode), limits, a stop
@@ -18,11 +18,10 @@ import numpy as np
 import pytest
 from pymodbus.client import ModbusTcpClient
 
+from cellcal.drivers.modbus_map import BUSY, IN_POSITION
 from cellcal.drivers.modbus_robot import ModbusMap, ModbusRobot
 from cellcal.errors import DeviceError, InputError
 from cellcal.mocks.modbus_robot_server import (
-    BUSY,
-    IN_POSITION,
     ModbusRequest,
     ModbusRobotFaults,
     ModbusRobotSimulator,

@@ -1,8 +1,9 @@
-"""The Modbus twin against a client nobody here wrote: pyModbusTCP (not pymodbus, which
-both the driver and the twin are built on) runs the handshake of docs/robots.md on a
-moved map, little-endian words and device id 7, as a PLC programmer would. And the
-pymodbus 3.16 server behaviours the twin inherits, pinned byte for byte: if pymodbus
-changes them, this test fails and docs/robots.md must be brought up to date."""
+"""The Modbus twin against clients nobody here wrote: pyModbusTCP (not pymodbus, which
+the driver is built on) runs the handshake of docs/robots.md on a moved map,
+little-endian words and device id 7, as a PLC programmer would; and raw sockets pin,
+byte for byte, what the twin's MBAP server answers where a Modbus/TCP device must
+(docs/robots.md, "What the twin answers on the wire"): exception codes echoing the
+function code, pipelined requests, a frame of another protocol id, framing errors."""
 
 from __future__ import annotations
 
@@ -99,38 +100,195 @@ def _mbap(tid, pdu, unit=7, proto=0):
     return struct.pack(">HHHB", tid, proto, len(pdu) + 1, unit) + pdu
 
 
-def _replies(sock, wait=0.4):
-    """Everything the server sends until it has been silent for ``wait`` seconds."""
-    sock.settimeout(wait)
+def _replies(sock, expected=None, wait=0.05):
+    """What the server sends: ``len(expected)`` bytes (2 s at most), then whatever follows
+    within ``wait`` seconds (without ``expected``: until ``wait`` seconds of silence)."""
     out = b""
+    if expected:
+        sock.settimeout(2.0)
+        with contextlib.suppress(TimeoutError):
+            while len(out) < len(expected) and (chunk := sock.recv(4096)):
+                out += chunk
+    sock.settimeout(wait)
     with contextlib.suppress(TimeoutError):
         while chunk := sock.recv(4096):
             out += chunk
     return out
 
 
-def test_pymodbus_server_behaviours_the_twin_inherits(twin):
-    """Documented in docs/robots.md ("What the twin inherits from pymodbus")."""
+def _expect(sock, frames, expected):
+    """Send ``frames`` in one segment; the server answers exactly ``expected``."""
+    sock.sendall(b"".join(frames))
+    got = _replies(sock, expected, wait=0.05 if expected else 0.3)
+    assert got.hex() == expected.hex(), b"".join(frames).hex()
+
+
+def _read(address, count, fc=3):
+    return struct.pack(">BHH", fc, address, count)
+
+
+def _write(address, values):
+    return struct.pack(f">BHHB{len(values)}H", 16, address, len(values), 2 * len(values), *values)
+
+
+def test_exception_replies_echo_the_function_code(twin):
+    sim, host, port = twin
+    cases = [
+        # quantity out of range: illegal data value (3)
+        (_read(MAP.status, 0), "8303"),
+        (_read(MAP.status, 126), "8303"),
+        (_read(MAP.status, 0, fc=4), "8403"),
+        (struct.pack(">BHHB", 16, MAP.speed, 0, 0), "9003"),
+        (struct.pack(">BHHB", 16, MAP.target_joints, 124, 248), "9003"),  # 124: no frame holds it
+        (struct.pack(">BHHB2H", 16, MAP.speed, 2, 3, 0, 0), "9003"),  # byte count 3 for 2
+        (struct.pack(">BHHB3H", 16, MAP.speed, 2, 4, 0, 0, 0), "9003"),  # 6 bytes for 4
+        (struct.pack(">BHHHHB", 23, MAP.status, 0, MAP.speed, 1, 2) + b"\0\0", "9703"),
+        (struct.pack(">BHHHHB", 23, MAP.status, 1, MAP.speed, 0, 0), "9703"),
+        (_read(MAP.status, 1)[:3], "8303"),  # a PDU too short
+        # function codes not served: illegal function (1), coils and discrete inputs too
+        (bytes([0x41, 0, 0]), "c101"),
+        (_read(0, 1, fc=1), "8101"),
+        (_read(0, 1, fc=2), "8201"),
+        (struct.pack(">BHH", 5, 0, 0xFF00), "8501"),
+        (struct.pack(">BHHBB", 15, 0, 1, 1, 1), "8f01"),
+        # addresses: not mapped, or a write to a read-only register (2)
+        (_read(1, 1), "8302"),
+        (_read(MAP.ack, 2), "8302"),  # runs past the status block into a gap
+        (_read(0xFFFF, 2), "8302"),  # runs past 65535
+        (struct.pack(">BHH", 6, MAP.status, 1), "8602"),
+        (_write(MAP.actual_joints, [0, 0]), "9002"),
+        (struct.pack(">BHHHHB2H", 23, 5, 1, MAP.speed, 2, 4, 0, 0), "9702"),  # bad read
+    ]
+    with socket.create_connection((host, port), timeout=2.0) as s:
+        for tid, (pdu, answer) in enumerate(cases, start=1):
+            expected = struct.pack(">HHHB", tid, 0, 3, 7) + bytes.fromhex(answer)
+            _expect(s, [_mbap(tid, pdu)], expected)
+        # another device id: the gateway's "target failed to respond", whatever the request
+        for tid, pdu, answer in ((100, _read(MAP.status, 1), "830b"), (101, b"\x41", "c10b")):
+            expected = struct.pack(">HHHB", tid, 0, 3, 3) + bytes.fromhex(answer)
+            _expect(s, [_mbap(tid, pdu, unit=3)], expected)
+    assert sim.requests == []  # a refused request does nothing, not even 23's write
+
+
+def test_a_failing_simulated_cell_answers_device_failure():
+    def broken(q):
+        raise RuntimeError("the simulated cell failed")
+
+    sim = ModbusRobotSimulator(q0_deg=Q0, map=MAP, pose_fn=broken)
+    host, port = sim.start("127.0.0.95", 0)
+    try:
+        with socket.create_connection((host, port), timeout=2.0) as s:
+            _expect(s, [_mbap(1, _read(MAP.ack, 1))], _mbap(1, bytes.fromhex("8304")))
+            _expect(s, [_mbap(2, _read(MAP.ack, 1, fc=4))], _mbap(2, bytes.fromhex("8404")))
+            sim.pose_fn = None
+            _expect(s, [_mbap(3, _read(MAP.ack, 1))], _mbap(3, bytes.fromhex("03020000")))
+    finally:
+        sim.stop()
+
+
+def test_served_function_codes_answer_as_the_spec_says(twin):
+    sim, host, port = twin
+    with socket.create_connection((host, port), timeout=2.0) as s:
+        # 3 and 4 read the same registers: error code 0, ack 0
+        _expect(
+            s, [_mbap(1, _read(MAP.error_code, 2))], bytes.fromhex("00010000000707030400000000")
+        )
+        _expect(
+            s,
+            [_mbap(2, _read(MAP.error_code, 2, fc=4))],
+            bytes.fromhex("00020000000707040400000000"),
+        )
+        # 6 echoes the request, 16 the address and quantity
+        single = _mbap(3, struct.pack(">BHH", 6, MAP.command, 0))
+        _expect(s, [single], single)
+        _expect(
+            s,
+            [_mbap(4, _write(MAP.speed, [0x3F80, 0]))],
+            _mbap(4, struct.pack(">BHH", 16, MAP.speed, 2)),
+        )
+        # 23 writes command + sequence (a command: acknowledged), then reads the ack
+        rw = struct.pack(">BHHHHB2H", 23, MAP.ack, 1, MAP.command, 2, 4, 0, 9)
+        _expect(s, [_mbap(5, rw)], _mbap(5, bytes.fromhex("17020009")))
+    got = [(r.function_code, r.address, r.count, r.values, r.ack) for r in sim.requests]
+    assert got[-2:] == [(23, MAP.command, 2, (0, 9), None), (23, MAP.ack, 1, None, 9)]
+
+
+def test_pipelined_requests_are_all_answered_in_order(twin):
     _, host, port = twin
-    read = struct.pack(">BHH", 3, MAP.status, 1)
     with socket.create_connection((host, port), timeout=2.0) as s:
-        # A read of 0 registers (illegal data value, 0x83 03, on a real device) and an
-        # unknown function code (0xC1 01) both answer function code 0x80, exception 1.
-        s.sendall(_mbap(1, struct.pack(">BHH", 3, MAP.status, 0)))
-        assert _replies(s) == bytes.fromhex("000100000003078001")
-        s.sendall(_mbap(2, bytes([0x41, 0, 0])))
-        assert _replies(s) == bytes.fromhex("000200000003078001")
-        # Two requests in one segment: only the first is answered.
-        s.sendall(_mbap(3, read) + _mbap(4, read))
-        got = _replies(s)
-        assert got[:2] == b"\x00\x03" and b"\x00\x04\x00\x00" not in got
+        _expect(
+            s,
+            [
+                _mbap(3, _read(MAP.ack, 1)),
+                _mbap(4, bytes([0x41])),
+                _mbap(5, _write(MAP.target_pose, [1, 2])),
+                _mbap(6, _read(MAP.target_pose, 2)),  # sees the write before it
+                _mbap(7, _read(MAP.error_code, 1)),
+            ],
+            b"".join(
+                [
+                    _mbap(3, bytes.fromhex("03020000")),
+                    _mbap(4, bytes.fromhex("c101")),
+                    _mbap(5, struct.pack(">BHH", 16, MAP.target_pose, 2)),
+                    _mbap(6, bytes.fromhex("030400010002")),
+                    _mbap(7, bytes.fromhex("03020000")),
+                ]
+            ),
+        )
+        # a request split over several segments is answered once whole
+        frame = _mbap(8, _read(MAP.ack, 1))
+        for i in range(len(frame)):
+            s.sendall(frame[i : i + 1])
+            time.sleep(0.002)
+        expected = _mbap(8, bytes.fromhex("03020000"))
+        assert _replies(s, expected) == expected
+
+
+def test_a_frame_of_another_protocol_id_is_dropped_and_the_next_answered(twin):
+    _, host, port = twin
+    read = _read(MAP.ack, 1)
     with socket.create_connection((host, port), timeout=2.0) as s:
-        # A frame with protocol id 5 is dropped, and so is every request after it on
-        # that connection; a new connection is served again.
-        s.sendall(_mbap(5, read, proto=5))
-        assert _replies(s) == b""
-        s.sendall(_mbap(6, read))
-        assert _replies(s) == b""
+        _expect(s, [_mbap(5, read, proto=5)], b"")
+        _expect(s, [_mbap(6, read)], _mbap(6, bytes.fromhex("03020000")))
+        # in one segment: the foreign frame, however long, is skipped
+        frames = [_mbap(7, read), _mbap(8, b"\xff" * 40, proto=0x1234), _mbap(9, read)]
+        answer = bytes.fromhex("03020000")
+        _expect(s, frames, _mbap(7, answer) + _mbap(9, answer))
+
+
+@pytest.mark.parametrize("length", [0, 1, 255, 0xFFFF])
+def test_a_bad_length_field_closes_the_connection(twin, length):
+    _, host, port = twin
+    read = _read(MAP.ack, 1)
+    bad = struct.pack(">HHH", 2, 0, length)
     with socket.create_connection((host, port), timeout=2.0) as s:
-        s.sendall(_mbap(7, read))
-        assert _replies(s)[:2] == b"\x00\x07"
+        # the frame before it is answered, then the connection closes (EOF or reset)
+        s.sendall(_mbap(1, read) + bad)
+        s.settimeout(2.0)
+        got = b""
+        with contextlib.suppress(ConnectionResetError):
+            while chunk := s.recv(4096):
+                got += chunk
+        assert got == _mbap(1, bytes.fromhex("03020000"))
+    # the server goes on serving other connections
+    with socket.create_connection((host, port), timeout=2.0) as s:
+        _expect(s, [_mbap(3, read)], _mbap(3, bytes.fromhex("03020000")))
+
+
+def test_stop_closes_the_open_connections():
+    sim = ModbusRobotSimulator(q0_deg=Q0, map=MAP)
+    host, port = sim.start("127.0.0.94", 0)
+    try:
+        with socket.create_connection((host, port), timeout=2.0) as s:
+            _expect(s, [_mbap(1, _read(MAP.ack, 1))], _mbap(1, bytes.fromhex("03020000")))
+            sim.stop()
+            s.settimeout(2.0)
+            with contextlib.suppress(ConnectionResetError):
+                assert s.recv(4096) == b""
+        with pytest.raises(OSError):
+            socket.create_connection((host, port), timeout=1.0).close()
+        sim.stop()  # idempotent
+        with pytest.raises(RuntimeError, match="not running"):
+            _ = sim.address
+    finally:
+        sim.stop()
