@@ -241,19 +241,12 @@ def mock_ur(host: str, config_path: str | None, seed: int | None, time_scale: fl
     """A Universal Robots controller that the unmodified ur_rtde library can drive."""
     from importlib import resources
 
-    import numpy as np
-
-    from cellcal.mocks.ur_server import CellInURUnits, URSimulator
+    from cellcal.mocks.ur_server import simulator_for_cell
 
     ref = resources.files("cellcal") / "data" / "mock-cell-ur10e.toml"
     with resources.as_file(ref) as bundled:
         config, cell = _cell(config_path or str(bundled), seed)
-    sim = URSimulator(
-        CellInURUnits(cell),
-        q0=np.radians(config.robot.home_deg),
-        time_scale=time_scale,
-        on_move=cell.set_q,
-    )
+    sim = simulator_for_cell(cell, config.robot.home_deg, time_scale)
     try:
         sim.start(host)
     except OSError as exc:

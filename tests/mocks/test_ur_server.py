@@ -7,33 +7,42 @@ with the thread method: ur_rtde blocks in C++, where a SIGALRM handler cannot ru
 from __future__ import annotations
 
 import contextlib
-import math
-import socket
 import struct
 import threading
 import time
 from collections.abc import Callable, Iterator
+from importlib import resources
 from typing import Any
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
+from cellcal.config import load_config
 from cellcal.drivers.ur import URRobot
 from cellcal.errors import DeviceError
-from cellcal.mocks.ur_server import (
-    HOME_Q,
-    POLYSCOPE_VERSION,
-    DHKinematics,
-    URSimulator,
-    matrix_to_rotvec,
-    rotvec_to_matrix,
-)
+from cellcal.mocks.simulated_cell import SimulatedCell
+from cellcal.mocks.ur_server import POLYSCOPE_VERSION, CellInURUnits, URSimulator
+from cellcal.modelfiles import load_model
+from tests.mocks.test_ur_twin_wire import Rtde as RawRTDE
+from tests.mocks.test_ur_twin_wire import dashboard
 
 rtde_control = pytest.importorskip("rtde_control")
 rtde_receive = pytest.importorskip("rtde_receive")
 
-KIN = DHKinematics.ur10e()
-Q0 = np.array(HOME_Q)
+
+def _ur10e_cell() -> tuple[np.ndarray, SimulatedCell]:
+    """The bundled UR10e cell: its home (rad) and the simulated cell, whose nominal model
+    is the controller's kinematics."""
+    ref = resources.files("cellcal") / "data" / "mock-cell-ur10e.toml"
+    with resources.as_file(ref) as path:
+        config = load_config(path, relative_paths=False)
+    cell = SimulatedCell(config, load_model(config.robot.model).model, seed=1)
+    return np.radians(config.robot.home_deg), cell
+
+
+Q0, CELL = _ur10e_cell()
+KIN = CellInURUnits(CELL)
 Q1 = Q0 + np.array([0.3, -0.2, 0.25, 0.1, -0.15, 0.4])
 
 
@@ -96,38 +105,25 @@ def assert_pose_close(actual: object, expected: np.ndarray, atol: float = 1e-8) 
     rotation by π has two rotation vectors)."""
     a = np.asarray(actual, dtype=float)
     np.testing.assert_allclose(a[:3], expected[:3], atol=atol)
-    np.testing.assert_allclose(rotvec_to_matrix(a[3:]), rotvec_to_matrix(expected[3:]), atol=atol)
-
-
-def dashboard(host: str, lines: list[str]) -> list[str]:
-    with socket.create_connection((host, 29999), timeout=5) as s:
-        f = s.makefile("rwb")
-        replies = [f.readline().decode().rstrip("\n")]
-        for line in lines:
-            f.write((line + "\n").encode())
-            f.flush()
-            replies.append(f.readline().decode().rstrip("\n"))
-        return replies
+    R = Rotation.from_rotvec(a[3:]).as_matrix()
+    np.testing.assert_allclose(R, Rotation.from_rotvec(expected[3:]).as_matrix(), atol=atol)
 
 
 # -- kinematics ---------------------------------------------------------------------------
 
 
 @pytest.mark.timeout(60, method="thread")
-def test_default_kinematics_fk_ik_round_trip() -> None:
-    # UR10e at zero: x = a2 + a3, y = -(d4 + d6), z = d1 - d5.
-    np.testing.assert_allclose(KIN.fk(np.zeros(6))[:3], [-1.18425, -0.2907, 0.06085], atol=1e-12)
+def test_the_cells_kinematics_in_ur_units_round_trip() -> None:
+    # The controller's kinematics are the cell's nominal model (cellcal's own UR10e).
     rng = np.random.default_rng(7)
-    for _ in range(20):
+    for _ in range(10):
         q = Q0 + rng.uniform(-0.6, 0.6, 6)
         pose = KIN.fk(q)
         sol = KIN.ik(pose, q + rng.uniform(-0.05, 0.05, 6))
         assert sol is not None
-        np.testing.assert_allclose(KIN.fk(sol), pose, atol=1e-9)
+        assert_pose_close(KIN.fk(sol), pose, atol=1e-9)
     assert KIN.ik(np.array([5.0, 0, 0, 0, 0, 0]), Q0) is None
-    for w in ([0, 0, 0], [1e-12, 0, 0], [0.3, -1.2, 0.5], [math.pi - 1e-7, 0, 0], [0, 0, math.pi]):
-        R = rotvec_to_matrix(np.array(w, dtype=float))
-        np.testing.assert_allclose(rotvec_to_matrix(matrix_to_rotvec(R)), R, atol=1e-9)
+    assert KIN.ik(np.array([np.nan, 0, 0, 0, 0, 0]), Q0) is None
 
 
 # -- ur_rtde against the simulator ------------------------------------------------------
@@ -306,7 +302,7 @@ def test_dashboard_request_reply_pairs() -> None:
         "true",
         "Robotmode: RUNNING",
         "Safetystatus: NORMAL",
-        "Stopped",
+        "Failed to execute: stop",  # no program running
         "Failed to execute: play",  # no program loaded yet
         "Powering off",
         "Robotmode: POWER_OFF",
@@ -318,38 +314,6 @@ def test_dashboard_request_reply_pairs() -> None:
         "Program running: false",
         "could not understand: 'frobnicate now'",
     ]
-
-
-class RawRTDE:
-    """A minimal RTDE v2 client: exact header, exact payload."""
-
-    def __init__(self, host: str) -> None:
-        self.sock = socket.create_connection((host, 30004), timeout=5)
-        self.buf = b""
-
-    def close(self) -> None:
-        self.sock.close()
-
-    def send(self, mtype: int, payload: bytes = b"") -> None:
-        self.sock.sendall(struct.pack(">HB", len(payload) + 3, mtype) + payload)
-
-    def _exact(self, n: int) -> bytes:
-        while len(self.buf) < n:
-            chunk = self.sock.recv(65536)
-            assert chunk, "connection closed"
-            self.buf += chunk
-        out, self.buf = self.buf[:n], self.buf[n:]
-        return out
-
-    def recv(self) -> tuple[int, bytes]:
-        size, mtype = struct.unpack(">HB", self._exact(3))
-        return mtype, self._exact(size - 3)
-
-    def ask(self, mtype: int, payload: bytes = b"") -> bytes:
-        self.send(mtype, payload)
-        got, body = self.recv()
-        assert got == mtype
-        return body
 
 
 @pytest.mark.timeout(60, method="thread")

@@ -1,0 +1,171 @@
+"""The UR twin against UR's own RTDE client (UniversalRobots/RTDE_Python_Client_Library),
+a client nobody here wrote: its ``examples/record.py`` with its
+``record_configuration.xml`` (as shipped, and with the commented-out block of outputs
+enabled) records at the frequency asked, and its ``RTDE`` class sees an invalid
+frequency, an unknown field and an input round trip as a controller makes it see them.
+
+UR's client is not on PyPI, so it cannot be a dependency and CI cannot run these tests:
+they run where ``CELLCAL_UR_RTDE_CLIENT`` names a checkout of it, e.g.
+``CELLCAL_UR_RTDE_CLIENT=/path/to/RTDE_Python_Client_Library pytest
+tests/mocks/test_ur_official_client.py``. tests/mocks/test_ur_twin_wire.py pins the same
+behaviours with raw sockets, and always runs (docs/ur-twin.md)."""
+
+from __future__ import annotations
+
+import contextlib
+import csv
+import importlib
+import itertools
+import math
+import os
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from cellcal.config import load_config
+from cellcal.mocks.simulated_cell import SimulatedCell
+from cellcal.mocks.ur_server import URSimulator, simulator_for_cell
+from cellcal.modelfiles import load_model
+
+CLIENT_DIR = os.environ.get("CELLCAL_UR_RTDE_CLIENT", "")
+if not CLIENT_DIR:
+    pytest.skip(
+        "UR's RTDE client is not on PyPI; set CELLCAL_UR_RTDE_CLIENT to a checkout of "
+        "UniversalRobots/RTDE_Python_Client_Library",
+        allow_module_level=True,
+    )
+if CLIENT_DIR not in sys.path:
+    sys.path.insert(0, CLIENT_DIR)
+ur_rtde_client: Any = importlib.import_module("rtde.rtde")
+ur_config: Any = importlib.import_module("rtde.rtde_config")
+
+pytestmark = pytest.mark.timeout(120, method="thread")
+
+EXAMPLES = Path(CLIENT_DIR) / "examples"
+CYCLE = 0.002
+
+
+@contextlib.contextmanager
+def twin(host: str) -> Iterator[URSimulator]:
+    ref = resources.files("cellcal") / "data" / "mock-cell-ur10e.toml"
+    with resources.as_file(ref) as path:
+        config = load_config(path, relative_paths=False)
+    cell = SimulatedCell(config, load_model(config.robot.model).model, seed=1)
+    sim = simulator_for_cell(cell, config.robot.home_deg, time_scale=0.0)
+    sim.start(host)
+    try:
+        yield sim
+    finally:
+        sim.stop()
+
+
+def record(
+    host: str, frequency: int, samples: int, config: Path, out: Path
+) -> list[dict[str, str]]:
+    """Run UR's examples/record.py, as its README says (from examples/), and read its CSV."""
+    cmd = [sys.executable, "record.py", "--host", host, "--frequency", str(frequency)]
+    cmd += ["--samples", str(samples), "--config", str(config), "--output", str(out)]
+    res = subprocess.run(cmd, cwd=EXAMPLES, capture_output=True, text=True, timeout=90)
+    assert res.returncode == 0, res.stderr
+    assert "Complete!" in res.stdout, (res.stdout, res.stderr)
+    with out.open() as f:
+        return list(csv.DictReader(f, delimiter=" "))
+
+
+def cycle_steps(rows: list[dict[str, str]]) -> set[int]:
+    k = [float(r["timestamp"]) / CYCLE for r in rows]
+    assert all(abs(x - round(x)) < 1e-6 for x in k)
+    return {round(b - a) for a, b in itertools.pairwise(k)}
+
+
+@pytest.mark.parametrize(("frequency", "samples"), [(500, 1000), (125, 250), (10, 20)])
+def test_record_example_records_at_the_frequency_asked(
+    tmp_path: Path, frequency: int, samples: int
+) -> None:
+    host = {500: "127.0.0.60", 125: "127.0.0.61", 10: "127.0.0.62"}[frequency]
+    with twin(host):
+        t0 = time.monotonic()
+        rows = record(
+            host, frequency, samples, EXAMPLES / "record_configuration.xml", tmp_path / "a.csv"
+        )
+        elapsed = time.monotonic() - t0
+    # record.py counts a sample it did not get when its last read finds nothing yet.
+    assert samples - 1 <= len(rows) <= samples
+    assert cycle_steps(rows) == {500 // frequency}
+    assert elapsed > 0.8 * (samples - 1) / frequency  # paced by the twin, not a burst
+    assert float(rows[0]["runtime_state"]) == 1 and int(rows[0]["robot_mode"]) == 7
+
+
+def test_record_example_with_every_output_of_its_configuration(tmp_path: Path) -> None:
+    text = (EXAMPLES / "record_configuration.xml").read_text()
+    out_start = text.index('<recipe key="out">')
+    opening = text.index("<!--", out_start)
+    closing = text.index("-->", opening)
+    full = text[:opening] + text[opening + 4 : closing] + text[closing + 3 :]
+    config = tmp_path / "record_all.xml"
+    config.write_text(full)
+    names, _types = ur_config.ConfigFile(str(config)).get_recipe("out")
+    assert len(names) > 380 and "tcp_offset" in names and "encoder1_raw" in names
+    host = "127.0.0.63"
+    with twin(host):
+        rows = record(host, 125, 100, config, tmp_path / "all.csv")
+    assert 99 <= len(rows) <= 100
+    assert cycle_steps(rows) == {4}
+    assert rows[-1]["payload"] is not None and float(rows[-1]["tool_temperature"]) > 0
+
+
+@contextlib.contextmanager
+def connected(host: str) -> Iterator[Any]:
+    con = ur_rtde_client.RTDE(host, 30004)
+    con.connect()
+    try:
+        yield con
+    finally:
+        con.disconnect()
+
+
+@pytest.mark.parametrize("frequency", [0, -10, 501, 1000, math.nan])
+def test_an_invalid_frequency_fails_the_setup(frequency: float) -> None:
+    host = "127.0.0.64"
+    with twin(host), connected(host) as con:
+        assert con.get_controller_version() == (5, 11, 1, 108318)
+        with pytest.raises(ValueError, match="Unknown data type"):
+            con.send_output_setup(["timestamp"], ["DOUBLE"], frequency=frequency)
+        assert not con.send_start()
+
+
+def test_an_unknown_or_later_field_fails_the_setup() -> None:
+    host = "127.0.0.65"
+    with twin(host), connected(host) as con:
+        with pytest.raises(ValueError, match="NOT_FOUND"):
+            con.send_output_setup(["timestamp", "actual_current_as_torque"], frequency=125)
+        assert con.send_output_setup(["timestamp", "tcp_offset"], ["DOUBLE", "VECTOR6D"], 125)
+
+
+def test_inputs_written_by_the_client_come_back() -> None:
+    host = "127.0.0.66"
+    with twin(host), connected(host) as con:
+        inp = con.send_input_setup(["input_int_register_7", "input_double_register_7"])
+        assert inp is not None
+        names = ["timestamp", "input_int_register_7", "input_double_register_7"]
+        assert con.send_output_setup(names, ["DOUBLE", "INT32", "DOUBLE"], frequency=250)
+        assert con.send_start()
+        inp.input_int_register_7 = 1234
+        inp.input_double_register_7 = -0.5
+        con.send(inp)
+        deadline = time.monotonic() + 5
+        state = con.receive()
+        while state.input_int_register_7 != 1234:
+            assert time.monotonic() < deadline
+            state = con.receive()
+        assert state.input_double_register_7 == -0.5
+        t0 = con.receive().timestamp
+        t1 = con.receive().timestamp
+        assert round((t1 - t0) / CYCLE) == 2
+        assert con.send_pause()
