@@ -1,7 +1,8 @@
 """In-process simulated devices behind the driver Protocols, reading the simulated cell.
 
 These are the test doubles of the campaign issue: they take time on the clock like the
-real thing (motion at the configured joint speed, sampling at the configured rate) and
+real thing (motion at the configured joint speed, timed by the twins' motion model
+``mocks/motion.py``; sampling at the configured rate) and
 refuse what a controller would refuse. The protocol-level mocks that real drivers talk
 to over sockets and pseudo-terminals are separate.
 """
@@ -15,6 +16,7 @@ from cellcal.clock import Clock
 from cellcal.device_options import SimulatedRigOptions, SimulatedRobotOptions
 from cellcal.drivers.base import DeviceContext, Series
 from cellcal.errors import DeviceError
+from cellcal.mocks.motion import JointMove
 from cellcal.mocks.simulated_cell import SimulatedCell
 
 SETTLE_S = 0.5
@@ -45,8 +47,8 @@ class SimulatedRobot:
         q = np.asarray(q, dtype=np.float64)
         if ((q < lo - 1e-9) | (q > hi + 1e-9)).any():
             raise DeviceError(f"{self.name}: target outside the joint limits refused")
-        travel = float(np.max(np.abs(q - self.cell.q)))
-        self.clock.sleep(travel / (self.cell.joint_speed * speed) + SETTLE_S)
+        move = JointMove(self.cell.q, q, v=self.cell.joint_speed * speed)
+        self.clock.sleep(move.duration + SETTLE_S)
         self.cell.set_q(q)
         self.moves += 1
 
