@@ -19,6 +19,7 @@ close the sockets and the pty; ``connections`` counts the connections served.
 
 from __future__ import annotations
 
+import abc
 import contextlib
 import ctypes
 import logging
@@ -55,8 +56,9 @@ class DropLinkError(Exception):
 # ---------------------------------------------------------------------------- links
 
 
-class Link:
-    """Bytes to and from one client over a non-blocking descriptor."""
+class Link(abc.ABC):
+    """Bytes to and from one client over a non-blocking descriptor; a subclass says how
+    a descriptor of its kind receives and sends."""
 
     def __init__(self, fd: int, stop: threading.Event) -> None:
         self.fd = fd
@@ -77,14 +79,18 @@ class Link:
         except OSError:  # the peer is gone (a pty: EIO, no client has the slave open)
             return None
 
+    @abc.abstractmethod
     def _recv(self) -> bytes:
-        raise NotImplementedError
+        """One non-blocking read (b"" at end of stream; BlockingIOError when empty)."""
 
+    @abc.abstractmethod
     def _send(self, data: memoryview) -> int:
-        raise NotImplementedError
+        """One non-blocking write; the number of bytes sent."""
 
-    def check_open(self) -> None:
-        """Raise ``LinkClosedError`` when the peer is known to be gone."""
+    def check_open(self) -> None:  # noqa: B027 - a hook with a default, not abstract
+        """Raise ``LinkClosedError`` when the peer is known to be gone. A socket tells
+        only when written to, so by default nothing is known here; a pty can tell
+        (``PtyLink``)."""
 
     def write(self, data: bytes) -> None:
         """Send all of ``data``; ``LinkClosedError`` when the link is gone or stopping."""
@@ -223,9 +229,9 @@ class PtyLink(Link):
             except OSError:
                 return
         try:
-            termios.tcflush(fd, termios.TCIFLUSH)
-        except termios.error:
-            pass
+            # A pty whose other end is gone cannot be flushed: nothing stale is left.
+            with contextlib.suppress(termios.error):
+                termios.tcflush(fd, termios.TCIFLUSH)
         finally:
             if fd != self.keeper:
                 os.close(fd)
@@ -370,7 +376,7 @@ class _LinkServer:
         try:
             self.handler(link)
         except LinkClosedError:
-            pass
+            return True  # the peer went away or the server is stopping: a normal end
         except DropLinkError:
             self.log.info("%s: %s (fault injection)", self.name, drop)
             return False

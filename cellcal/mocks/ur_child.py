@@ -232,7 +232,7 @@ class ChildLoop:
                 n = conn.sock.send(conn.outbuf)
                 del conn.outbuf[:n]
         except BlockingIOError:
-            pass
+            return  # the socket is full: the rest goes when the selector says writable
         except OSError:
             self._close(conn)
             return

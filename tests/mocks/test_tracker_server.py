@@ -6,6 +6,7 @@ Clients here are raw sockets and pyserial on the pty, never the tracker driver."
 
 from __future__ import annotations
 
+import abc
 import contextlib
 import re
 import socket
@@ -100,7 +101,7 @@ class BrokenSource:
 # ---------------------------------------------------------------------------- clients
 
 
-class Client:
+class Client(abc.ABC):
     """Line-oriented client; subclasses move the bytes."""
 
     opened: ClassVar[list[Client]] = []  # closed after each test
@@ -109,14 +110,17 @@ class Client:
         self.buf = bytearray()
         Client.opened.append(self)
 
+    @abc.abstractmethod
     def _recv(self, timeout: float) -> bytes:
-        raise NotImplementedError
+        """What arrives within ``timeout`` s (b"" when nothing does)."""
 
+    @abc.abstractmethod
     def write(self, data: bytes) -> None:
-        raise NotImplementedError
+        """Send all of ``data``."""
 
+    @abc.abstractmethod
     def close(self) -> None:
-        raise NotImplementedError
+        """Close the link."""
 
     def send(self, line: str | bytes) -> None:
         self.write((line.encode() if isinstance(line, str) else line) + b"\n")
