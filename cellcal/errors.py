@@ -37,6 +37,11 @@ class ConvergenceError(UserError):
     """An iterative solver did not reach its tolerance."""
 
 
+class MeasurementError(UserError):
+    """Data that do not give a measurement: a target seen by too few cameras, images
+    that cannot be read, corners that do not fix a pose."""
+
+
 class DeviceError(UserError):
     """A device that cannot be reached, refuses a command or reports a fault."""
 

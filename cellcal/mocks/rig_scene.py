@@ -1,0 +1,110 @@
+"""The simulated cell's camera rig and marker target, built from a few numbers.
+
+The bundled mock cell's rig files (``cellcal/data/mock-rig.toml``, ``mock-target.toml``)
+were written from these functions, and the benchmark and tests build the same scene:
+
+* four cameras, 1280×1024, f = 1000 px (a 6 mm lens on 6 µm pixels, about the paper's
+  cameras), on a 2×2 grid of directions 20° left/right and 15° up/down of the rig's
+  axis (rays 30–50° apart), each 1.25 m from the volume's centre and looking at it; the
+  rig frame is the first camera's frame (as ``rig calibrate`` makes it);
+* a fixture on the flange with five 40 mm ArUco markers (4×4 bits, each on a white
+  plate 10 mm wider all round): one facing along the flange's axis, four on a 62 mm
+  ring around it tilted 25° outward; the target frame and the reference point are at
+  the centre of the middle marker.
+
+Markers are measured while their black border is at least 4 px wide in the image: a
+40 mm marker at 1.25 m is 32 px wide (border 5.3 px) face-on and stays measurable to
+about 40° of incidence.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from cellcal.calib.camera_rig import Camera, Marker, Rig, Target
+from cellcal.calib.geometry import Array, invert
+
+#: Distance from each camera to the centre of the measuring volume, mm.
+STANDOFF_MM = 1250.0
+
+
+def look_at(eye: Array, centre: Array, up: Array) -> Array:
+    """``T_world_cam`` of a camera at ``eye`` looking at ``centre`` (OpenCV axes: z to
+    the scene, y down, so ``up`` appears up in the image)."""
+    z = centre - eye
+    z = z / np.linalg.norm(z)
+    x = np.cross(z, -up)
+    x = x / np.linalg.norm(x)
+    y = np.cross(z, x)
+    T = np.eye(4)
+    T[:3, :3] = np.column_stack([x, y, z])
+    T[:3, 3] = eye
+    return T
+
+
+def _rot_y(deg: float) -> Array:
+    a = np.radians(deg)
+    return np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]])
+
+
+def _rot_x(deg: float) -> Array:
+    a = np.radians(deg)
+    return np.array([[1, 0, 0], [0, np.cos(a), -np.sin(a)], [0, np.sin(a), np.cos(a)]])
+
+
+def four_camera_rig(
+    standoff_mm: float = STANDOFF_MM,
+    focal_px: float = 1000.0,
+    size: tuple[int, int] = (1280, 1024),
+    dist: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0, 0.0),
+    name: str = "cell-rig",
+) -> Rig:
+    """The simulated cell's rig: 4 cameras around a volume ``standoff_mm`` away."""
+    w, h = size
+    K = np.array([[focal_px, 0, (w - 1) / 2], [0, focal_px, (h - 1) / 2], [0, 0, 1.0]])
+    centre = np.array([0.0, 0.0, standoff_mm])
+    up = np.array([0.0, -1.0, 0.0])
+    poses = []
+    for el in (20.0, -20.0):
+        for az in (-25.0, 25.0):
+            eye = centre + _rot_y(az) @ _rot_x(el) @ np.array([0.0, 0.0, -standoff_mm])
+            poses.append(look_at(eye, centre, up))
+    T_cam0_world = invert(poses[0])
+    return Rig(
+        name,
+        tuple(
+            Camera(f"cam{k}", w, h, K, np.array(dist), T_cam0_world @ T)
+            for k, T in enumerate(poses)
+        ),
+    )
+
+
+def volume_centre(rig: Rig, standoff_mm: float = STANDOFF_MM) -> Array:
+    """The point all cameras of :func:`four_camera_rig` look at, in the rig frame."""
+    T = rig.cameras[0].T_rig_cam
+    out: Array = T[:3, :3] @ np.array([0.0, 0.0, standoff_mm]) + T[:3, 3]
+    return out
+
+
+def dome_target(
+    marker_mm: float = 40.0,
+    ring_mm: float = 62.0,
+    tilt_deg: float = 25.0,
+    dictionary: str = "DICT_4X4_50",
+) -> Target:
+    """The flange fixture: a marker facing along the flange's axis (z) at the target
+    frame's origin, and four around it on a ring, each face tilted outward, so that
+    cameras on every side see several markers squarely."""
+    markers = [Marker(0, marker_mm, np.eye(4))]
+    for k, az in enumerate((0.0, 90.0, 180.0, 270.0), start=1):
+        a = np.radians(az)
+        radial = np.array([np.cos(a), np.sin(a), 0.0])
+        tangent = np.array([-np.sin(a), np.cos(a), 0.0])
+        t = np.radians(tilt_deg)
+        z = np.cos(t) * np.array([0.0, 0.0, 1.0]) + np.sin(t) * radial
+        x = tangent
+        T = np.eye(4)
+        T[:3, :3] = np.column_stack([x, np.cross(z, x), z])
+        T[:3, 3] = ring_mm * radial
+        markers.append(Marker(k, marker_mm, T))
+    return Target("flange-dome", dictionary, np.zeros(3), tuple(markers))
