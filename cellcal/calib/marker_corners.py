@@ -46,6 +46,8 @@ MIN_BORDER_PX = 4.0
 #: Passes over each edge: the detector's corners are off by up to a pixel, so the window
 #: and the level probes are placed again on each pass's estimate.
 PASSES = 3
+#: Passes for a followed marker: its expected corners are within a tenth of a pixel.
+FOLLOW_PASSES = 2
 #: Least difference between the bright and the dark grey level of an edge.
 MIN_CONTRAST = 20.0
 #: Fewest edge points a line is fitted to.
@@ -81,15 +83,16 @@ class MarkerImage:
 
 
 def grey_levels(image: Image) -> tuple[Image, Image]:
-    """An image as (8-bit grey for the detector, float32 grey for the edges). Accepts
-    8- or 16-bit, grey or colour (BGR/BGRA as OpenCV reads them)."""
+    """An image as (8-bit grey for the detector, grey for the edges: the 8-bit image
+    itself, or float32 in 8-bit units for a 16-bit one). Accepts 8- or 16-bit, grey or
+    colour (BGR/BGRA as OpenCV reads them)."""
     a: Image = np.asarray(image)
     if a.ndim == 3 and a.shape[2] in (3, 4):
         a = cv2.cvtColor(a, cv2.COLOR_BGR2GRAY if a.shape[2] == 3 else cv2.COLOR_BGRA2GRAY)
     if a.ndim != 2 or a.size == 0:
         raise InputError(f"not a grey or colour image (shape {a.shape})")
     if a.dtype == np.uint8:
-        return a, a.astype(np.float32)
+        return a, a
     if a.dtype == np.uint16:
         return (a >> 8).astype(np.uint8), a.astype(np.float32) / 256.0
     raise InputError(f"unsupported pixel type {a.dtype} (8- or 16-bit expected)")
@@ -128,13 +131,29 @@ class MarkerFinder:
         ]
         if not keep:
             return []
-        edges = edge_points(grey, np.array([c for _, c in keep]), self._bits)
+        return self._measure(grey, [k for k, _ in keep], np.array([c for _, c in keep]))
+
+    def follow(self, image: Image, ids: list[int], corners_px: Array) -> list[MarkerImage]:
+        """Markers already identified, measured where they are expected (``corners_px``
+        (m, 4, 2), within a pixel or two) without running the detector: a still target
+        filmed again. Markers whose edges are not found there are left out."""
+        _, grey = grey_levels(image)
+        return self._measure(grey, ids, corners_px, FOLLOW_PASSES)
+
+    def _measure(
+        self, grey: Image, ids: list[int], corners_px: Array, passes: int = PASSES
+    ) -> list[MarkerImage]:
+        edges = edge_points(grey, corners_px, self._bits, passes)
         return [
-            MarkerImage(mid, c, e) for (mid, c), e in zip(keep, edges, strict=True) if e is not None
+            MarkerImage(mid, c, e)
+            for mid, c, e in zip(ids, corners_px, edges, strict=True)
+            if e is not None
         ]
 
 
-def edge_points(grey: Image, corners_px: Array, bits: int) -> list[Edges | None]:
+def edge_points(
+    grey: Image, corners_px: Array, bits: int, passes: int = PASSES
+) -> list[Edges | None]:
     """Sub-pixel points on the 4 edges of each marker whose approximate corners are
     ``corners_px`` (m, 4, 2); None for a marker with an edge too short, too faint or too
     near the image's border to measure.
@@ -178,20 +197,23 @@ def edge_points(grey: Image, corners_px: Array, bits: int) -> list[Edges | None]
     h, w = grey.shape
     ok_edge = (border >= MIN_BORDER_PX) & (count >= MIN_EDGE_POINTS)
 
+    flat = grey.reshape(-1)
+    stride = np.where(along == 1, w, 1)  # scan coordinate j: a row (x along) or a column
+    step = np.where(along == 1, 1, w)
+    limit_j = np.where(along == 1, h, w)
+    limit_i = np.where(along == 1, w, h)
+
     def gather(j: Image, i: Image) -> Array:
         """grey at scan coordinate j, across coordinate i (broadcast; edges along axis
         0); NaN outside the image, so no edge near the border is measured."""
-        jj = np.broadcast_to(j, np.broadcast_shapes(j.shape, i.shape))
-        ii = np.broadcast_to(i, jj.shape)
-        al = along.reshape((-1,) + (1,) * (jj.ndim - 1))
-        rows = np.where(al == 1, jj, ii)
-        cols = np.where(al == 1, ii, jj)
-        inside = (rows >= 0) & (rows < h) & (cols >= 0) & (cols < w)
-        out = grey[np.clip(rows, 0, h - 1), np.clip(cols, 0, w - 1)].astype(np.float64)
+        shape = (-1,) + (1,) * (max(j.ndim, i.ndim) - 1)
+        inside = (j >= 0) & (j < limit_j.reshape(shape)) & (i >= 0) & (i < limit_i.reshape(shape))
+        idx = j * stride.reshape(shape) + i * step.reshape(shape)
+        out = flat.take(idx, mode="clip").astype(np.float64)
         return np.where(inside, out, np.nan)
 
     ok = valid.copy()
-    for _ in range(PASSES):
+    for _ in range(passes):
         # the levels: the middle of the black border, and as far outside
         probe = np.rint(e[:, :, None] + (inward * reach)[:, None, None] * np.array([1.0, -1.0]))
         ends = gather(js[:, :, None], probe.astype(np.int64))  # (E, J, 2): dark, bright

@@ -41,6 +41,7 @@ CORNER_LIMIT = 3.72
 VIEW_LIMIT = 3.0
 _ITERATIONS = 30
 _MAX_DROPS = 8
+_KEY = 1 << 20  # (camera, marker) packed into one integer
 
 
 @dataclass(frozen=True, eq=False)
@@ -57,6 +58,8 @@ class TargetPose:
     markers: int
     corners: int
     reprojection_rms_px: float
+    #: the corners' residual scale σ̂ per image coordinate (px) the covariance is built on
+    sigma_px: float
     #: what was left out and why, one short phrase each
     dropped: tuple[str, ...]
 
@@ -221,19 +224,23 @@ def _drop_outliers(
         r, _ = model.residuals(T, o, False)
         sigma = _robust_sigma(r)
         sq = np.sum(r**2, axis=1)
-        groups: dict[tuple[int, int], float] = {}
-        for c, m in set(zip(o.cam.tolist(), o.marker.tolist(), strict=True)):
-            sel = (o.cam == c) & (o.marker == m)
-            groups[(c, m)] = math.sqrt(float(np.mean(sq[sel])) / 2)
+        # RMS per (camera, marker) and per camera, through one bincount each
+        key = o.cam * _KEY + o.marker
+        uniq, inv = np.unique(key, return_inverse=True)
+        g_rms = np.sqrt(np.bincount(inv, sq) / np.bincount(inv) / 2)
+        groups = {
+            (int(k // _KEY), int(k % _KEY)): float(v) for k, v in zip(uniq, g_rms, strict=True)
+        }
         bad = {g for g, rms in groups.items() if rms > VIEW_LIMIT * sigma}
         cams = np.unique(o.cam)
         keep = np.ones(len(sq), dtype=bool)
-        worst_cam = max(cams, key=lambda c: float(np.mean(sq[o.cam == c])))
+        cam_ms = np.bincount(o.cam, sq) / np.maximum(np.bincount(o.cam), 1)
+        worst_cam = int(cams[np.argmax(cam_ms[cams])])
         n_bad = sum(1 for g in bad if g[0] == worst_cam)
         n_all = sum(1 for g in groups if g[0] == worst_cam)
         if len(cams) > min_cameras and n_bad * 2 > n_all:
             keep &= o.cam != worst_cam
-            rms = math.sqrt(float(np.mean(sq[o.cam == worst_cam])) / 2)
+            rms = math.sqrt(float(cam_ms[worst_cam]) / 2)
             dropped.append(f"{names[int(worst_cam)]}: view RMS {rms:.2f} px")
         elif bad:
             c, m = max(bad, key=lambda g: groups[g])
@@ -285,5 +292,6 @@ def _result(
         markers=len(np.unique(o.marker)),
         corners=len(o.cam),
         reprojection_rms_px=math.sqrt(ssr / len(o.cam)),
+        sigma_px=math.sqrt(sigma2),
         dropped=tuple(dropped),
     )

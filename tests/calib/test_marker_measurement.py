@@ -177,3 +177,50 @@ def test_a_moved_camera_is_dropped_and_named() -> None:
     assert pose.cameras == ("cam0", "cam1", "cam2")
     assert any(d.startswith("cam3: view RMS") for d in pose.dropped)
     assert np.linalg.norm(pose.xyz_mm - T[:3, 3]) < 0.1
+
+
+def test_a_series_is_followed_and_averaged() -> None:
+    """20 frames of a still target: the mean is within 0.03 mm, the markers are followed
+    after the first frame, and the covariance of the mean is far below a frame's."""
+    from cellcal.calib.rig_measurement import TargetMeter
+
+    rig, target, renderer, centre = _cube_scene()
+    rng = np.random.default_rng(21)
+    T = _facing_pose(rng, centre)
+    clean = renderer.clean(T)
+    sets = [renderer.frames(clean, rng) for _ in range(20)]
+    meter = TargetMeter(rig, target)
+    calls = {"find": 0}
+    original = meter._finder.find
+
+    def counting(*args: object, **kwargs: object) -> list:
+        calls["find"] += 1
+        return original(*args, **kwargs)  # type: ignore[arg-type]
+
+    meter._finder.find = counting  # type: ignore[method-assign]
+    mean, poses = meter.series(sets)
+    assert mean.n == 20 and not mean.failures
+    assert np.linalg.norm(mean.xyz_mm - T[:3, 3]) < 0.03
+    assert calls["find"] == len(rig.cameras)  # the detector ran on the first frame only
+    frame_var = np.trace(poses[0].cov_mm2)
+    assert np.trace(mean.cov_mm2) < frame_var / 3
+    assert np.trace(mean.scatter_cov_mm2) > 0
+    assert np.allclose(mean.T_rig_target[:3, :3] @ mean.T_rig_target[:3, :3].T, np.eye(3))
+
+
+def test_a_target_that_moves_is_found_again() -> None:
+    """The meter follows a still target; when it moves 40 mm between frames, the
+    followed markers are not where expected and the detector finds them again."""
+    from cellcal.calib.rig_measurement import TargetMeter
+
+    rig, target, renderer, centre = _cube_scene()
+    rng = np.random.default_rng(22)
+    T1 = _facing_pose(rng, centre)
+    T2 = T1.copy()
+    T2[:3, 3] += [40.0, -25.0, 10.0]
+    meter = TargetMeter(rig, target)
+    meter.measure(renderer.frames(renderer.clean(T1), rng))
+    pose = meter.measure(renderer.frames(renderer.clean(T2), rng))
+    assert np.linalg.norm(pose.xyz_mm - T2[:3, 3]) < 0.1
+    with pytest.raises(InputError, match="not in rig"):
+        meter.measure({"cam9": np.zeros((10, 10), np.uint8)})
