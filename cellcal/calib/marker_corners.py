@@ -198,10 +198,10 @@ def edge_points(
     ok_edge = (border >= MIN_BORDER_PX) & (count >= MIN_EDGE_POINTS)
 
     flat = grey.reshape(-1)
-    stride = np.where(along == 1, w, 1)  # scan coordinate j: a row (x along) or a column
-    step = np.where(along == 1, 1, w)
-    limit_j = np.where(along == 1, h, w)
-    limit_i = np.where(along == 1, w, h)
+    stride: Image = np.where(along == 1, w, 1)  # scan coordinate j: a row (x along) or a column
+    step: Image = np.where(along == 1, 1, w)
+    limit_j: Image = np.where(along == 1, h, w)
+    limit_i: Image = np.where(along == 1, w, h)
 
     def gather(j: Image, i: Image) -> Array:
         """grey at scan coordinate j, across coordinate i (broadcast; edges along axis
