@@ -200,8 +200,8 @@ def edge_points(
     flat = grey.reshape(-1)
     stride: Image = np.where(along == 1, w, 1)  # scan coordinate j: a row (x along) or a column
     step: Image = np.where(along == 1, 1, w)
-    limit_j: Image = np.where(along == 1, h, w)
-    limit_i: Image = np.where(along == 1, w, h)
+    limit_j: Image = h * along + w * (1 - along)
+    limit_i: Image = w * along + h * (1 - along)
 
     def gather(j: Image, i: Image) -> Array:
         """grey at scan coordinate j, across coordinate i (broadcast; edges along axis
