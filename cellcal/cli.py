@@ -21,6 +21,7 @@ from cellcal.commands.models import models
 from cellcal.commands.predict import predict
 from cellcal.commands.register import register
 from cellcal.commands.report import campaign, report
+from cellcal.commands.rig import rig
 from cellcal.commands.run import run
 from cellcal.commands.tracker import tracker
 from cellcal.errors import AcceptanceError, UserError
@@ -45,7 +46,7 @@ def cli(verbose: int) -> None:
     logging.basicConfig(level=level, format="cellcal: %(name)s: %(message)s", force=True)
 
 
-for command in (run, register, calibrate, predict, models, tracker, mock, report, campaign):
+for command in (run, register, calibrate, predict, models, tracker, mock, report, campaign, rig):
     cli.add_command(command)
 
 

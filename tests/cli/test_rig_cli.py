@@ -1,0 +1,167 @@
+"""``cellcal rig measure`` through the entry point, on images the camera twin rendered."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from cellcal.cli import main
+from cellcal.imagefiles import write_image
+from cellcal.mocks.camera_render import Optics, SceneRenderer
+from cellcal.mocks.rig_scene import dome_target, four_camera_rig, volume_centre
+from cellcal.photofiles import write_rig, write_target
+
+
+def run(capsys: pytest.CaptureFixture[str], *args: object) -> tuple[int, str, str]:
+    with pytest.raises(SystemExit) as exc:
+        main([str(a) for a in args])
+    out, err = capsys.readouterr()
+    return int(exc.value.code or 0), out, err
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory: pytest.TempPathFactory) -> dict:
+    root = tmp_path_factory.mktemp("rig")
+    rig, target = four_camera_rig(), dome_target()
+    write_rig(root / "rig.toml", rig)
+    write_target(root / "target.toml", target)
+    renderer = SceneRenderer.for_target(rig.cameras, target, Optics())
+    rng = np.random.default_rng(5)
+    truths = []
+    for k, (dx, tilt) in enumerate([(0.0, 0.0), (60.0, 12.0), (-80.0, -15.0)]):
+        T = np.eye(4)
+        R = Rotation.from_euler("xy", [180.0, tilt], degrees=True)
+        T[:3, :3] = R.as_matrix()
+        T[:3, 3] = volume_centre(rig) + np.array([dx, 20.0, -30.0])
+        folder = root / "sets" / f"set{k:02d}"
+        folder.mkdir(parents=True)
+        for cam, img in renderer.frames(renderer.clean(T), rng).items():
+            write_image(folder / f"{cam}.png", img)
+        truths.append(T[:3, 3])
+    # a set only one camera sees: the others' images are blank
+    lonely = root / "sets" / "set03"
+    lonely.mkdir()
+    for cam in ("cam0", "cam1", "cam2", "cam3"):
+        src = root / "sets" / "set00" / f"{cam}.png"
+        img = np.full((1024, 1280), 40, np.uint8) if cam != "cam0" else None
+        if img is None:
+            lonely.joinpath(f"{cam}.png").write_bytes(src.read_bytes())
+        else:
+            write_image(lonely / f"{cam}.png", img)
+    return {"root": root, "truths": truths}
+
+
+def test_one_set_json(capsys: pytest.CaptureFixture[str], scene: dict) -> None:
+    root: Path = scene["root"]
+    images = [f"--image=cam{k}={root / 'sets' / 'set01' / f'cam{k}.png'}" for k in range(4)]
+    code, out, err = run(
+        capsys,
+        "rig",
+        "measure",
+        "--rig",
+        root / "rig.toml",
+        "--target",
+        root / "target.toml",
+        *images,
+        "--json",
+    )
+    assert code == 0, err
+    got = json.loads(out)
+    assert set(got) >= {
+        "xyz_mm",
+        "cov_mm2",
+        "T_rig_target",
+        "cameras",
+        "markers",
+        "reprojection_rms_px",
+    }
+    assert np.linalg.norm(np.array(got["xyz_mm"]) - scene["truths"][1]) < 0.1
+    assert np.array(got["cov_mm2"]).shape == (3, 3)
+    assert len(got["cameras"]) >= 2 and got["markers"] >= 2
+
+
+def test_sets_go_on_past_a_set_the_rig_cannot_measure(
+    capsys: pytest.CaptureFixture[str], scene: dict
+) -> None:
+    root: Path = scene["root"]
+    code, out, err = run(
+        capsys,
+        "rig",
+        "measure",
+        "--rig",
+        root / "rig.toml",
+        "--target",
+        root / "target.toml",
+        "--sets",
+        root / "sets",
+        "--json",
+    )
+    assert code == 0, err
+    lines = [json.loads(x) for x in out.splitlines()]
+    assert [x["set"] for x in lines] == ["set00", "set01", "set02", "set03"]
+    for line, truth in zip(lines[:3], scene["truths"], strict=True):
+        assert np.linalg.norm(np.array(line["xyz_mm"]) - truth) < 0.1
+    assert "seen by 1 camera(s) (cam0)" in lines[3]["error"]
+    code, out, _ = run(
+        capsys,
+        "rig",
+        "measure",
+        "--rig",
+        root / "rig.toml",
+        "--target",
+        root / "target.toml",
+        "--sets",
+        root / "sets",
+    )
+    assert code == 0 and out.count(" mm  (1σ ") == 3
+
+
+@pytest.mark.parametrize(
+    ("mutate", "message"),
+    [
+        (lambda p: p.write_bytes(p.read_bytes()[:2000]), "not a complete image"),
+        (lambda p: p.write_bytes(b""), "empty file"),
+        (lambda p: p.write_text("hello"), "not a complete image"),
+        (lambda p: p.unlink(), "no such image"),
+    ],
+    ids=["truncated", "empty", "text", "missing"],
+)
+def test_bad_images_end_in_one_line(
+    capsys: pytest.CaptureFixture[str], scene: dict, tmp_path: Path, mutate: object, message: str
+) -> None:
+    root: Path = scene["root"]
+    bad = tmp_path / "cam1.png"
+    bad.write_bytes((root / "sets" / "set00" / "cam1.png").read_bytes())
+    mutate(bad)  # type: ignore[operator]
+    code, out, err = run(
+        capsys,
+        "rig",
+        "measure",
+        "--rig",
+        root / "rig.toml",
+        "--target",
+        root / "target.toml",
+        f"--image=cam0={root / 'sets' / 'set00' / 'cam0.png'}",
+        f"--image=cam1={bad}",
+    )
+    assert code == 2 and out == ""
+    assert err.count("\n") == 1 and message in err and "cam1.png" in err
+
+
+def test_usage_errors(capsys: pytest.CaptureFixture[str], scene: dict) -> None:
+    root: Path = scene["root"]
+    base = ["rig", "measure", "--rig", root / "rig.toml", "--target", root / "target.toml"]
+    code, _, err = run(capsys, *base)
+    assert code == 2 and "either --image" in err
+    code, _, err = run(capsys, *base, "--image", "cam7=x.png")
+    assert code == 2 and "not a camera of rig" in err
+    code, _, err = run(capsys, *base, "--image", "cam0")
+    assert code == 2 and "expected CAM=PATH" in err
+    small = root / "small.png"
+    write_image(small, np.zeros((10, 10), np.uint8))
+    code, _, err = run(capsys, *base, "--image", f"cam0={small}")
+    assert code == 2 and "10×10 px, but camera cam0 is 1280×1024" in err
