@@ -10,8 +10,10 @@ warnings about broken files are kept off the terminal.
 from __future__ import annotations
 
 import os
+import re
 from collections.abc import Iterator
 from contextlib import contextmanager
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -76,15 +78,76 @@ def image_option(specs: tuple[str, ...]) -> dict[str, Path]:
     return out
 
 
+def natural_key(name: str) -> list[object]:
+    """Sort key that orders embedded numbers by value (``cam2`` before ``cam10``)."""
+    return [int(p) if p.isdigit() else p for p in re.split(r"(\d+)", name)]
+
+
 def set_folders(root: str | Path) -> list[Path]:
-    """The set folders of an image-set directory, in name order."""
+    """The set folders of an image-set directory (hidden ones skipped), in natural order."""
     p = Path(root)
     if not p.is_dir():
         raise FileFormatError(f"{p}: not a directory of image sets")
-    folders = sorted(d for d in p.iterdir() if d.is_dir())
+    folders = sorted(
+        (d for d in p.iterdir() if d.is_dir() and not d.name.startswith(".")),
+        key=lambda d: natural_key(d.name),
+    )
     if not folders:
         raise FileFormatError(f"{p}: no image sets (one folder per set, <camera>.png in each)")
     return folders
+
+
+def grey(image: Image) -> Image:
+    """A colour image (BGR/BGRA) as grey of the same bit depth; grey stays as it is."""
+    if image.ndim == 3 and image.shape[2] in (3, 4):
+        code = cv2.COLOR_BGR2GRAY if image.shape[2] == 3 else cv2.COLOR_BGRA2GRAY
+        out: Image = cv2.cvtColor(image, code)
+        return out
+    if image.ndim == 3 and image.shape[2] == 1:
+        return image[:, :, 0]
+    return image
+
+
+@dataclass(frozen=True, eq=False)
+class ViewSet:
+    """Image sets read from a directory: their folder names, the cameras found (name →
+    (width, height), in natural order) and per set the grey images by camera name."""
+
+    names: tuple[str, ...]
+    cameras: dict[str, tuple[int, int]]
+    views: tuple[dict[str, Image], ...]
+
+
+def load_views(directory: str | Path) -> ViewSet:
+    """Every set under ``directory`` with its ``<camera>.png`` images, as grey. A
+    camera's images must all have one size."""
+    sizes: dict[str, tuple[int, int]] = {}
+    first: dict[str, Path] = {}
+    views = []
+    folders = set_folders(directory)
+    for folder in folders:
+        files = sorted(
+            (f for f in folder.iterdir() if f.is_file() and f.suffix.lower() == ".png"),
+            key=lambda f: natural_key(f.stem),
+        )
+        if not files:
+            raise FileFormatError(f"{folder}: no <camera>.png images in this folder")
+        view = {}
+        for f in files:
+            img = grey(read_image(f))
+            size = (int(img.shape[1]), int(img.shape[0]))
+            if f.stem in sizes and sizes[f.stem] != size:
+                w, h = sizes[f.stem]
+                raise FileFormatError(
+                    f"{f}: {size[0]}×{size[1]} px, but {first[f.stem]} of the same camera "
+                    f"is {w}×{h}"
+                )
+            sizes.setdefault(f.stem, size)
+            first.setdefault(f.stem, f)
+            view[f.stem] = img
+        views.append(view)
+    cameras = {n: sizes[n] for n in sorted(sizes, key=natural_key)}
+    return ViewSet(tuple(d.name for d in folders), cameras, tuple(views))
 
 
 def set_images(folder: Path, cameras: tuple[str, ...]) -> dict[str, Path]:

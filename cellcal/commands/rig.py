@@ -7,19 +7,21 @@ from pathlib import Path
 from typing import Any
 
 import click
+import numpy as np
 
 from cellcal.calib.camera_rig import Rig, Target
+from cellcal.calib.rig_calibration import RigCalibration, RigCalibrationOptions, calibrate_rig
 from cellcal.calib.rig_measurement import TargetMeter
 from cellcal.calib.target_pose import TargetPose
 from cellcal.commands.output import jsonable, print_json
-from cellcal.errors import InputError, MeasurementError
-from cellcal.imagefiles import image_option, read_image, set_folders, set_images
-from cellcal.photofiles import read_rig, read_target
+from cellcal.errors import AcceptanceError, InputError, MeasurementError
+from cellcal.imagefiles import image_option, load_views, read_image, set_folders, set_images
+from cellcal.photofiles import read_board, read_rig, read_target, write_rig
 
 
 @click.group()
 def rig() -> None:
-    """The photogrammetry rig: measure the marker target in camera images."""
+    """The photogrammetry rig: calibrate it from ChArUco views, measure the target."""
 
 
 def _pose_json(pose: TargetPose) -> dict[str, Any]:
@@ -113,3 +115,107 @@ def measure(
             click.echo(f"{folder.name}: {_pose_line(pose)}")
     if measured == 0:
         raise MeasurementError(f"no set in {sets_dir} measured the target")
+
+
+def _calibration_json(cal: RigCalibration) -> dict[str, Any]:
+    h = cal.holdout
+    return {
+        "rig": cal.rig.name,
+        "rms_px": cal.rms_px,
+        "sigma_px": cal.sigma_px,
+        "fit_views": len(cal.fit_views),
+        "cameras": [
+            {
+                "name": c.name,
+                "views": c.views,
+                "corners": c.corners,
+                "rejected": c.rejected,
+                "reprojection_rms_px": c.rms_px,
+                "sigma_fx_px": c.sigma_fx_px,
+                "sigma_fy_px": c.sigma_fy_px,
+                "sigma_cx_px": c.sigma_cx_px,
+                "sigma_cy_px": c.sigma_cy_px,
+                "sigma_position_mm": c.sigma_position_mm,
+                "sigma_rotation_deg": c.sigma_rotation_deg,
+            }
+            for c in cal.cameras
+        ],
+        "holdout": None
+        if h is None
+        else {
+            "views": list(h.views),
+            "reprojection_rms_px": h.reprojection_rms_px,
+            "lengths": h.lengths,
+            "length_rms_mm": h.length_rms_mm,
+            "length_max_mm": h.length_max_mm,
+        },
+        "suspect_cameras": list(cal.suspect_cameras),
+        "warnings": list(cal.warnings),
+    }
+
+
+@rig.command("calibrate")
+@click.option("--board", "board_path", required=True, help="The ChArUco board file (TOML).")
+@click.option(
+    "--views", "views_dir", required=True, help="One folder per view, <camera>.png in each."
+)
+@click.option("--out", "out_path", required=True, help="The rig file to write (TOML).")
+@click.option("--name", default="cell-rig", show_default=True, help="The rig's name.")
+@click.option("--fix-k3", is_flag=True, help="Keep k3 at 0 (lenses with little distortion).")
+@click.option("--fix-tangential", is_flag=True, help="Keep p1 and p2 at 0.")
+@click.option("--json", "as_json", is_flag=True, help="Print the result as JSON.")
+def calibrate(
+    board_path: str,
+    views_dir: str,
+    out_path: str,
+    name: str,
+    fix_k3: bool,
+    fix_tangential: bool,
+    as_json: bool,
+) -> None:
+    """Calibrate the camera rig (intrinsics and extrinsics) from ChArUco views.
+
+    Intrinsics per camera, then every camera's intrinsics and pose together by bundle
+    adjustment; the rig frame is the first camera's. Every fifth view is held out and
+    measured with the result: its reprojection RMS and the board's known lengths. A
+    camera that loses more than a tenth of its corners as outliers (moved while the
+    views were taken) is refused with exit 3 and no rig file is written.
+    """
+    board = read_board(board_path)
+    views = load_views(views_dir)
+    options = RigCalibrationOptions(fix_k3=fix_k3, fix_tangential=fix_tangential)
+    cal = calibrate_rig(
+        board, views.cameras, list(views.views), options, view_names=views.names, name=name
+    )
+    if cal.suspect_cameras:
+        raise AcceptanceError(
+            "rig calibration",
+            f"{', '.join(cal.suspect_cameras)} lost more than a tenth of their corners as "
+            "outliers: a camera moved, or the lens was touched, while the views were taken; "
+            "take the views again",
+        )
+    write_rig(out_path, cal.rig)
+    if as_json:
+        print_json(_calibration_json(cal))
+        return
+    click.echo(
+        f"rig calibrate: {len(cal.rig.cameras)} cameras from {len(cal.fit_views)} views, "
+        f"reprojection RMS {cal.rms_px:.3f} px; rig file {out_path}"
+    )
+    for c in cal.cameras:
+        sp = np.linalg.norm(c.sigma_position_mm)
+        click.echo(
+            f"  {c.name}: {c.views} views, {c.corners} corners ({c.rejected} left out), "
+            f"RMS {c.rms_px:.3f} px; 1σ fx {c.sigma_fx_px:.2f} cx {c.sigma_cx_px:.2f} "
+            f"cy {c.sigma_cy_px:.2f} px, position {sp:.3f} mm, "
+            f"rotation {np.linalg.norm(c.sigma_rotation_deg):.4f}°"
+        )
+    if cal.holdout is not None:
+        h = cal.holdout
+        click.echo(
+            f"  held out {len(h.views)} views: reprojection RMS {h.reprojection_rms_px:.3f} px; "
+            f"{h.lengths} board lengths: RMS error {h.length_rms_mm:.4f} mm, "
+            f"max {h.length_max_mm:.4f} mm"
+        )
+    for w in cal.warnings:
+        click.echo(f"  warning: {w}")

@@ -83,6 +83,8 @@ class Face:
     y1: float
     patches: tuple[_Patch, ...]
     checker: float = 0.0
+    #: for a board: the patch in each chessboard square (ny, nx), −1 for none
+    cell_patch: Image | None = None
 
 
 def _bits(dictionary: str, marker_id: int) -> Array:
@@ -125,6 +127,10 @@ def board_face(board: Board) -> Face:
         c = np.asarray(corners, dtype=np.float64)[:, :2]
         patches.append(_Patch(c[0], c[1] - c[0], c[3] - c[0], _bits(board.dictionary, int(mid))))
     nx, ny = board.squares
+    cells = np.full((ny, nx), -1, dtype=np.int64)
+    for k, p in enumerate(patches):
+        centre = p.origin + 0.5 * (p.ex + p.ey)
+        cells[int(centre[1] // board.square), int(centre[0] // board.square)] = k
     return Face(
         np.eye(4),
         -1.0,
@@ -134,6 +140,7 @@ def board_face(board: Board) -> Face:
         ny * board.square,
         tuple(patches),
         checker=board.square,
+        cell_patch=cells,
     )
 
 
@@ -145,18 +152,38 @@ def _shade(face: Face, qx: Array, qy: Array, optics: Optics) -> tuple[Image, Ima
         i = np.floor(qx / face.checker).astype(np.int64)
         j = np.floor(qy / face.checker).astype(np.int64)
         white = ((i + j) % 2 == 1).astype(np.float32)
-    for p in face.patches:
-        n = p.bits.shape[0]
-        dx, dy = qx - p.origin[0], qy - p.origin[1]
-        a = (dx * p.ex[0] + dy * p.ex[1]) / float(p.ex @ p.ex)
-        b = (dx * p.ey[0] + dy * p.ey[1]) / float(p.ey @ p.ey)
-        inside = (a >= 0.0) & (a < 1.0) & (b >= 0.0) & (b < 1.0)
-        if inside.any():
-            col = np.clip((a[inside] * n).astype(np.int64), 0, n - 1)
-            row = np.clip((b[inside] * n).astype(np.int64), 0, n - 1)
-            white[inside] = p.bits[row, col]
+    if face.cell_patch is not None:  # a board: each square holds at most one marker
+        _shade_board(face, qx, qy, on, white)
+    else:
+        for p in face.patches:
+            _shade_patch(p, qx, qy, np.ones(qx.shape, dtype=bool), white)
     grey = (optics.black + (optics.white - optics.black) * white).astype(np.float32)
     return on, grey
+
+
+def _shade_patch(p: _Patch, qx: Array, qy: Array, where: Image, white: Image) -> None:
+    """Paint a marker's bits into ``white`` at the points ``where`` selects."""
+    n = p.bits.shape[0]
+    dx, dy = qx[where] - p.origin[0], qy[where] - p.origin[1]
+    a = (dx * p.ex[0] + dy * p.ex[1]) / float(p.ex @ p.ex)
+    b = (dx * p.ey[0] + dy * p.ey[1]) / float(p.ey @ p.ey)
+    inside = (a >= 0.0) & (a < 1.0) & (b >= 0.0) & (b < 1.0)
+    if inside.any():
+        col = np.clip((a[inside] * n).astype(np.int64), 0, n - 1)
+        row = np.clip((b[inside] * n).astype(np.int64), 0, n - 1)
+        idx = np.flatnonzero(where)[inside]
+        white.reshape(-1)[idx] = p.bits[row, col]
+
+
+def _shade_board(face: Face, qx: Array, qy: Array, on: Image, white: Image) -> None:
+    """Paint a board's markers: each point looks up the marker of its square."""
+    assert face.cell_patch is not None
+    ny, nx = face.cell_patch.shape
+    i = np.clip(np.floor(qx / face.checker).astype(np.int64), 0, nx - 1)
+    j = np.clip(np.floor(qy / face.checker).astype(np.int64), 0, ny - 1)
+    k = np.where(on, face.cell_patch[j, i], -1)
+    for idx in np.unique(k[k >= 0]):
+        _shade_patch(face.patches[int(idx)], qx, qy, k == idx, white)
 
 
 def _subpixels(s: int) -> tuple[Array, Array]:

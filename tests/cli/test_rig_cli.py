@@ -165,3 +165,56 @@ def test_usage_errors(capsys: pytest.CaptureFixture[str], scene: dict) -> None:
     write_image(small, np.zeros((10, 10), np.uint8))
     code, _, err = run(capsys, *base, "--image", f"cam0={small}")
     assert code == 2 and "10×10 px, but camera cam0 is 1280×1024" in err
+
+
+def test_rig_calibrate_writes_a_rig_that_measures(
+    capsys: pytest.CaptureFixture[str], scene: dict, tmp_path: Path
+) -> None:
+    """ChArUco views rendered for the simulated rig → `rig calibrate` → a rig file within
+    its reported uncertainty of the truth, with which `rig measure` gets lengths right."""
+    from cellcal.photofiles import read_rig, write_board
+    from tests.calib.test_rig_calibration import BOARD, _board_poses
+
+    rig = four_camera_rig()
+    renderer = SceneRenderer.for_board(rig.cameras, BOARD, Optics(supersample=3))
+    rng = np.random.default_rng(9)
+    for k, T in enumerate(_board_poses(rig, 12, seed=3)):
+        for cam, img in renderer.frames(renderer.clean(T), rng).items():
+            (tmp_path / "views" / f"v{k}").mkdir(parents=True, exist_ok=True)
+            write_image(tmp_path / "views" / f"v{k}" / f"{cam}.png", img)
+    write_board(tmp_path / "board.toml", BOARD)
+    out = tmp_path / "rig.toml"
+    code, text, err = run(
+        capsys,
+        "rig",
+        "calibrate",
+        "--board",
+        tmp_path / "board.toml",
+        "--views",
+        tmp_path / "views",
+        "--out",
+        out,
+        "--fix-k3",
+        "--fix-tangential",
+        "--json",
+    )
+    assert code == 0, err
+    got = json.loads(text)
+    assert [c["name"] for c in got["cameras"]] == ["cam0", "cam1", "cam2", "cam3"]
+    assert got["holdout"]["reprojection_rms_px"] < 0.2
+    calibrated = read_rig(out)
+    for truth, cam, rep in zip(rig.cameras, calibrated.cameras, got["cameras"], strict=True):
+        # 9 fitted views: millimetres, as the reported 1σ says
+        error = np.linalg.norm(cam.T_rig_cam[:3, 3] - truth.T_rig_cam[:3, 3])
+        assert error <= 4.0 * np.linalg.norm(rep["sigma_position_mm"]) + 1e-9
+        assert abs(cam.K[0, 0] - truth.K[0, 0]) <= 4.0 * rep["sigma_fx_px"] + 1e-9
+    # a length between two measured target positions (VDI/VDE 2634-1 style): the rig's
+    # frame is its own, lengths are what a calibration must get right
+    root: Path = scene["root"]
+    base = ["rig", "measure", "--rig", out, "--target", root / "target.toml"]
+    code, text, err = run(capsys, *base, "--sets", root / "sets", "--json")
+    assert code == 0, err
+    xyz = [np.array(json.loads(line)["xyz_mm"]) for line in text.splitlines()[:3]]
+    for a, b in ((0, 1), (1, 2), (0, 2)):
+        length = np.linalg.norm(scene["truths"][a] - scene["truths"][b])
+        assert abs(np.linalg.norm(xyz[a] - xyz[b]) - length) < 0.3

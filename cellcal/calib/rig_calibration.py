@@ -1,0 +1,458 @@
+"""Calibrate a multi-camera rig from views of a ChArUco board: every camera's intrinsics
+and its pose in the rig frame (the first camera's frame), with their uncertainty.
+
+1. ChArUco corners per image (OpenCV's ``CharucoDetector``); detections with fewer than
+   ``min_corners`` corners, or with all corners on one line, are dropped.
+2. Per camera, ``cv2.calibrateCamera`` on its views: the intrinsics' starting values and
+   the board's pose in each of its views.
+3. Cameras are placed one by one from views they share with cameras already placed
+   (the medoid of the composed board poses); each view's board pose likewise.
+4. A bundle adjustment of all of it together (:mod:`cellcal.calib.rig_bundle`), corners
+   beyond ``outlier_sigma``·σ̂ dropped; a camera losing many corners is reported as
+   suspect (it moved, or a view is mismatched).
+5. Held-out views (every ``holdout_every``-th, not used in the fit): the reprojection
+   error with only the board's pose re-estimated, and the board's inner-corner distances
+   triangulated from all cameras against their known lengths (mm).
+
+Pure numerics: images (numpy arrays) in, a frozen :class:`RigCalibration` out. Lengths
+mm, angles degrees at the boundary; ``T_a_b`` maps frame b into frame a.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial.transform import Rotation
+
+from cellcal.calib import rig_bundle
+from cellcal.calib.camera_rig import Board, Camera, Rig
+from cellcal.calib.geometry import Array
+from cellcal.calib.rig_bundle import (
+    ScaleBar,
+    ScaleCheck,
+    medoid,
+    place_cameras,
+    pose,
+    scale_check,
+    triangulate,
+)
+
+__all__ = [
+    "CameraReport",
+    "CornerDetection",
+    "HoldoutCheck",
+    "RigCalibration",
+    "RigCalibrationOptions",
+    "ScaleBar",
+    "ScaleCheck",
+    "calibrate_rig",
+    "detect_corners",
+    "grey8",
+    "scale_check",
+    "triangulate",
+]
+from cellcal.errors import InputError, MeasurementError
+
+Image = NDArray[Any]
+
+
+@dataclass(frozen=True)
+class RigCalibrationOptions:
+    """Choices of the calibration: distortion terms held at zero, detection and
+    outlier thresholds, and which views are held out (every n-th; 0 for none)."""
+
+    fix_k3: bool = False
+    fix_tangential: bool = False
+    min_corners: int = 6
+    min_views: int = 5
+    holdout_every: int = 5
+    outlier_sigma: float = 4.0
+    #: a camera losing more than this fraction of its corners as outliers is suspect
+    max_rejected_fraction: float = 0.1
+
+
+@dataclass(frozen=True, eq=False)
+class CornerDetection:
+    """ChArUco corners found in one image: their ids (n,) and pixel positions (n, 2)."""
+
+    ids: NDArray[np.int64]
+    pixels: Array
+
+
+@dataclass(frozen=True, eq=False)
+class CameraReport:
+    """One camera's fit: views and corners used, corners rejected as outliers, the
+    reprojection RMS (px) of the kept corners and of all of them, calibrateCamera's RMS
+    alone, and the 1σ uncertainty of fx, fy, cx, cy (px), of the position (mm, rig frame)
+    and the rotation (deg, about the camera's own axes); ``covariance`` (15, 15): fx fy
+    cx cy k1 k2 p1 p2 k3 (px), rotation (rad), position (mm). The reference camera's pose
+    defines the rig frame: its pose uncertainty is zero."""
+
+    name: str
+    views: int
+    corners: int
+    rejected: int
+    rms_px: float
+    rms_all_px: float
+    initial_rms_px: float
+    sigma_fx_px: float
+    sigma_fy_px: float
+    sigma_cx_px: float
+    sigma_cy_px: float
+    sigma_position_mm: Array
+    sigma_rotation_deg: Array
+    covariance: Array
+
+
+@dataclass(frozen=True, eq=False)
+class HoldoutCheck:
+    """Views left out of the fit: reprojection RMS (px) with the cameras fixed and only the
+    board's pose fitted, and the board's inner-corner distances triangulated from all
+    cameras that saw both corners, against the known lengths (mm)."""
+
+    views: tuple[str, ...]
+    corners: int
+    reprojection_rms_px: float
+    lengths: int
+    length_rms_mm: float
+    length_max_mm: float
+
+
+@dataclass(frozen=True, eq=False)
+class RigCalibration:
+    """The calibrated rig (each camera's ``reprojection_rms_px`` set), the per-camera
+    fit, the overall reprojection RMS and σ̂ (px per axis), views fitted and held out,
+    the held-out check, the optional scale check, cameras whose residuals say they moved
+    (or a view is wrong), one-line warnings, the board poses ``T_rig_board`` of the
+    fitted views and the solver's iterations."""
+
+    rig: Rig
+    cameras: tuple[CameraReport, ...]
+    rms_px: float
+    sigma_px: float
+    fit_views: tuple[str, ...]
+    holdout: HoldoutCheck | None
+    scale: ScaleCheck | None
+    suspect_cameras: tuple[str, ...]
+    warnings: tuple[str, ...]
+    T_rig_board: tuple[Array, ...]
+    iterations: int
+
+
+# --- detection -------------------------------------------------------------------------
+
+
+def grey8(image: Image) -> Image:
+    """An 8-bit grey image from 8/16-bit grey or colour (BGR/BGRA) data; 16-bit data are
+    scaled so that their brightest pixel becomes 255."""
+    img = np.asarray(image)
+    if img.ndim == 3 and img.shape[2] in (3, 4):
+        code = cv2.COLOR_BGR2GRAY if img.shape[2] == 3 else cv2.COLOR_BGRA2GRAY
+        img = cv2.cvtColor(img, code)
+    if img.ndim != 2:
+        raise InputError(f"image: expected a grey or colour image, got shape {img.shape}")
+    if img.dtype == np.uint8:
+        return img
+    top = max(float(img.max()), 1.0)
+    out: Image = np.clip(np.rint(img.astype(np.float64) * (255.0 / top)), 0, 255).astype(np.uint8)
+    return out
+
+
+def detect_corners(
+    board: Board, image: Image, min_corners: int = 6, detector: Any = None
+) -> CornerDetection | None:
+    """The board's chessboard corners in ``image``; None when fewer than
+    ``min_corners`` are found or all of them lie on one line."""
+    det = detector or cv2.aruco.CharucoDetector(board.cv_board())
+    corners, ids, _, _ = det.detectBoard(grey8(image))
+    if ids is None or len(ids) < min_corners:
+        return None
+    ids = np.asarray(ids, dtype=np.int64).ravel()
+    obj = _board_points(board)[ids][:, :2]
+    centred = obj - obj.mean(axis=0)
+    spread = np.linalg.svd(centred, compute_uv=False)[1] / np.sqrt(len(ids))
+    if spread < 0.25 * board.square:
+        return None
+    return CornerDetection(ids, np.asarray(corners, dtype=np.float64).reshape(-1, 2))
+
+
+def _board_points(board: Board) -> Array:
+    """The chessboard's inner corners (n, 3) in the board frame, mm, by id."""
+    return np.asarray(board.cv_board().getChessboardCorners(), dtype=np.float64).reshape(-1, 3)
+
+
+def _board_not_found(board: Board, images: list[Image], min_corners: int) -> MeasurementError:
+    """The refusal when no image shows the board; tries the other ``legacy`` pattern."""
+    other = Board(board.dictionary, board.squares, board.square, board.marker, not board.legacy)
+    det = cv2.aruco.CharucoDetector(other.cv_board())
+    for img in images[:12]:
+        if detect_corners(other, img, min_corners, det) is not None:
+            return MeasurementError(
+                f"board not found in any view — is `legacy` right? (the images show a "
+                f"board with legacy = {str(other.legacy).lower()})"
+            )
+    return MeasurementError(
+        "board not found in any view — is `legacy` right? (check also the board's "
+        "dictionary, squares and that the images are not mirrored)"
+    )
+
+
+# --- the calibration -------------------------------------------------------------------
+
+
+def _intrinsics(
+    name: str,
+    size: tuple[int, int],
+    dets: list[tuple[int, CornerDetection]],
+    pts: Array,
+    options: RigCalibrationOptions,
+) -> tuple[Array, Array, float, dict[int, Array]]:
+    flags = (cv2.CALIB_FIX_K3 if options.fix_k3 else 0) | (
+        cv2.CALIB_ZERO_TANGENT_DIST if options.fix_tangential else 0
+    )
+    obj = [pts[d.ids].astype(np.float32) for _, d in dets]
+    img = [d.pixels.astype(np.float32).reshape(-1, 1, 2) for _, d in dets]
+    try:
+        rms, K, dist, rvecs, tvecs = cv2.calibrateCamera(obj, img, size, None, None, flags=flags)
+    except cv2.error as exc:
+        raise MeasurementError(f"{name}: calibrateCamera failed ({exc.err})") from None
+    poses = {v: pose(r, t) for (v, _), r, t in zip(dets, rvecs, tvecs, strict=True)}
+    return np.asarray(K, float), np.asarray(dist, float).ravel()[:5], float(rms), poses
+
+
+def _observations(
+    det: list[dict[str, CornerDetection]], views: list[int], names: list[str], pts: Array
+) -> rig_bundle.Observations:
+    cam, view, P, px = [], [], [], []
+    for k, v in enumerate(views):
+        for c, n in enumerate(names):
+            d = det[v].get(n)
+            if d is not None:
+                cam.append(np.full(len(d.ids), c))
+                view.append(np.full(len(d.ids), k))
+                P.append(pts[d.ids])
+                px.append(d.pixels)
+    return rig_bundle.Observations(
+        np.concatenate(cam).astype(np.int64),
+        np.concatenate(view).astype(np.int64),
+        np.concatenate(P),
+        np.concatenate(px),
+    )
+
+
+def _check_inputs(
+    cameras: Mapping[str, tuple[int, int]], views: Sequence[Mapping[str, Image]], names: list[str]
+) -> None:
+    if not cameras:
+        raise InputError("cameras: at least one camera is needed")
+    for v, view in enumerate(views):
+        for cam, img in view.items():
+            if cam not in cameras:
+                raise InputError(f"view {names[v]}: {cam!r} is not one of the rig's cameras")
+            w, h = cameras[cam]
+            if np.shape(img)[:2] != (h, w):
+                raise InputError(
+                    f"view {names[v]}: {cam} image is {np.shape(img)[1]}×{np.shape(img)[0]}, "
+                    f"the camera's {w}×{h}"
+                )
+
+
+def calibrate_rig(
+    board: Board,
+    cameras: Mapping[str, tuple[int, int]],
+    views: Sequence[Mapping[str, Image]],
+    options: RigCalibrationOptions | None = None,
+    view_names: Sequence[str] | None = None,
+    scale_bar: ScaleBar | None = None,
+    name: str = "rig",
+) -> RigCalibration:
+    """Calibrate the rig's ``cameras`` (name → (width, height); the first is the rig
+    frame) from ``views`` (one dict camera → grey image per board pose)."""
+    opt = options or RigCalibrationOptions()
+    names = list(cameras)
+    vnames = list(view_names) if view_names is not None else [f"{k + 1}" for k in range(len(views))]
+    if len(vnames) != len(views):
+        raise InputError(f"view_names: {len(vnames)} names for {len(views)} views")
+    _check_inputs(cameras, views, vnames)
+    detector = cv2.aruco.CharucoDetector(board.cv_board())
+    det: list[dict[str, CornerDetection]] = []
+    for view in views:
+        found = {
+            c: detect_corners(board, img, opt.min_corners, detector) for c, img in view.items()
+        }
+        det.append({c: d for c, d in found.items() if d is not None})
+    if not any(det):
+        raise _board_not_found(board, [img for v in views for img in v.values()], opt.min_corners)
+    every = opt.holdout_every
+    held = [v for v in range(len(views)) if every > 0 and v % every == every - 1 and det[v]]
+    fit = [v for v in range(len(views)) if v not in held and det[v]]
+    pts = _board_points(board)
+    K0, d0, rms0, T_cam_board = {}, {}, {}, {}
+    for n in names:
+        dets = [(v, det[v][n]) for v in fit if n in det[v]]
+        if len(dets) < opt.min_views:
+            raise MeasurementError(
+                f"{n}: the board was found in {len(dets)} of the fitted views, "
+                f"at least {opt.min_views} are needed"
+            )
+        K0[n], d0[n], rms0[n], poses = _intrinsics(n, cameras[n], dets, pts, opt)
+        T_cam_board.update({(v, n): T for v, T in poses.items()})
+    T_rig_cam = place_cameras(names, T_cam_board)
+    T_rig_board = [
+        medoid([T_rig_cam[c] @ T_cam_board[(v, n)] for c, n in enumerate(names) if n in det[v]])
+        for v in fit
+    ]
+    state = rig_bundle.RigState(
+        np.array([[K0[n][0, 0], K0[n][1, 1], K0[n][0, 2], K0[n][1, 2], *d0[n]] for n in names]),
+        np.array([T[:3, :3] for T in T_rig_cam]),
+        np.array([T[:3, 3] for T in T_rig_cam]),
+        np.array([T[:3, :3] for T in T_rig_board]),
+        np.array([T[:3, 3] for T in T_rig_board]),
+    )
+    free = np.ones(9, dtype=bool)
+    free[8] = not opt.fix_k3
+    free[6:8] = not opt.fix_tangential
+    obs = _observations(det, fit, names, pts)
+    res = rig_bundle.adjust(state, obs, free, outlier_sigma=opt.outlier_sigma)
+    rig, reports = _results(name, names, cameras, res, obs, fit, det, rms0)
+    holdout = (
+        _holdout(board, rig, det, held, [vnames[v] for v in held], free, opt) if held else None
+    )
+    warnings, suspects = [], []
+    for r in reports:
+        total = r.corners + r.rejected
+        if r.rejected > opt.max_rejected_fraction * total:
+            suspects.append(r.name)
+            warnings.append(
+                f"{r.name}: {r.rejected} of {total} corners rejected as outliers "
+                f"({r.rms_all_px:.2f} px RMS before, {r.rms_px:.3f} px after) — did the "
+                "camera move while the views were taken?"
+            )
+    inl = res.residuals[res.inliers]
+    st = res.state
+    return RigCalibration(
+        rig=rig,
+        cameras=reports,
+        rms_px=float(np.sqrt(np.mean(np.sum(inl**2, axis=1)))),
+        sigma_px=res.sigma_px,
+        fit_views=tuple(vnames[v] for v in fit),
+        holdout=holdout,
+        scale=scale_check(rig, scale_bar) if scale_bar is not None else None,
+        suspect_cameras=tuple(suspects),
+        warnings=tuple(warnings),
+        T_rig_board=tuple(_T(R, t) for R, t in zip(st.R_rig_board, st.t_rig_board, strict=True)),
+        iterations=res.iterations,
+    )
+
+
+def _T(R: Array, t: Array) -> Array:
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R, t
+    return T
+
+
+def _rms(res: Array) -> float:
+    return float(np.sqrt(np.mean(np.sum(res**2, axis=1)))) if len(res) else float("nan")
+
+
+def _results(
+    rig_name: str,
+    names: list[str],
+    sizes: Mapping[str, tuple[int, int]],
+    res: rig_bundle.BundleResult,
+    obs: rig_bundle.Observations,
+    fit: list[int],
+    det: list[dict[str, CornerDetection]],
+    rms0: dict[str, float],
+) -> tuple[Rig, tuple[CameraReport, ...]]:
+    st = res.state
+    cams, reports = [], []
+    for c, n in enumerate(names):
+        sel = obs.camera == c
+        rms = _rms(res.residuals[sel & res.inliers])
+        fx, fy, cx, cy, *dist = st.intrinsics[c]
+        K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+        T = _T(st.R_rig_cam[c], st.p_rig_cam[c])
+        if c == 0:
+            T = np.eye(4)
+        else:  # re-orthonormalise what the updates left
+            T[:3, :3] = Rotation.from_matrix(T[:3, :3]).as_matrix()
+        w, h = sizes[n]
+        cams.append(Camera(n, w, h, K, np.array(dist), T, rms))
+        sd = np.sqrt(np.clip(np.diag(res.camera_cov[c]), 0.0, None))
+        reports.append(
+            CameraReport(
+                name=n,
+                views=sum(1 for v in fit if n in det[v]),
+                corners=int((sel & res.inliers).sum()),
+                rejected=int((sel & ~res.inliers).sum()),
+                rms_px=rms,
+                rms_all_px=_rms(res.residuals[sel]),
+                initial_rms_px=rms0[n],
+                sigma_fx_px=float(sd[0]),
+                sigma_fy_px=float(sd[1]),
+                sigma_cx_px=float(sd[2]),
+                sigma_cy_px=float(sd[3]),
+                sigma_position_mm=sd[12:15].copy(),
+                sigma_rotation_deg=np.degrees(sd[9:12]),
+                covariance=res.camera_cov[c].copy(),
+            )
+        )
+    return Rig(rig_name, tuple(cams)), tuple(reports)
+
+
+def _holdout(
+    board: Board,
+    rig: Rig,
+    det: list[dict[str, CornerDetection]],
+    held: list[int],
+    held_names: list[str],
+    free: NDArray[np.bool_],
+    opt: RigCalibrationOptions,
+) -> HoldoutCheck:
+    """Reprojection and length errors on the held-out views, cameras fixed."""
+    names = [c.name for c in rig.cameras]
+    pts = _board_points(board)
+    boards = []
+    for v in held:
+        n = max(det[v], key=lambda k: len(det[v][k].ids))
+        cam, d = rig.camera(n), det[v][n]
+        ok, rvec, tvec = cv2.solvePnP(pts[d.ids], d.pixels, cam.K, cam.dist)
+        if not ok:
+            raise MeasurementError(f"{n}: the board's pose in a held-out view is not found")
+        boards.append(cam.T_rig_cam @ pose(rvec, tvec))
+    state = rig_bundle.RigState(
+        np.array([[c.K[0, 0], c.K[1, 1], c.K[0, 2], c.K[1, 2], *c.dist[:5]] for c in rig.cameras]),
+        np.array([c.T_rig_cam[:3, :3] for c in rig.cameras]),
+        np.array([c.T_rig_cam[:3, 3] for c in rig.cameras]),
+        np.array([T[:3, :3] for T in boards]),
+        np.array([T[:3, 3] for T in boards]),
+    )
+    obs = _observations(det, held, names, pts)
+    res = rig_bundle.adjust(state, obs, free, fix_cameras=True, outlier_sigma=opt.outlier_sigma)
+    errors = []
+    for v in held:
+        seen: dict[int, list[tuple[Camera, Array]]] = {}
+        for n, d in det[v].items():
+            for i, px in zip(d.ids, d.pixels, strict=True):
+                seen.setdefault(int(i), []).append((rig.camera(n), px))
+        ids = sorted(i for i, s in seen.items() if len(s) >= 2)
+        X = np.array([triangulate(*zip(*seen[i], strict=True)) for i in ids]).reshape(-1, 3)
+        iu, ju = np.triu_indices(len(ids), k=1)
+        measured = np.linalg.norm(X[iu] - X[ju], axis=1)
+        known = np.linalg.norm(pts[ids][iu] - pts[ids][ju], axis=1)
+        errors.append(measured - known)
+    err = np.concatenate(errors)
+    return HoldoutCheck(
+        views=tuple(held_names),
+        corners=int(res.inliers.sum()),
+        reprojection_rms_px=_rms(res.residuals[res.inliers]),
+        lengths=len(err),
+        length_rms_mm=float(np.sqrt(np.mean(err**2))) if len(err) else float("nan"),
+        length_max_mm=float(np.abs(err).max()) if len(err) else float("nan"),
+    )
