@@ -160,12 +160,9 @@ class AravisRig:
     Protocol."""
 
     def __init__(self, options: AravisRigOptions, *, clock: Clock | None = None) -> None:
-        names = [c.name for c in options.cameras]
-        if len(set(names)) != len(names):
-            raise DeviceError(f"rig {options.name}: camera names must be distinct: {names}")
         self.name = options.name
         self.options = options
-        self.cameras = tuple(names)
+        self.cameras = tuple(c.name for c in options.cameras)
         self.clock = clock or WallClock()
         self._links: dict[str, AravisLink] = {}
         self._workers: dict[str, _Worker] = {}

@@ -53,12 +53,9 @@ class FilesRig:
     Protocol."""
 
     def __init__(self, options: FilesRigOptions, *, clock: Clock | None = None) -> None:
-        names = [c.name for c in options.cameras]
-        if len(set(names)) != len(names):
-            raise DeviceError(f"rig {options.name}: camera names must be distinct: {names}")
         self.name = options.name
         self.options = options
-        self.cameras = tuple(names)
+        self.cameras = tuple(c.name for c in options.cameras)
         self.directory = Path(options.directory)
         self.clock = clock or WallClock()
         self._sets: list[Path] = []

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 from typing import Annotated, Any, Protocol
 
 from numpy.typing import NDArray
-from pydantic import Field
+from pydantic import Field, model_validator
 
 from cellcal.device_options import Name, Strict
 
@@ -94,6 +94,13 @@ class RigOptions(Strict):
 
     name: Name = "rig"
     backend: str
+
+    @model_validator(mode="after")
+    def _distinct_names(self) -> RigOptions:
+        names = [c.name for c in getattr(self, "cameras", [])]
+        if len(set(names)) != len(names):
+            raise ValueError(f"rig {self.name}: camera names must be distinct: {names}")
+        return self
 
 
 #: backend → the rig class, imported only when asked for (``aravis`` needs PyGObject).

@@ -16,6 +16,10 @@ from cellcal.mocks.rig_scene import dome_target, four_camera_rig, volume_centre
 from cellcal.photofiles import write_rig, write_target
 
 
+def measure_args(root: Path) -> list[object]:
+    return ["rig", "measure", "--rig", root / "rig.toml", "--target", root / "target.toml"]
+
+
 def run(capsys: pytest.CaptureFixture[str], *args: object) -> tuple[int, str, str]:
     with pytest.raises(SystemExit) as exc:
         main([str(a) for a in args])
@@ -88,35 +92,14 @@ def test_sets_go_on_past_a_set_the_rig_cannot_measure(
     capsys: pytest.CaptureFixture[str], scene: dict
 ) -> None:
     root: Path = scene["root"]
-    code, out, err = run(
-        capsys,
-        "rig",
-        "measure",
-        "--rig",
-        root / "rig.toml",
-        "--target",
-        root / "target.toml",
-        "--sets",
-        root / "sets",
-        "--json",
-    )
+    code, out, err = run(capsys, *measure_args(root), "--sets", root / "sets", "--json")
     assert code == 0, err
     lines = [json.loads(x) for x in out.splitlines()]
     assert [x["set"] for x in lines] == ["set00", "set01", "set02", "set03"]
     for line, truth in zip(lines[:3], scene["truths"], strict=True):
         assert np.linalg.norm(np.array(line["xyz_mm"]) - truth) < 0.1
     assert "seen by 1 camera(s) (cam0)" in lines[3]["error"]
-    code, out, _ = run(
-        capsys,
-        "rig",
-        "measure",
-        "--rig",
-        root / "rig.toml",
-        "--target",
-        root / "target.toml",
-        "--sets",
-        root / "sets",
-    )
+    code, out, _ = run(capsys, *measure_args(root), "--sets", root / "sets")
     assert code == 0 and out.count(" mm  (1σ ") == 3
 
 

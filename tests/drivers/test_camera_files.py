@@ -113,3 +113,5 @@ def test_no_sets_and_bad_options(tmp_path: Path) -> None:
         FilesRigOptions.model_validate({"directory": "x", "cameras": []})
     with pytest.raises(pydantic.ValidationError):
         FilesRigOptions.model_validate({"directory": "x", "cameras": [{"name": "a b"}]})
+    with pytest.raises(pydantic.ValidationError, match="camera names must be distinct"):
+        FilesRigOptions.model_validate({"directory": "x", "cameras": [{"name": "a"}] * 2})
