@@ -21,6 +21,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from cellcal.calib.marker_corners import grey
 from cellcal.errors import FileFormatError, InputError
 
 #: Larger image files are refused (a 16-bit 20-megapixel PNG is about 40 MB).
@@ -95,17 +96,6 @@ def set_folders(root: str | Path) -> list[Path]:
     if not folders:
         raise FileFormatError(f"{p}: no image sets (one folder per set, <camera>.png in each)")
     return folders
-
-
-def grey(image: Image) -> Image:
-    """A colour image (BGR/BGRA) as grey of the same bit depth; grey stays as it is."""
-    if image.ndim == 3 and image.shape[2] in (3, 4):
-        code = cv2.COLOR_BGR2GRAY if image.shape[2] == 3 else cv2.COLOR_BGRA2GRAY
-        out: Image = cv2.cvtColor(image, code)
-        return out
-    if image.ndim == 3 and image.shape[2] == 1:
-        return image[:, :, 0]
-    return image
 
 
 @dataclass(frozen=True, eq=False)

@@ -82,13 +82,23 @@ class MarkerImage:
     edges_px: Edges
 
 
+def grey(image: Image) -> Image:
+    """A colour image (BGR/BGRA, as OpenCV reads it) as grey of the same bit depth; a
+    grey one (also (h, w, 1)) as it is."""
+    a: Image = np.asarray(image)
+    if a.ndim == 3 and a.shape[2] in (3, 4):
+        out: Image = cv2.cvtColor(a, cv2.COLOR_BGR2GRAY if a.shape[2] == 3 else cv2.COLOR_BGRA2GRAY)
+        return out
+    if a.ndim == 3 and a.shape[2] == 1:
+        return a[:, :, 0]
+    return a
+
+
 def grey_levels(image: Image) -> tuple[Image, Image]:
     """An image as (8-bit grey for the detector, grey for the edges: the 8-bit image
     itself, or float32 in 8-bit units for a 16-bit one). Accepts 8- or 16-bit, grey or
     colour (BGR/BGRA as OpenCV reads them)."""
-    a: Image = np.asarray(image)
-    if a.ndim == 3 and a.shape[2] in (3, 4):
-        a = cv2.cvtColor(a, cv2.COLOR_BGR2GRAY if a.shape[2] == 3 else cv2.COLOR_BGRA2GRAY)
+    a = grey(image)
     if a.ndim != 2 or a.size == 0:
         raise InputError(f"not a grey or colour image (shape {a.shape})")
     if a.dtype == np.uint8:

@@ -32,6 +32,7 @@ from scipy.spatial.transform import Rotation
 from cellcal.calib import rig_bundle
 from cellcal.calib.camera_rig import Board, Camera, Rig
 from cellcal.calib.geometry import Array
+from cellcal.calib.marker_corners import grey
 from cellcal.calib.rig_bundle import (
     ScaleBar,
     ScaleCheck,
@@ -150,10 +151,7 @@ class RigCalibration:
 def grey8(image: Image) -> Image:
     """An 8-bit grey image from 8/16-bit grey or colour (BGR/BGRA) data; 16-bit data are
     scaled so that their brightest pixel becomes 255."""
-    img = np.asarray(image)
-    if img.ndim == 3 and img.shape[2] in (3, 4):
-        code = cv2.COLOR_BGR2GRAY if img.shape[2] == 3 else cv2.COLOR_BGRA2GRAY
-        img = cv2.cvtColor(img, code)
+    img = grey(image)
     if img.ndim != 2:
         raise InputError(f"image: expected a grey or colour image, got shape {img.shape}")
     if img.dtype == np.uint8:

@@ -29,7 +29,7 @@ import cv2
 import numpy as np
 
 from cellcal.calib.camera_rig import Rig, Target
-from cellcal.calib.geometry import Array, invert, so3_exp
+from cellcal.calib.geometry import Array, invert, skew, so3_exp
 from cellcal.calib.marker_corners import MarkerCorners
 from cellcal.errors import MeasurementError
 
@@ -123,11 +123,11 @@ class _Model:
         d_proj *= f[:, :, None]
         d_pc = np.einsum("nij,njk->nik", d_proj, R_cr)  # ∂px/∂p_rig (n, 2, 3)
         rp = p - T[:3, 3]  # R·P: dp/dω = −[R·P]×
-        skew = np.zeros((len(z), 3, 3))
-        skew[:, 0, 1], skew[:, 0, 2] = -rp[:, 2], rp[:, 1]
-        skew[:, 1, 0], skew[:, 1, 2] = rp[:, 2], -rp[:, 0]
-        skew[:, 2, 0], skew[:, 2, 1] = -rp[:, 1], rp[:, 0]
-        J = np.concatenate([np.einsum("nij,njk->nik", d_pc, -skew), d_pc], axis=2)
+        rp_x = np.zeros((len(z), 3, 3))
+        rp_x[:, 0, 1], rp_x[:, 0, 2] = -rp[:, 2], rp[:, 1]
+        rp_x[:, 1, 0], rp_x[:, 1, 2] = rp[:, 2], -rp[:, 0]
+        rp_x[:, 2, 0], rp_x[:, 2, 1] = -rp[:, 1], rp[:, 0]
+        J = np.concatenate([np.einsum("nij,njk->nik", d_pc, -rp_x), d_pc], axis=2)
         return r, J
 
 
@@ -279,7 +279,7 @@ def _result(
     cov = np.asarray(sigma2 * np.linalg.inv(JtJ), dtype=np.float64)
     ref = T[:3, :3] @ target.reference
     J_ref = np.zeros((3, 6))
-    J_ref[:, :3] = -np.array([[0, -ref[2], ref[1]], [ref[2], 0, -ref[0]], [-ref[1], ref[0], 0]])
+    J_ref[:, :3] = -skew(ref)
     J_ref[:, 3:] = np.eye(3)
     xyz = ref + T[:3, 3]
     cams = tuple(sorted({names[int(i)] for i in np.unique(o.cam)}))

@@ -17,10 +17,11 @@ from typing import Annotated, Literal
 
 from pydantic import Field
 
+from cellcal.calib.marker_corners import grey
 from cellcal.clock import Clock, WallClock
 from cellcal.drivers.cameras import CameraOptions, Frame, FrameSet, RigOptions
 from cellcal.errors import DeviceError, FileFormatError
-from cellcal.imagefiles import Image, grey, set_folders
+from cellcal.imagefiles import Image, set_folders
 from cellcal.imagefiles import read_image as read_image_file
 
 __all__ = ["FilesRig", "FilesRigOptions", "read_image"]

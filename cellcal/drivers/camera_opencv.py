@@ -21,11 +21,11 @@ import cv2
 import numpy as np
 from pydantic import Field
 
+from cellcal.calib.marker_corners import grey
 from cellcal.clock import Clock, WallClock
 from cellcal.drivers.base import label
 from cellcal.drivers.cameras import CameraOptions, Frame, FrameSet, RigOptions
 from cellcal.errors import DeviceError
-from cellcal.imagefiles import grey
 
 __all__ = ["OpenCVCameraOptions", "OpenCVRig", "OpenCVRigOptions"]
 

@@ -62,17 +62,7 @@ def scene(tmp_path_factory: pytest.TempPathFactory) -> dict:
 def test_one_set_json(capsys: pytest.CaptureFixture[str], scene: dict) -> None:
     root: Path = scene["root"]
     images = [f"--image=cam{k}={root / 'sets' / 'set01' / f'cam{k}.png'}" for k in range(4)]
-    code, out, err = run(
-        capsys,
-        "rig",
-        "measure",
-        "--rig",
-        root / "rig.toml",
-        "--target",
-        root / "target.toml",
-        *images,
-        "--json",
-    )
+    code, out, err = run(capsys, *measure_args(root), *images, "--json")
     assert code == 0, err
     got = json.loads(out)
     assert set(got) >= {
@@ -122,12 +112,7 @@ def test_bad_images_end_in_one_line(
     mutate(bad)  # type: ignore[operator]
     code, out, err = run(
         capsys,
-        "rig",
-        "measure",
-        "--rig",
-        root / "rig.toml",
-        "--target",
-        root / "target.toml",
+        *measure_args(root),
         f"--image=cam0={root / 'sets' / 'set00' / 'cam0.png'}",
         f"--image=cam1={bad}",
     )
@@ -137,7 +122,7 @@ def test_bad_images_end_in_one_line(
 
 def test_usage_errors(capsys: pytest.CaptureFixture[str], scene: dict) -> None:
     root: Path = scene["root"]
-    base = ["rig", "measure", "--rig", root / "rig.toml", "--target", root / "target.toml"]
+    base = measure_args(root)
     code, _, err = run(capsys, *base)
     assert code == 2 and "either --image" in err
     code, _, err = run(capsys, *base, "--image", "cam7=x.png")

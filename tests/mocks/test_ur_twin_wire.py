@@ -165,8 +165,9 @@ def test_protocol_v1_is_framed_as_v1() -> None:
         assert mtype == DATA and len(body) == 8
         assert set(cycles(c.timestamps(20, offset=0))) == {1}  # v1: 500 Hz
         c.send(PAUSE)
-        while (msg := c.recv())[0] == DATA:
-            pass
+        msg = c.recv()
+        while msg[0] == DATA:  # data packets already on the way before the pause
+            msg = c.recv()
         assert msg == (PAUSE, b"\x01")
 
 
