@@ -46,6 +46,12 @@ class DeviceError(UserError):
     """A device that cannot be reached, refuses a command or reports a fault."""
 
 
+class NoTargetError(DeviceError):
+    """The device works but does not measure its target at this pose: a broken beam, a
+    target the cameras do not see. The campaign keeps the pose with what the other
+    sensors measured, and says so."""
+
+
 class CampaignError(UserError):
     """A campaign that cannot be started or resumed as asked (unknown id, changed plan)."""
 

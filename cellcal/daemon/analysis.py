@@ -1,6 +1,14 @@
 """After acquisition: register each sensor to the robot base, calibrate the robot from
-the reference sensor, and validate on the validation poses inside and outside the
-cube. Reads the store, writes its results back, returns a summary."""
+the reference sensor, validate on the validation poses inside and outside the cube, and
+fuse what the sensors measured of each pose (``calib/fusion.py``). Reads the store,
+writes its results back, returns a summary.
+
+Each pose mean is weighted by its uncertainty: the covariance of the mean when the
+sensor gave one (the rig: its diagonal in the sensor's frame, whose z is about the
+cameras' depth; the fit takes per-axis weights), else the samples' standard deviation
+over √n. A pose a sensor did not measure (a broken beam, a target the cameras did not
+see) is left out of that sensor's registration; a pose without the reference sensor is
+left out of the calibration and the validation, and the summary says how many."""
 
 from __future__ import annotations
 
@@ -11,8 +19,10 @@ import numpy as np
 
 from cellcal.calib.acceptance import ACCURACY_CLASS_MM, CHECK_REGISTRATION, check_data
 from cellcal.calib.error_model import predict
+from cellcal.calib.fusion import Estimate, carried, fuse, in_base
 from cellcal.calib.geometry import Array
 from cellcal.calib.identification import CalibrationResult, calibrate, fit_frames
+from cellcal.calib.kinematics import target_kinematics
 from cellcal.calib.outliers import PointResidual, point_residuals
 from cellcal.calib.robot_model import RobotModel
 from cellcal.calib.validation import ErrorStats
@@ -26,6 +36,8 @@ from cellcal.modelfiles import builtin_models, calibrated_toml
 PAPER = {"other_method_mm": 0.436, "cl_inside_mm": 0.200, "cl_outside_mm": 0.323}
 #: Floor of a per-axis σ of a pose mean (mm), so that one quiet pose cannot dominate.
 SIGMA_FLOOR_MM = 1e-4
+#: A sensor that measured fewer calibration poses than this is not registered.
+MIN_REGISTRATION_POSES = 6
 
 
 @dataclass(frozen=True)
@@ -42,6 +54,19 @@ class SensorRegistration:
     rms_calibrated_mm: float
     T_sensor_base_calibrated: Array
     target_offset_calibrated_mm: Array
+
+
+@dataclass(frozen=True)
+class Agreement:
+    """How one sensor agrees with the reference after registration, over the ``n`` poses
+    both measured: the RMS distance of its estimate of the reference point from the
+    reference's (mm) and the fused χ² per degree of freedom (about 1 when both
+    covariances tell the truth)."""
+
+    sensor: str
+    n: int
+    rms_mm: float
+    chi2_per_dof: float
 
 
 @dataclass(frozen=True)
@@ -66,6 +91,10 @@ class CampaignSummary:
     regions: tuple[RegionErrors, ...]
     #: the reference sensor's residual at each calibration pose (named by plan index)
     points: tuple[PointResidual, ...] = ()
+    agreements: tuple[Agreement, ...] = ()
+    #: poses fused (at least one sensor measured them)
+    n_fused: int = 0
+    warnings: tuple[str, ...] = ()
 
     @property
     def improvement_pct(self) -> float:
@@ -120,6 +149,12 @@ class CampaignSummary:
                 "unidentifiable": list(c.unidentifiable),
                 "warnings": list(c.warnings),
             },
+            "agreements": [
+                {"sensor": a.sensor, "n": a.n, "rms_mm": a.rms_mm, "chi2_per_dof": a.chi2_per_dof}
+                for a in self.agreements
+            ],
+            "n_fused": self.n_fused,
+            "warnings": list(self.warnings),
             "points": [p.as_dict() for p in self.points],
             "outliers": [p.name for p in self.points if p.outlier],
             "paper": PAPER,
@@ -127,10 +162,21 @@ class CampaignSummary:
 
 
 def mean_sigma(data: PoseData, sensor: str) -> Array:
-    """The 1σ (mm, per axis) of each pose's mean position: the samples' standard
-    deviation over √n, floored — the weights of the analysis (and of the report's CSVs)."""
+    """The 1σ (mm, per axis) of each pose's mean position: from the mean's covariance
+    where the sensor gave one, else the samples' standard deviation over √n; floored —
+    the weights of the analysis (and of the report's CSVs)."""
     s = data.std[sensor] / np.sqrt(np.maximum(data.n[sensor], 1))[:, None]
-    out: Array = np.maximum(s, SIGMA_FLOOR_MM)
+    own = np.sqrt(np.abs(np.diagonal(data.cov[sensor], axis1=1, axis2=2)))
+    out: Array = np.maximum(np.where(np.isfinite(own), own, s), SIGMA_FLOOR_MM)
+    return out
+
+
+def mean_covariance(data: PoseData, sensor: str) -> Array:
+    """The covariance (N×3×3, mm²) of each pose's mean: the sensor's own where it gave
+    one, else diagonal from :func:`mean_sigma`."""
+    own = data.cov[sensor]
+    diag = np.einsum("ni,ij->nij", mean_sigma(data, sensor) ** 2, np.eye(3))
+    out: Array = np.where(np.asarray(np.isfinite(own).all(axis=(1, 2)))[:, None, None], own, diag)
     return out
 
 
@@ -152,11 +198,19 @@ def analyse(
     data = store.pose_data(campaign_id)
     role = np.array(data.role)
     region = np.array(data.region)
-    cal = role == CALIBRATION
-    val = role == VALIDATION
     if reference not in data.mean:
         raise CampaignError(
             f"campaign {campaign_id}: no samples from the reference sensor {reference!r}"
+        )
+    has_ref = data.measured(reference)
+    cal = (role == CALIBRATION) & has_ref
+    val = (role == VALIDATION) & has_ref
+    warnings = []
+    lost = len(has_ref) - int(np.count_nonzero(has_ref))
+    if lost:
+        warnings.append(
+            f"{lost} pose(s) without the reference sensor {reference!r} (broken beam): "
+            "left out of the calibration and the validation"
         )
     q_cal = data.q[cal]
 
@@ -179,46 +233,24 @@ def analyse(
     registrations = []
     writes: list[tuple[str, tuple[Any, ...]]] = []
     for sensor in sorted(data.mean):
-        m = data.mean[sensor][cal]
-        s = sigma(sensor, cal)
-        check = check_data(nominal, q_cal, m, nominal.tool)
-        if check and not accept:
-            raise AcceptanceError(check[0].check, f"sensor {sensor}: {check[0].message}")
-        base = fit_frames(nominal, q_cal, m, s)
-        e_nom = m - predict(base, q_cal)
-        if _rms(e_nom) > ACCURACY_CLASS_MM and not accept:
-            raise AcceptanceError(
-                CHECK_REGISTRATION,
-                f"sensor {sensor}: the nominal model with best-fit frames leaves RMS "
-                f"{_rms(e_nom):.3g} mm, far worse than any robot's accuracy class: its samples "
-                "do not belong to this robot's poses (another target, a clock out of step)",
+        mask = (role == CALIBRATION) & data.measured(sensor)
+        if int(mask.sum()) < MIN_REGISTRATION_POSES:
+            warnings.append(
+                f"sensor {sensor}: measured {int(mask.sum())} calibration poses, fewer than "
+                f"{MIN_REGISTRATION_POSES}: not registered"
             )
-        after = fit_frames(result.calibrated, q_cal, m, s)
-        e_cal = m - predict(after, q_cal)
-        T = base.T_sensor_base
-        registrations.append(
-            SensorRegistration(
-                sensor=sensor,
-                n=int(cal.sum()),
-                T_sensor_base=T,
-                target_offset_mm=base.tool,
-                rms_nominal_mm=_rms(e_nom),
-                max_nominal_mm=float(np.max(np.linalg.norm(e_nom, axis=1))),
-                rms_calibrated_mm=_rms(e_cal),
-                T_sensor_base_calibrated=after.T_sensor_base,
-                target_offset_calibrated_mm=after.tool,
-            )
+            continue
+        reg, rows = _register(
+            nominal,
+            result,
+            data.q[mask],
+            data.mean[sensor][mask],
+            sigma(sensor, mask),
+            sensor,
+            accept,
         )
-        n_cal = int(cal.sum())
-        e_max_nom = float(np.max(np.linalg.norm(e_nom, axis=1)))
-        e_max_cal = float(np.max(np.linalg.norm(e_cal, axis=1)))
-        writes.append((sensor, ("nominal", n_cal, _rms(e_nom), e_max_nom, T, base.tool)))
-        writes.append(
-            (
-                sensor,
-                ("calibrated", n_cal, _rms(e_cal), e_max_cal, after.T_sensor_base, after.tool),
-            )
-        )
+        registrations.append(reg)
+        writes += [(sensor, r) for r in rows]
 
     baseline = fit_frames(nominal, q_cal, ref_m[cal], sigma(reference, cal))
     e_before = ref_m[val] - predict(baseline, data.q[val])
@@ -235,6 +267,8 @@ def analyse(
     regions = tuple(
         r for r in (errors(reg_val == name, name) for name in sorted(set(reg_val))) if r is not None
     )
+    estimates = _estimates(data, result, registrations, reference)
+    fused = [fuse(list(e.values())) if e else None for e in estimates]
     summary = CampaignSummary(
         campaign_id=campaign_id,
         reference=reference,
@@ -248,6 +282,9 @@ def analyse(
         outside=outside,
         regions=regions,
         points=point_residuals([str(int(i)) for i in data.idx[cal]], result.residuals),
+        agreements=_agreements(estimates, reference),
+        n_fused=sum(f is not None for f in fused),
+        warnings=tuple(warnings),
     )
     # All results of one analysis in one transaction: a crash leaves none or all.
     with store.transaction():
@@ -264,5 +301,92 @@ def analyse(
             unidentifiable=result.unidentifiable,
             model_toml=calibrated_toml(result, None, f"campaign {campaign_id}", summary.points),
         )
+        for pose_id, f in zip(data.pose_id, fused, strict=True):
+            if f is not None:
+                store.add_fused(campaign_id, int(pose_id), f.sensors, f.xyz, f.cov, f.chi2)
         store.add_report(campaign_id, summary.to_dict())
     return summary
+
+
+def _register(
+    nominal: RobotModel,
+    result: CalibrationResult,
+    q: Array,
+    m: Array,
+    s: Array,
+    sensor: str,
+    accept: bool,
+) -> tuple[SensorRegistration, list[tuple[Any, ...]]]:
+    """One sensor registered with the nominal and with the calibrated geometry; refused
+    when its samples do not follow the robot. Returns the registration and its rows."""
+    check = check_data(nominal, q, m, nominal.tool)
+    if check and not accept:
+        raise AcceptanceError(check[0].check, f"sensor {sensor}: {check[0].message}")
+    base = fit_frames(nominal, q, m, s)
+    e_nom = m - predict(base, q)
+    if _rms(e_nom) > ACCURACY_CLASS_MM and not accept:
+        raise AcceptanceError(
+            CHECK_REGISTRATION,
+            f"sensor {sensor}: the nominal model with best-fit frames leaves RMS "
+            f"{_rms(e_nom):.3g} mm, far worse than any robot's accuracy class: its samples "
+            "do not belong to this robot's poses (another target, a clock out of step)",
+        )
+    after = fit_frames(result.calibrated, q, m, s)
+    e_cal = m - predict(after, q)
+    e_max_nom = float(np.max(np.linalg.norm(e_nom, axis=1)))
+    e_max_cal = float(np.max(np.linalg.norm(e_cal, axis=1)))
+    reg = SensorRegistration(
+        sensor=sensor,
+        n=len(q),
+        T_sensor_base=base.T_sensor_base,
+        target_offset_mm=base.tool,
+        rms_nominal_mm=_rms(e_nom),
+        max_nominal_mm=e_max_nom,
+        rms_calibrated_mm=_rms(e_cal),
+        T_sensor_base_calibrated=after.T_sensor_base,
+        target_offset_calibrated_mm=after.tool,
+    )
+    rows = [
+        ("nominal", len(q), _rms(e_nom), e_max_nom, base.T_sensor_base, base.tool),
+        ("calibrated", len(q), _rms(e_cal), e_max_cal, after.T_sensor_base, after.tool),
+    ]
+    return reg, rows
+
+
+def _estimates(
+    data: PoseData,
+    result: CalibrationResult,
+    registrations: list[SensorRegistration],
+    reference: str,
+) -> list[dict[str, Estimate]]:
+    """At each pose, each registered sensor's estimate of the reference point (base frame
+    of the calibrated model), from the poses it measured."""
+    ref_offset = next(r for r in registrations if r.sensor == reference).target_offset_calibrated_mm
+    R = target_kinematics(result.calibrated, data.q, np.zeros(3), jacobian=False).R_flange
+    out: list[dict[str, Estimate]] = [{} for _ in data.idx]
+    for r in registrations:
+        cov = mean_covariance(data, r.sensor)
+        for k in np.flatnonzero(data.measured(r.sensor)):
+            e = in_base(r.sensor, data.mean[r.sensor][k], cov[k], r.T_sensor_base_calibrated)
+            out[k][r.sensor] = carried(e, R[k], r.target_offset_calibrated_mm, ref_offset)
+    return out
+
+
+def _agreements(estimates: list[dict[str, Estimate]], reference: str) -> tuple[Agreement, ...]:
+    """Each other sensor against the reference, over the poses both measured."""
+    pairs: dict[str, list[tuple[float, float]]] = {}
+    for at_pose in estimates:
+        ref = at_pose.get(reference)
+        for sensor, e in at_pose.items():
+            if ref is not None and sensor != reference:
+                d2 = float(np.sum((e.xyz - ref.xyz) ** 2))
+                pairs.setdefault(sensor, []).append((d2, fuse([ref, e]).chi2 or 0.0))
+    return tuple(
+        Agreement(
+            sensor,
+            len(v),
+            float(np.sqrt(np.mean([d2 for d2, _ in v]))),
+            float(np.mean([c for _, c in v])) / 3.0,
+        )
+        for sensor, v in sorted(pairs.items())
+    )

@@ -2,8 +2,10 @@
 record for every pose it measured and every event on the way (``records.py``).
 
 Per pose: move → (the driver returns once the robot reports it is in position) →
-dwell on the clock, waiting on the stop event → sample every sensor concurrently →
-emit the pose with its raw samples (the store, a critical subscriber, writes it in one
+dwell on the clock, waiting on the stop event → sample every sensor concurrently (a
+sensor fault measures the pose again; a sensor that does not see its target —
+:class:`~cellcal.errors.NoTargetError`, a broken beam — is left out of the pose, with an
+event) → emit the pose with its raw samples (the store, a critical subscriber, writes it in one
 transaction before the next move). Poses already stored (a resumed campaign) are
 skipped. A stop request (Ctrl-C, SIGTERM, the service) acts at once during the dwell
 and between steps: the pose under way is abandoned unstored, so the campaign stays
@@ -14,7 +16,7 @@ from __future__ import annotations
 
 import threading
 from collections.abc import Collection, Sequence
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -23,7 +25,7 @@ from cellcal.clock import Clock
 from cellcal.daemon.plan import Plan, PlannedPose
 from cellcal.daemon.records import CampaignEvent, PoseStored, RecordStream
 from cellcal.drivers.base import PositionSensor, Robot, Series
-from cellcal.errors import DeviceError
+from cellcal.errors import DeviceError, NoTargetError
 
 #: A reached joint position further than this from the plan (rad) is refused.
 IN_POSITION_TOL = 1e-3
@@ -104,6 +106,14 @@ def acquire(
     return Acquisition(len(done) + stored_now, stored_now, interrupted, clock.now() - t0)
 
 
+def _outcome(future: Future[Series]) -> Series | DeviceError:
+    """A sensor's series, or the device error it ended with."""
+    try:
+        return future.result()
+    except DeviceError as exc:
+        return exc
+
+
 def _visit(
     pose: PlannedPose,
     robot: Robot,
@@ -139,17 +149,26 @@ def _visit(
 
     retries = 0
     for attempt in range(SAMPLE_RETRIES + 1):
-        try:
-            series = [f.result() for f in [pool.submit(sample, s) for s in sensors]]
+        outcomes = [_outcome(f) for f in [pool.submit(sample, s) for s in sensors]]
+        faults = [
+            o for o in outcomes if isinstance(o, DeviceError) and not isinstance(o, NoTargetError)
+        ]
+        if not faults:
             break
-        except DeviceError as exc:
-            if attempt == SAMPLE_RETRIES:
-                raise
-            # The pose is still where it should be: measure it again, once or twice.
-            retries += 1
-            event = CampaignEvent(campaign_id, "sensor-retry", str(exc), pose.idx, clock.now())
-            stream.emit(event)
-            start = clock.now()
+        if attempt == SAMPLE_RETRIES:
+            raise faults[0]
+        # The pose is still where it should be: measure it again, once or twice.
+        retries += 1
+        event = CampaignEvent(campaign_id, "sensor-retry", str(faults[0]), pose.idx, clock.now())
+        stream.emit(event)
+        start = clock.now()
+    series = [o for o in outcomes if isinstance(o, Series)]
+    for s, o in zip(sensors, outcomes, strict=True):
+        if isinstance(o, NoTargetError):
+            # A broken beam, a target out of the cameras' view: the pose keeps what the
+            # other sensors measured, and says so.
+            message = f"pose {pose.idx} kept without {s.sensor.name}: {o}"
+            stream.emit(CampaignEvent(campaign_id, "no-target", message, pose.idx, clock.now()))
     return PoseStored(
         campaign_id,
         pose,

@@ -32,7 +32,6 @@ import json
 import sqlite3
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
-from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 from urllib.parse import quote
@@ -41,7 +40,18 @@ import numpy as np
 import sqlite_utils
 
 from cellcal.calib.geometry import Array
-from cellcal.daemon.store_schema import MIGRATIONS, SCHEMA_VERSION
+from cellcal.daemon.store_results import AnalysisTables
+from cellcal.daemon.store_schema import (
+    COV_COLUMNS,
+    MIGRATIONS,
+    SAMPLE_COLUMNS,
+    SCHEMA_VERSION,
+    UPPER,
+    floats,
+    sql_value,
+    symmetric,
+    utc_now,
+)
 from cellcal.drivers.base import Series
 from cellcal.errors import CampaignError, UserError
 
@@ -50,10 +60,6 @@ __all__ = ["MIGRATIONS", "SCHEMA_VERSION", "CampaignRow", "PoseData", "Store", "
 
 class StoreError(UserError):
     """A database that cannot be opened or used (not SQLite, newer schema, locked)."""
-
-
-def _utc() -> str:
-    return datetime.now(UTC).isoformat(timespec="milliseconds")
 
 
 @dataclass(frozen=True)
@@ -76,7 +82,7 @@ class CampaignRow:
 class PoseData:
     """Everything stored about a campaign's poses, as arrays in plan order: ``idx``,
     ``role``, ``region``, reached joints (rad), and per sensor the mean position, its
-    standard deviation and the sample count."""
+    standard deviation, the sample count and the mean's covariance."""
 
     idx: Array
     role: tuple[str, ...]
@@ -85,10 +91,21 @@ class PoseData:
     mean: dict[str, Array]
     std: dict[str, Array]
     n: dict[str, Array]
+    #: per sensor, the covariance of each pose's mean (N×3×3, mm²; NaN where the sensor
+    #: gave none, or measured nothing at that pose)
+    cov: dict[str, Array]
+    #: the poses' row ids
+    pose_id: Array
+
+    def measured(self, sensor: str) -> Array:
+        """Which poses this sensor measured (a boolean mask)."""
+        if sensor not in self.mean:
+            return np.zeros(len(self.idx), dtype=bool)
+        return np.asarray(np.isfinite(self.mean[sensor]).all(axis=1))
 
 
-class Store:
-    """One campaign database file."""
+class Store(AnalysisTables):
+    """One campaign database file (the analysis's tables: :class:`AnalysisTables`)."""
 
     def __init__(self, path: str | Path, *, readonly: bool = False) -> None:
         self.path = str(path)
@@ -169,7 +186,7 @@ class Store:
                 sensors, n_poses, samples_per_pose, dwell_s, plan_digest, config_path,
                 config_json) VALUES (?, 'running', ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)""",
                 (
-                    _utc(),
+                    utc_now(),
                     int(mock),
                     seed,
                     time_scale,
@@ -210,7 +227,7 @@ class Store:
         )
 
     def set_status(self, campaign_id: int, status: str) -> None:
-        finished = _utc() if status in ("complete", "failed", "refused") else None
+        finished = utc_now() if status in ("complete", "failed", "refused") else None
         with self.transaction():
             self.conn.execute(
                 "UPDATE campaigns SET status = ?, finished = ? WHERE id = ?",
@@ -263,28 +280,47 @@ class Store:
                         json.dumps([round(float(v), 9) for v in np.degrees(reached_q)]),
                         t_start,
                         t_end,
-                        _utc(),
+                        utc_now(),
                     ),
                 )
                 pose_id = int(cur.lastrowid or 0)
                 for s in series:
-                    table = np.column_stack([s.host_time, s.device_time, s.xyz]).tolist()
-                    self.conn.executemany(
-                        """INSERT INTO samples (pose_id, sensor, host_time, device_time, x, y, z)
-                        VALUES (?, ?, ?, ?, ?, ?, ?)""",
-                        [(pose_id, s.sensor, *row) for row in table],
-                    )
-                    m, sd = s.mean, s.std
-                    self.conn.execute(
-                        """INSERT INTO pose_stats (pose_id, sensor, n, mean_x, mean_y, mean_z,
-                        std_x, std_y, std_z, retries) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?)""",
-                        (pose_id, s.sensor, s.n, *map(float, m), *map(float, sd), s.retries),
-                    )
+                    self._add_series(pose_id, s)
         except sqlite3.IntegrityError as exc:
             raise CampaignError(
                 f"campaign {campaign_id}: pose {idx} is already stored ({exc})"
             ) from None
         return pose_id
+
+    def _add_series(self, pose_id: int, s: Series) -> None:
+        """A series' samples (with their covariances and orientations when it has them)
+        and its statistics; inside the pose's transaction."""
+        n = s.n
+        cov = s.cov[:, UPPER[0], UPPER[1]] if s.cov is not None else np.full((n, 6), np.nan)
+        ori = s.orientation if s.orientation is not None else np.full((n, 4), np.nan)
+        table = np.column_stack([s.host_time, s.device_time, s.xyz, cov, ori]).tolist()
+        columns = ", ".join(SAMPLE_COLUMNS)
+        marks = ", ".join("?" * (len(SAMPLE_COLUMNS) + 1))
+        self.conn.executemany(
+            f"INSERT INTO samples (pose_id, sensor, {columns}) VALUES (?, {marks})",
+            [(pose_id, s.sensor, *map(sql_value, row)) for row in table],
+        )
+        mc = s.mean_covariance
+        mean_cov = mc[UPPER] if mc is not None else np.full(6, np.nan)
+        self.conn.execute(
+            f"""INSERT INTO pose_stats (pose_id, sensor, n, mean_x, mean_y, mean_z,
+            std_x, std_y, std_z, retries, {", ".join(COV_COLUMNS)})
+            VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)""",
+            (
+                pose_id,
+                s.sensor,
+                n,
+                *map(sql_value, s.mean if n else np.full(3, np.nan)),
+                *map(sql_value, s.std),
+                s.retries,
+                *map(sql_value, mean_cov),
+            ),
+        )
 
     def add_event(
         self, campaign_id: int, kind: str, message: str, pose_idx: int | None = None
@@ -293,7 +329,7 @@ class Store:
             self.conn.execute(
                 """INSERT INTO events (campaign_id, time, kind, pose_idx, message)
                 VALUES (?, ?, ?, ?, ?)""",
-                (campaign_id, _utc(), kind, pose_idx, message),
+                (campaign_id, utc_now(), kind, pose_idx, message),
             )
 
     def events(self, campaign_id: int) -> list[dict[str, Any]]:
@@ -314,20 +350,24 @@ class Store:
         mean: dict[str, Array] = {}
         std: dict[str, Array] = {}
         n: dict[str, Array] = {}
+        cov: dict[str, Array] = {}
         stats = self.conn.execute(
-            """SELECT s.pose_id, s.sensor, s.n, s.mean_x, s.mean_y, s.mean_z, s.std_x, s.std_y,
-            s.std_z FROM pose_stats s JOIN poses p ON p.id = s.pose_id WHERE p.campaign_id = ?""",
+            f"""SELECT s.pose_id, s.sensor, s.n, s.mean_x, s.mean_y, s.mean_z, s.std_x, s.std_y,
+            s.std_z, {self._pose_stats_cov()}
+            FROM pose_stats s JOIN poses p ON p.id = s.pose_id WHERE p.campaign_id = ?""",
             (campaign_id,),
         )
-        for pid, sensor, cnt, mx, my, mz, sx, sy, sz in stats:
+        for pid, sensor, cnt, mx, my, mz, sx, sy, sz, *c in stats:
             if sensor not in mean:
                 mean[sensor] = np.full((len(ids), 3), np.nan)
                 std[sensor] = np.full((len(ids), 3), np.nan)
                 n[sensor] = np.zeros(len(ids))
+                cov[sensor] = np.full((len(ids), 3, 3), np.nan)
             k = pos[pid]
-            mean[sensor][k] = (mx, my, mz)
-            std[sensor][k] = (sx, sy, sz)
+            mean[sensor][k] = floats((mx, my, mz))
+            std[sensor][k] = floats((sx, sy, sz))
             n[sensor][k] = cnt
+            cov[sensor][k] = symmetric(floats(c))
         q = np.radians(np.array([json.loads(p[4]) for p in poses])) if poses else np.zeros((0, 0))
         return PoseData(
             idx=np.array([p[1] for p in poses], dtype=int),
@@ -337,83 +377,16 @@ class Store:
             mean=mean,
             std=std,
             n=n,
+            cov=cov,
+            pose_id=np.array(ids, dtype=int),
         )
 
-    # ------------------------------------------------------------------ analysis results
-
-    def add_registration(
-        self,
-        campaign_id: int,
-        sensor: str,
-        geometry: str,
-        n: int,
-        rms_mm: float,
-        max_mm: float,
-        T_sensor_base: Array,
-        target_offset_mm: Array,
-    ) -> None:
-        with self.transaction():
-            self.conn.execute(
-                """INSERT INTO registrations (campaign_id, sensor, geometry, created, n, rms_mm,
-                max_mm, T_sensor_base, target_offset_mm) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)""",
-                (
-                    campaign_id,
-                    sensor,
-                    geometry,
-                    _utc(),
-                    n,
-                    rms_mm,
-                    max_mm,
-                    json.dumps(np.asarray(T_sensor_base).tolist()),
-                    json.dumps(np.asarray(target_offset_mm).tolist()),
-                ),
-            )
-
-    def add_calibration(
-        self,
-        campaign_id: int,
-        sensor: str,
-        *,
-        n_points: int,
-        rms_before_mm: float,
-        rms_after_mm: float,
-        condition_number: float,
-        identified: Iterable[str],
-        unidentifiable: Iterable[str],
-        model_toml: str,
-    ) -> None:
-        with self.transaction():
-            self.conn.execute(
-                """INSERT INTO calibrations (campaign_id, sensor, created, n_points,
-                rms_before_mm, rms_after_mm, condition_number, identified, unidentifiable,
-                model_toml) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?)""",
-                (
-                    campaign_id,
-                    sensor,
-                    _utc(),
-                    n_points,
-                    rms_before_mm,
-                    rms_after_mm,
-                    condition_number,
-                    json.dumps(list(identified)),
-                    json.dumps(list(unidentifiable)),
-                    model_toml,
-                ),
-            )
-
-    def add_report(self, campaign_id: int, summary: dict[str, Any]) -> None:
-        with self.transaction():
-            self.conn.execute(
-                "INSERT INTO reports (campaign_id, created, summary) VALUES (?, ?, ?)",
-                (campaign_id, _utc(), json.dumps(summary)),
-            )
-
-    def latest_report(self, campaign_id: int) -> dict[str, Any] | None:
-        row = self.conn.execute(
-            "SELECT summary FROM reports WHERE campaign_id = ? ORDER BY id DESC LIMIT 1",
-            (campaign_id,),
-        ).fetchone()
-        return None if row is None else dict(json.loads(row[0]))
+    def _pose_stats_cov(self) -> str:
+        """The covariance columns of ``pose_stats``: NULLs in a file older than schema 3
+        opened read-only (which cannot be migrated)."""
+        if self.schema_version < 3:
+            return ", ".join("NULL" for _ in COV_COLUMNS)
+        return ", ".join(f"s.{c}" for c in COV_COLUMNS)
 
 
 def _open_readonly(path: str) -> sqlite3.Connection:

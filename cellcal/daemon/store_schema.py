@@ -2,18 +2,55 @@
 
 The version is SQLite's ``user_version``: schema 1 holds the acquisition (``campaigns``,
 ``poses``, ``samples``, ``events``), schema 2 adds the analysis (``registrations``,
-``calibrations``, ``reports``). :data:`MIGRATIONS` [v] brings a file from version v to
-v + 1; ``cellcal.daemon.store`` runs them when it opens an older file. The core tables
+``calibrations``, ``reports``), schema 3 adds each sample's covariance and orientation,
+the covariance of each pose's mean, and the fused positions (``fused``).
+:data:`MIGRATIONS` [v] brings a file from version v to v + 1; ``cellcal.daemon.store``
+runs them when it opens an older file. The core tables
 and columns are public (``docs/database.md``) and are never renamed.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
+from datetime import UTC, datetime
 
+import numpy as np
 import sqlite_utils
 
-SCHEMA_VERSION = 2
+from cellcal.calib.geometry import Array
+
+SCHEMA_VERSION = 3
+
+#: A symmetric 3×3 covariance (mm²) as six columns.
+COV_COLUMNS = ("cov_xx", "cov_xy", "cov_xz", "cov_yy", "cov_yz", "cov_zz")
+#: A unit quaternion (w, x, y, z) as four columns.
+ORI_COLUMNS = ("ori_w", "ori_x", "ori_y", "ori_z")
+
+#: the sample columns after (pose_id, sensor), in the order the store writes them
+SAMPLE_COLUMNS = ("host_time", "device_time", "x", "y", "z", *COV_COLUMNS, *ORI_COLUMNS)
+#: the upper triangle of a 3×3 matrix in COV_COLUMNS' order
+UPPER = (np.array([0, 0, 0, 1, 1, 2]), np.array([0, 1, 2, 1, 2, 2]))
+
+
+def utc_now() -> str:
+    """A row's time stamp: UTC, ISO 8601, milliseconds."""
+    return datetime.now(UTC).isoformat(timespec="milliseconds")
+
+
+def sql_value(v: float) -> float | None:
+    """NaN is NULL in the database."""
+    return None if v != v else float(v)
+
+
+def floats(values: Iterable[float | None]) -> Array:
+    return np.array([np.nan if v is None else v for v in values], dtype=np.float64)
+
+
+def symmetric(upper: Array) -> Array:
+    out = np.empty((3, 3))
+    out[UPPER] = upper
+    out[UPPER[1], UPPER[0]] = upper
+    return out
 
 
 def _schema_1(db: sqlite_utils.Database) -> None:
@@ -126,4 +163,30 @@ def _schema_2(db: sqlite_utils.Database) -> None:
     )
 
 
-MIGRATIONS: tuple[Callable[[sqlite_utils.Database], None], ...] = (_schema_1, _schema_2)
+def _schema_3(db: sqlite_utils.Database) -> None:
+    # NULL where a sensor gives no covariance or orientation (the tracker; old rows)
+    for column in (*COV_COLUMNS, *ORI_COLUMNS):
+        db.execute(f"ALTER TABLE samples ADD COLUMN {column} REAL")
+    for column in COV_COLUMNS:
+        db.execute(f"ALTER TABLE pose_stats ADD COLUMN {column} REAL")
+    cov = ", ".join(f"{c} REAL NOT NULL" for c in COV_COLUMNS)
+    db.execute(
+        f"""CREATE TABLE fused (
+            id INTEGER PRIMARY KEY,
+            campaign_id INTEGER NOT NULL REFERENCES campaigns(id),
+            pose_id INTEGER NOT NULL REFERENCES poses(id),
+            created TEXT NOT NULL,
+            sensors TEXT NOT NULL,
+            x REAL NOT NULL, y REAL NOT NULL, z REAL NOT NULL,
+            {cov},
+            mahalanobis2 REAL
+        )"""
+    )
+    db.execute("CREATE INDEX fused_pose ON fused (pose_id)")
+
+
+MIGRATIONS: tuple[Callable[[sqlite_utils.Database], None], ...] = (
+    _schema_1,
+    _schema_2,
+    _schema_3,
+)

@@ -42,18 +42,34 @@ def host_port(address: str, default_port: int) -> tuple[str, int]:
 @dataclass(frozen=True)
 class Series:
     """One sensor's samples at one pose: host and device timestamps (s) and positions
-    (N×3, mm, in the sensor's frame); ``retries`` counts re-measurements after faults."""
+    (N×3, mm, in the sensor's frame); ``retries`` counts re-measurements after faults.
+
+    A sensor that knows each sample's uncertainty (the photogrammetry rig) adds ``cov``
+    (N×3×3, mm²), the target's orientation in its frame (``orientation``, N×4 unit
+    quaternions w, x, y, z) and the covariance of the mean (``mean_cov``, 3×3, mm², which
+    may hold a part that does not average over samples); ``note`` says what it could
+    not measure (frames lost)."""
 
     sensor: str
     host_time: Array
     device_time: Array
     xyz: Array
     retries: int = 0
+    cov: Array | None = None
+    orientation: Array | None = None
+    mean_cov: Array | None = None
+    note: str = ""
 
     def __post_init__(self) -> None:
         n = len(self.xyz)
         if self.xyz.shape != (n, 3) or len(self.host_time) != n or len(self.device_time) != n:
             raise ValueError("series: timestamps and positions must have the same length")
+        if self.cov is not None and self.cov.shape != (n, 3, 3):
+            raise ValueError("series: one 3×3 covariance per sample")
+        if self.orientation is not None and self.orientation.shape != (n, 4):
+            raise ValueError("series: one quaternion (w, x, y, z) per sample")
+        if self.mean_cov is not None and self.mean_cov.shape != (3, 3):
+            raise ValueError("series: the mean's covariance is 3×3")
 
     @property
     def n(self) -> int:
@@ -70,6 +86,17 @@ class Series:
         if self.n < 2:
             return np.zeros(3)
         out: Array = self.xyz.std(axis=0, ddof=1)
+        return out
+
+    @property
+    def mean_covariance(self) -> Array | None:
+        """The covariance of the mean (mm²) when the sensor gave one: ``mean_cov``, else
+        the samples' covariances averaged over n; None for a sensor without them."""
+        if self.mean_cov is not None:
+            return self.mean_cov
+        if self.cov is None or self.n == 0:
+            return None
+        out: Array = self.cov.mean(axis=0) / self.n
         return out
 
 

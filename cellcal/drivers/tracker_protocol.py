@@ -12,7 +12,7 @@ import math
 import re
 from dataclasses import dataclass
 
-from cellcal.errors import DeviceError
+from cellcal.errors import DeviceError, NoTargetError
 
 
 @dataclass(frozen=True)
@@ -127,7 +127,7 @@ class TrackerNotInitializedError(TrackerError):
     code = 39
 
 
-class BeamBrokenError(TrackerError):
+class BeamBrokenError(TrackerError, NoTargetError):
     code = 40
 
 

@@ -16,7 +16,7 @@ from cellcal.daemon.plan import make_plan
 from cellcal.daemon.records import CampaignEvent, PoseStored, RecordStream
 from cellcal.daemon.store import Store, StoreError
 from cellcal.daemon.store_writer import StoreWriter
-from cellcal.errors import DeviceError
+from cellcal.errors import DeviceError, NoTargetError
 from cellcal.modelfiles import load_model
 
 CONFIG = config_from_dict(
@@ -169,7 +169,7 @@ def test_a_device_fault_propagates_and_keeps_what_was_stored(tmp_path):
     assert store.completed_indices(cid) == {0, 1}
 
 
-def _rig_fails_once(devices, on_call: int, message: str) -> None:
+def _rig_fails_once(devices, on_call: int, message: str, error=DeviceError) -> None:
     """The rig's ``on_call``-th measurement raises ``message``; every other one measures."""
     rig = next(s.sensor for s in devices.sensors if s.sensor.name == "rig")
     original = rig.measure
@@ -178,7 +178,7 @@ def _rig_fails_once(devices, on_call: int, message: str) -> None:
     def flaky(n, rate):
         calls["n"] += 1
         if calls["n"] == on_call:
-            raise DeviceError(message)
+            raise error(message)
         return original(n, rate)
 
     rig.measure = flaky
@@ -192,6 +192,21 @@ def test_a_failing_sensor_is_asked_again_and_the_event_kept(tmp_path):
     assert out.stored == 10
     events = store.events(cid)
     assert [(e["kind"], e["pose_idx"]) for e in events] == [("sensor-retry", 3)]
+    devices.close()
+
+
+def test_a_sensor_that_does_not_see_its_target_leaves_the_pose_to_the_others(tmp_path):
+    clock = SimulatedClock()
+    plan, devices, store, cid = _setup(tmp_path, clock)
+    _rig_fails_once(devices, 4, "rig: the target is out of view", NoTargetError)
+    out = _acquire(store, cid, plan, devices, clock)
+    assert out.stored == 10  # no pose lost, none measured again
+    events = store.events(cid)
+    assert [(e["kind"], e["pose_idx"]) for e in events] == [("no-target", 3)]
+    assert "kept without rig: rig: the target is out of view" in events[0]["message"]
+    data = store.pose_data(cid)
+    assert data.measured("tracker").all()
+    assert data.measured("rig").tolist() == [k != 3 for k in range(10)]
     devices.close()
 
 

@@ -112,11 +112,90 @@ def test_migration_from_schema_1_keeps_the_data(tmp_path):
     )
     conn.close()
     store = Store(path)
-    assert store.schema_version == 2
+    assert store.schema_version == SCHEMA_VERSION
     assert store.campaign(1).model == "ur10e"
-    assert {"registrations", "calibrations", "reports"} <= set(store.db.table_names())
+    assert {"registrations", "calibrations", "reports", "fused"} <= set(store.db.table_names())
     store.add_report(1, {"ok": True})
     assert store.latest_report(1) == {"ok": True}
+
+
+def _schema_2_file(path):
+    """A campaign database as cellcal wrote it before per-sample covariances."""
+    conn = sqlite3.connect(path, isolation_level=None)
+    db = sqlite_utils.Database(conn)
+    MIGRATIONS[0](db)
+    MIGRATIONS[1](db)
+    conn.execute("PRAGMA user_version = 2")
+    conn.execute(
+        """INSERT INTO campaigns (created, status, mock, seed, time_scale, model, sensors, n_poses,
+        samples_per_pose, dwell_s, plan_digest, config_path, config_json)
+        VALUES ('2026-01-01', 'complete', 1, 1, 0, 'ur10e', '["tracker"]', 1, 2, 7, 'x',
+        NULL, '{}')"""
+    )
+    conn.execute(
+        """INSERT INTO poses (campaign_id, idx, role, region, planned_q_deg, reached_q_deg,
+        t_start, t_end, stored) VALUES (1, 0, 'calibration', 'cube', '[0,0,0,0,0,0]',
+        '[0,0,0,0,0,0]', 0, 1, 'x')"""
+    )
+    conn.execute(
+        """INSERT INTO samples (pose_id, sensor, host_time, device_time, x, y, z)
+        VALUES (1, 'tracker', 0, 0, 1, 2, 3), (1, 'tracker', 0.1, 0.1, 1, 2, 5)"""
+    )
+    conn.execute(
+        """INSERT INTO pose_stats (pose_id, sensor, n, mean_x, mean_y, mean_z, std_x, std_y,
+        std_z, retries) VALUES (1, 'tracker', 2, 1, 2, 4, 0, 0, 1.4142, 0)"""
+    )
+    conn.close()
+
+
+def test_a_schema_2_file_reads_read_only_and_migrates_keeping_its_samples(tmp_path):
+    path = tmp_path / "v2.db"
+    _schema_2_file(path)
+    old = Store(path, readonly=True)
+    assert old.schema_version == 2
+    data = old.pose_data(1)
+    np.testing.assert_allclose(data.mean["tracker"][0], [1, 2, 4])
+    assert np.isnan(data.cov["tracker"][0]).all()
+    old.close()
+    store = Store(path)
+    assert store.schema_version == SCHEMA_VERSION
+    data = store.pose_data(1)
+    np.testing.assert_allclose(data.mean["tracker"][0], [1, 2, 4])
+    assert data.measured("tracker").tolist() == [True]
+    assert data.measured("rig").tolist() == [False]
+    rows = store.conn.execute("SELECT z, cov_xx, ori_w FROM samples ORDER BY id").fetchall()
+    assert rows == [(3.0, None, None), (5.0, None, None)]
+
+
+def test_covariances_and_orientations_round_trip(tmp_path):
+    store = Store(tmp_path / "c.db")
+    cid = _campaign(store)
+    n = 3
+    rng = np.random.default_rng(4)
+    a = rng.normal(size=(n, 3, 3))
+    cov = a @ a.transpose(0, 2, 1) * 1e-4
+    q = rng.normal(size=(n, 4))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    t = np.arange(n) * 0.1
+    rig = Series("rig", t, t, rng.normal(size=(n, 3)), cov=cov, orientation=q)
+    _pose(store, cid, 0, [_series("tracker"), rig])
+    data = store.pose_data(cid)
+    # the mean's covariance: the samples' averaged over n (the sensor gave no other)
+    np.testing.assert_allclose(data.cov["rig"][0], cov.mean(axis=0) / n, rtol=1e-12)
+    assert np.isnan(data.cov["tracker"][0]).all()
+    stored = store.conn.execute(
+        "SELECT cov_xx, cov_xy, cov_zz, ori_w, ori_z FROM samples WHERE sensor = 'rig' ORDER BY id"
+    ).fetchall()
+    np.testing.assert_allclose(
+        stored, np.column_stack([cov[:, 0, 0], cov[:, 0, 1], cov[:, 2, 2], q[:, 0], q[:, 3]])
+    )
+    # a sensor's own covariance of the mean (a floor that does not average) wins
+    floor = np.eye(3) * 0.25
+    own = Series("rig", t, t, rng.normal(size=(n, 3)), cov=cov, mean_cov=floor)
+    _pose(store, cid, 1, [own])
+    np.testing.assert_allclose(store.pose_data(cid).cov["rig"][1], floor)
+    with pytest.raises(ValueError, match="covariance per sample"):
+        Series("rig", t, t, np.zeros((n, 3)), cov=np.zeros((n, 3)))
 
 
 def test_refuses_newer_and_foreign_files(tmp_path):

@@ -1,0 +1,132 @@
+"""The analysis's tables of the campaign database: registrations, calibrations, fused
+positions and reports. A mixin of :class:`~cellcal.daemon.store.Store`, which owns the
+connection and the transactions; the schema is ``store_schema.py``'s."""
+
+from __future__ import annotations
+
+import json
+import sqlite3
+from collections.abc import Iterable
+from typing import Any, Protocol
+
+import numpy as np
+
+from cellcal.calib.geometry import Array
+from cellcal.daemon.store_schema import COV_COLUMNS, UPPER, utc_now
+
+
+class _Transaction(Protocol):
+    def __enter__(self) -> sqlite3.Connection: ...
+
+    def __exit__(self, exc_type: object, exc: object, tb: object) -> None: ...
+
+
+class AnalysisTables:
+    """Writes and reads the analysis's results; every write in its own transaction, or
+    in the caller's (one analysis is stored whole or not at all)."""
+
+    conn: sqlite3.Connection
+
+    def transaction(self) -> _Transaction:
+        raise TypeError("AnalysisTables is a mixin of Store")
+
+    def add_registration(
+        self,
+        campaign_id: int,
+        sensor: str,
+        geometry: str,
+        n: int,
+        rms_mm: float,
+        max_mm: float,
+        T_sensor_base: Array,
+        target_offset_mm: Array,
+    ) -> None:
+        with self.transaction():
+            self.conn.execute(
+                """INSERT INTO registrations (campaign_id, sensor, geometry, created, n, rms_mm,
+                max_mm, T_sensor_base, target_offset_mm) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)""",
+                (
+                    campaign_id,
+                    sensor,
+                    geometry,
+                    utc_now(),
+                    n,
+                    rms_mm,
+                    max_mm,
+                    json.dumps(np.asarray(T_sensor_base).tolist()),
+                    json.dumps(np.asarray(target_offset_mm).tolist()),
+                ),
+            )
+
+    def add_calibration(
+        self,
+        campaign_id: int,
+        sensor: str,
+        *,
+        n_points: int,
+        rms_before_mm: float,
+        rms_after_mm: float,
+        condition_number: float,
+        identified: Iterable[str],
+        unidentifiable: Iterable[str],
+        model_toml: str,
+    ) -> None:
+        with self.transaction():
+            self.conn.execute(
+                """INSERT INTO calibrations (campaign_id, sensor, created, n_points,
+                rms_before_mm, rms_after_mm, condition_number, identified, unidentifiable,
+                model_toml) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?)""",
+                (
+                    campaign_id,
+                    sensor,
+                    utc_now(),
+                    n_points,
+                    rms_before_mm,
+                    rms_after_mm,
+                    condition_number,
+                    json.dumps(list(identified)),
+                    json.dumps(list(unidentifiable)),
+                    model_toml,
+                ),
+            )
+
+    def add_fused(
+        self,
+        campaign_id: int,
+        pose_id: int,
+        sensors: Iterable[str],
+        xyz: Array,
+        cov: Array,
+        mahalanobis2: float | None,
+    ) -> None:
+        """One pose's fused position (robot base frame, mm) with its covariance (mm²),
+        the sensors it came from and their agreement (squared Mahalanobis distance)."""
+        with self.transaction():
+            self.conn.execute(
+                f"""INSERT INTO fused (campaign_id, pose_id, created, sensors, x, y, z,
+                {", ".join(COV_COLUMNS)}, mahalanobis2)
+                VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)""",
+                (
+                    campaign_id,
+                    pose_id,
+                    utc_now(),
+                    json.dumps(list(sensors)),
+                    *map(float, xyz),
+                    *map(float, cov[UPPER]),
+                    mahalanobis2,
+                ),
+            )
+
+    def add_report(self, campaign_id: int, summary: dict[str, Any]) -> None:
+        with self.transaction():
+            self.conn.execute(
+                "INSERT INTO reports (campaign_id, created, summary) VALUES (?, ?, ?)",
+                (campaign_id, utc_now(), json.dumps(summary)),
+            )
+
+    def latest_report(self, campaign_id: int) -> dict[str, Any] | None:
+        row = self.conn.execute(
+            "SELECT summary FROM reports WHERE campaign_id = ? ORDER BY id DESC LIMIT 1",
+            (campaign_id,),
+        ).fetchone()
+        return None if row is None else dict(json.loads(row[0]))
