@@ -22,6 +22,7 @@ from cellcal.commands.predict import predict
 from cellcal.commands.register import register
 from cellcal.commands.report import campaign, report
 from cellcal.commands.rig import rig
+from cellcal.commands.rig_capture import mock_cameras, rig_capture
 from cellcal.commands.run import run
 from cellcal.commands.tracker import tracker
 from cellcal.errors import AcceptanceError, UserError
@@ -48,6 +49,8 @@ def cli(verbose: int) -> None:
 
 for command in (run, register, calibrate, predict, models, tracker, mock, report, campaign, rig):
     cli.add_command(command)
+rig.add_command(rig_capture)
+mock.add_command(mock_cameras)
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -127,9 +127,10 @@ class SimulationConfig(Strict):
     tracker_rotation_deg: Vec3 = Field(default_factory=lambda: [0.0, 0.0, 160.0])
     tracker_radial_um: Annotated[float, Field(ge=0)] = 10.0
     tracker_transverse_um_per_m: Annotated[float, Field(ge=0)] = 6.0
-    rig_position_mm: Vec3 = Field(default_factory=lambda: [1900.0, 1200.0, 2200.0])
-    rig_rotation_deg: Vec3 = Field(default_factory=lambda: [150.0, 20.0, -120.0])
-    rig_noise_mm: Annotated[float, Field(ge=0)] = 0.05
+    rig_position_mm: Vec3 = Field(default_factory=lambda: [1478.051, 1015.744, 1026.564])
+    rig_rotation_deg: Vec3 = Field(default_factory=lambda: [91.234945, -9.586413, -35.837374])
+    rig_blur_px: Annotated[float, Field(ge=0, le=10)] = 0.8
+    rig_noise_grey: Annotated[float, Field(ge=0, le=50)] = 2.0
     joint_speed_deg_s: Annotated[float, Field(gt=0, le=3600)] = 60.0
 
 
@@ -173,6 +174,7 @@ RENAMED = {
     "settle_timeout_s": "move_timeout_s",
     "modbus": "map (the port went into robot.address, error into error_code, "
     "timeout_s into robot.move_timeout_s)",
+    "rig_noise_mm": "rig_noise_grey and rig_blur_px (the rig's cameras are rendered)",
 }
 
 
@@ -229,6 +231,8 @@ def upgrade_stored(data: dict[str, Any]) -> dict[str, Any]:
         robot["map"] = old
     elif driver == "ur" and settle is not None:
         robot["move_timeout_s"] = settle
+    simulation = dict(data.get("simulation") or {})
+    simulation.pop("rig_noise_mm", None)
     sensors = []
     for raw in data.get("sensor") or []:
         s = dict(raw)
@@ -236,32 +240,39 @@ def upgrade_stored(data: dict[str, Any]) -> dict[str, Any]:
             s["address"] = s.pop("url")
         if s.get("kind") == "laser-tracker" and s.get("driver") == "simulated":
             s["driver"] = "line-protocol"
+        if s.get("kind") == "photogrammetry" and s.get("driver") == "simulated":
+            raise ConfigError(
+                f"sensor {s.get('name')}: this campaign's rig was the noise model of an "
+                "earlier cellcal, which is gone; it cannot be resumed (run it again)"
+            )
         sensors.append(s)
-    return {**data, "robot": robot, "sensor": sensors}
+    return {**data, "robot": robot, "sensor": sensors, "simulation": simulation}
 
 
 def load_config(path: str | Path, *, relative_paths: bool = True) -> CellConfig:
     """Read and validate a cell configuration file; relative paths in it are taken
-    relative to its folder (``relative_paths=False``: left as written, for the bundled
-    cell, whose database belongs in the working folder)."""
+    relative to its folder (``relative_paths=False``: the database's is left as written,
+    for the bundled cell, whose database belongs in the working folder)."""
     p = Path(path)
     try:
         data = read_toml(p)
     except FileFormatError as exc:
         raise ConfigError(str(exc)) from None
     config = config_from_dict(data, str(p))
-    return _relative_to(config, p.parent) if relative_paths else config
+    return _relative_to(config, p.parent, database=relative_paths)
 
 
-def _relative_to(config: CellConfig, folder: Path) -> CellConfig:
-    """Relative file paths in a configuration (a robot model file, the database) are
-    relative to the configuration file's folder, not to where the command runs."""
+def _relative_to(config: CellConfig, folder: Path, *, database: bool = True) -> CellConfig:
+    """Relative file paths in a configuration (a robot model file, a sensor's files, the
+    database) are relative to the configuration file's folder, not to where the command
+    runs."""
     from cellcal.modelfiles import builtin_names
 
     robot = config.robot
     if robot.model not in builtin_names() and not Path(robot.model).is_absolute():
         robot = robot.model_copy(update={"model": str(folder / robot.model)})
     storage = config.storage
-    if not Path(storage.database).is_absolute():
+    if database and not Path(storage.database).is_absolute():
         storage = storage.model_copy(update={"database": str(folder / storage.database)})
-    return config.model_copy(update={"robot": robot, "storage": storage})
+    sensors = [s.relative_to(folder) for s in config.sensor]
+    return config.model_copy(update={"robot": robot, "storage": storage, "sensor": sensors})

@@ -9,6 +9,7 @@ not belong to the chosen driver is refused with its path. Lengths mm, angles deg
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
@@ -56,17 +57,18 @@ class SensorOptions(Strict):
     target_offset_mm: Vec3 = Field(default_factory=lambda: [0.0, 0.0, 0.0])
     reference: bool = False
 
+    def endpoint(self) -> str:
+        """Where the device is reached ("" when not configured)."""
+        return self.address
+
+    def relative_to(self, folder: Path) -> SensorOptions:
+        """The options with relative file paths taken relative to ``folder`` (the
+        configuration file's); a driver with files overrides it."""
+        return self
+
 
 class SimulatedRobotOptions(RobotOptions):
     """``driver = "simulated"``: the simulated cell's robot, moved in-process (mock mode
     only; a real cell has a real controller)."""
 
-    driver: Literal["simulated"] = "simulated"
-
-
-class SimulatedRigOptions(SensorOptions):
-    """A photogrammetry rig with ``driver = "simulated"``: the simulated cell's noise model
-    of a rig, in-process (mock mode only)."""
-
-    kind: Literal["photogrammetry"] = "photogrammetry"
     driver: Literal["simulated"] = "simulated"

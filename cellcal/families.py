@@ -60,7 +60,7 @@ FAMILIES: tuple[Family, ...] = (
     Family("robot", ROBOT, "modbus", "cellcal.drivers.modbus_robot:ModbusRobotOptions", "cellcal.drivers.modbus_robot:ModbusRobot", "cellcal.mocks.modbus_robot_server:serve", "a controller behind Modbus TCP with the handshake map of docs/robots.md"),  # noqa: E501
     Family("robot", ROBOT, "ur", "cellcal.drivers.ur:UROptions", "cellcal.drivers.ur:URRobot", "cellcal.mocks.ur_server:serve", "a Universal Robots e-Series controller through ur_rtde"),  # noqa: E501
     Family("sensor", "laser-tracker", "line-protocol", "cellcal.drivers.tracker:LineTrackerOptions", "cellcal.drivers.tracker:LineTracker", "cellcal.mocks.tracker_server:serve", "a laser tracker speaking cellcal's line protocol over serial or TCP (docs/tracker.md)"),  # noqa: E501
-    Family("sensor", "photogrammetry", "simulated", "cellcal.device_options:SimulatedRigOptions", "cellcal.mocks.simulated_devices:SimulatedSensor", None, "the simulated cell's photogrammetry rig, a noise model in-process", mock_only=True),  # noqa: E501
+    Family("sensor", "photogrammetry", "cameras", "cellcal.drivers.photogrammetry:CameraRigOptions", "cellcal.drivers.photogrammetry:CameraRigSensor", "cellcal.mocks.rig_twin:serve", "a photogrammetry rig of cameras: marker corners, the target's pose from every camera (docs/photogrammetry.md)"),  # noqa: E501
 )  # fmt: skip
 
 

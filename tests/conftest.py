@@ -1,4 +1,6 @@
-"""Shared fixtures: the paper's Table 4 points and a random rigid problem factory."""
+"""Shared fixtures: the paper's Table 4 points, a random rigid problem factory, and the
+bundled simulated cell without its camera rig (campaigns in seconds, for the tests that
+are not about the rig)."""
 
 from __future__ import annotations
 
@@ -8,9 +10,19 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-DATA = Path(__file__).resolve().parents[1] / "cellcal" / "data"
+from cellcal.config import CellConfig, load_config
+
+ROOT = Path(__file__).resolve().parents[1]
+DATA = ROOT / "cellcal" / "data"
+#: the bundled cell less its rig: the tracker alone
+TRACKER_CELL = ROOT / "config" / "mock-cell-tracker.toml"
 TABLE4_SRC = DATA / "paper_table4_station1.csv"
 TABLE4_DST = DATA / "paper_table4_station2.csv"
+
+
+def tracker_cell() -> CellConfig:
+    """The bundled simulated cell with the tracker alone (its database path as written)."""
+    return load_config(TRACKER_CELL, relative_paths=False)
 
 
 def load_xyz(path: Path) -> np.ndarray:

@@ -188,7 +188,9 @@ def test_robot_options_that_do_not_belong_to_the_driver_are_refused(robot, messa
         ({"kind": "laser-tracker", "driver": "simulated"}, r"sensor\.2\.driver: no laser-tracker driver 'simulated' \(choose line-protocol\)"),  # noqa: E501
         ({"kind": "sonar"}, r"sensor\.2\.kind: 'sonar' is not a sensor kind \(laser-tracker, photogrammetry\)"),  # noqa: E501
         ({"driver": "line-protocol"}, r"sensor\.2\.kind: required key missing"),
-        ({"kind": "photogrammetry", "timeout_s": 3.0}, r"sensor\.2\.timeout_s: unknown key"),
+        ({"kind": "photogrammetry", "timeout_s": 3.0}, r"sensor\.2\.rig_file: required key missing"),  # noqa: E501
+        ({"kind": "photogrammetry", "rig_file": "r", "target_file": "t", "capture": {"backend": "files", "directory": "d", "cameras": [{"name": "c"}]}, "timeout_s": 3.0}, r"sensor\.2\.timeout_s: unknown key"),  # noqa: E501
+        ({"kind": "photogrammetry", "rig_file": "r", "target_file": "t", "capture": {"backend": "rendered", "cameras": ["c"], "scene": 1}}, r"sensor\.2\.capture: .*'aravis', 'opencv', 'files'"),  # noqa: E501
         ({"kind": "laser-tracker", "reflector": "RRR99"}, r"sensor\.2\.reflector: "),
     ],
 )  # fmt: skip
@@ -209,11 +211,10 @@ def test_a_driver_means_the_same_in_real_mode_and_refuses_what_it_cannot_reach()
         build_devices(config, nominal, SimulatedClock(), mock=False, seed=None)
     data = config.model_dump()
     data["robot"]["address"] = "127.0.0.1:9"
-    data["sensor"][0]["address"] = "socket://127.0.0.1:9"
-    data["sensor"][0]["reconnects"] = 0
-    with pytest.raises(DeviceError, match=r"sensor rig: driver = \"simulated\" is the simulated"):
+    rig = data["sensor"][1] | {"reference": True, "rig_file": "/no/such/rig.toml"}
+    with pytest.raises(DeviceError, match=r"sensor rig: .*/no/such/rig\.toml"):
         build_devices(
-            config_from_dict({**data, "sensor": [data["sensor"][1] | {"reference": True}]}),
+            config_from_dict({**data, "sensor": [rig]}),
             nominal,
             SimulatedClock(),
             mock=False,
@@ -235,12 +236,16 @@ def test_a_configuration_stored_by_an_earlier_version_is_brought_up_to_date():
         "sensor": [
             {"name": "tracker", "kind": "laser-tracker", "driver": "simulated", "url": "",
              "reference": True},
-            {"name": "rig", "kind": "photogrammetry", "driver": "simulated", "url": ""},
         ],
+        "simulation": {"rig_noise_mm": 0.05},
     }  # fmt: skip
     config = config_from_dict(upgrade_stored(old))
     assert config.robot.address == "10.1.1.1:1502" and config.robot.move_timeout_s == 45.0
     assert config.robot.map.device_id == 3 and config.robot.map.word_order == "little"
-    assert [s.driver for s in config.sensor] == ["line-protocol", "simulated"]
+    assert [s.driver for s in config.sensor] == ["line-protocol"]
+    # the rig's noise model is gone: its campaigns cannot be resumed, and say why
+    rig = {"name": "rig", "kind": "photogrammetry", "driver": "simulated", "url": ""}
+    with pytest.raises(ConfigError, match=r"sensor rig: .*noise model.* cannot be resumed"):
+        upgrade_stored({**old, "sensor": [*old["sensor"], rig]})
     old["robot"] = {"model": "ur10e", "driver": "ur", "settle_timeout_s": 30.0, "modbus": {}}
     assert config_from_dict(upgrade_stored(old)).robot.move_timeout_s == 30.0

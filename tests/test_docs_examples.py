@@ -97,6 +97,7 @@ def test_every_document_has_examples_that_are_collected() -> None:
 
 
 @pytest.mark.parametrize("doc", DOCUMENTS, ids=lambda p: p.name)
+@pytest.mark.timeout(1500)  # README runs the bundled campaign with its camera rig: minutes
 def test_examples_run_literally(doc: Path, tmp_path: Path) -> None:
     todo = steps(doc)
     if not todo:

@@ -25,7 +25,7 @@ def _host_port(text: str) -> tuple[str, int]:
     return host, int(port)
 
 
-def _wait_for_signal() -> None:
+def wait_for_signal() -> None:
     done = threading.Event()
 
     def on_signal(signum: int, frame: FrameType | None) -> None:
@@ -130,10 +130,12 @@ def mock_tracker(
             where = f"socket://{host}:{port}"
         click.echo(f"mock tracker {name!r} of {config.name!r} serving on {where}", err=True)
         click.echo(where)
-        _wait_for_signal()
+        wait_for_signal()
 
 
-def _cell(config_path: str | None, seed: int | None) -> tuple[CellConfig, SimulatedCell]:
+def simulated_cell_of(
+    config_path: str | None, seed: int | None
+) -> tuple[CellConfig, SimulatedCell]:
     from cellcal.commands.run import bundled_mock_cell
     from cellcal.mocks.simulated_cell import SimulatedCell
 
@@ -187,7 +189,7 @@ def mock_modbus_robot(
     )
     from cellcal.mocks.twins import limits_deg
 
-    config, cell = _cell(config_path, seed)
+    config, cell = simulated_cell_of(config_path, seed)
     robot = config.robot
     if not isinstance(robot, ModbusRobotOptions):
         raise InputError(
@@ -215,7 +217,7 @@ def mock_modbus_robot(
     try:
         click.echo(f"mock Modbus robot serving on {host}:{port}", err=True)
         click.echo(f"{host}:{port}")
-        _wait_for_signal()
+        wait_for_signal()
     finally:
         sim.stop()
 
@@ -245,7 +247,7 @@ def mock_ur(host: str, config_path: str | None, seed: int | None, time_scale: fl
 
     ref = resources.files("cellcal") / "data" / "mock-cell-ur10e.toml"
     with resources.as_file(ref) as bundled:
-        config, cell = _cell(config_path or str(bundled), seed)
+        config, cell = simulated_cell_of(config_path or str(bundled), seed)
     sim = simulator_for_cell(cell, config.robot.home_deg, time_scale)
     try:
         sim.start(host)
@@ -254,6 +256,6 @@ def mock_ur(host: str, config_path: str | None, seed: int | None, time_scale: fl
     try:
         click.echo(f"mock UR controller serving on {host} (30004, 29999, 30003)", err=True)
         click.echo(host)
-        _wait_for_signal()
+        wait_for_signal()
     finally:
         sim.stop()

@@ -84,7 +84,7 @@ def _build(
                 f'{_where(options)}: driver = "{family.driver}" is {family.summary}; '
                 "it needs --mock"
             )
-        if not options.address:
+        if not (options.endpoint() if isinstance(options, SensorOptions) else options.address):
             what = "controller" if family.role == "robot" else "sensor"
             raise DeviceError(
                 f"{_where(options)}.address is empty: where is the {what} "

@@ -163,6 +163,10 @@ def _visit(
         stream.emit(event)
         start = clock.now()
     series = [o for o in outcomes if isinstance(o, Series)]
+    for got in series:
+        if got.note:
+            message = f"pose {pose.idx}, {got.sensor}: {got.note}"
+            stream.emit(CampaignEvent(campaign_id, "sensor-note", message, pose.idx, clock.now()))
     for s, o in zip(sensors, outcomes, strict=True):
         if isinstance(o, NoTargetError):
             # A broken beam, a target out of the cameras' view: the pose keeps what the

@@ -108,6 +108,8 @@ BACKENDS = {
     "aravis": "cellcal.drivers.camera_aravis:AravisRig",
     "opencv": "cellcal.drivers.camera_opencv:OpenCVRig",
     "files": "cellcal.drivers.camera_files:FilesRig",
+    # mock mode's in-process fallback; a configuration cannot name it
+    "rendered": "cellcal.mocks.rig_twin:RenderedRig",
 }
 
 

@@ -52,6 +52,18 @@ def _rot_x(deg: float) -> Array:
     return np.array([[1, 0, 0], [0, np.cos(a), -np.sin(a)], [0, np.sin(a), np.cos(a)]])
 
 
+def _camera_poses(standoff_mm: float) -> list[Array]:
+    """T_world_cam of the four cameras; the volume centre is at (0, 0, standoff)."""
+    centre = np.array([0.0, 0.0, standoff_mm])
+    up = np.array([0.0, -1.0, 0.0])
+    poses = []
+    for el in (20.0, -20.0):
+        for az in (-25.0, 25.0):
+            eye = centre + _rot_y(az) @ _rot_x(el) @ np.array([0.0, 0.0, -standoff_mm])
+            poses.append(look_at(eye, centre, up))
+    return poses
+
+
 def four_camera_rig(
     standoff_mm: float = STANDOFF_MM,
     focal_px: float = 1000.0,
@@ -62,13 +74,7 @@ def four_camera_rig(
     """The simulated cell's rig: 4 cameras around a volume ``standoff_mm`` away."""
     w, h = size
     K = np.array([[focal_px, 0, (w - 1) / 2], [0, focal_px, (h - 1) / 2], [0, 0, 1.0]])
-    centre = np.array([0.0, 0.0, standoff_mm])
-    up = np.array([0.0, -1.0, 0.0])
-    poses = []
-    for el in (20.0, -20.0):
-        for az in (-25.0, 25.0):
-            eye = centre + _rot_y(az) @ _rot_x(el) @ np.array([0.0, 0.0, -standoff_mm])
-            poses.append(look_at(eye, centre, up))
+    poses = _camera_poses(standoff_mm)
     T_cam0_world = invert(poses[0])
     return Rig(
         name,
@@ -77,6 +83,21 @@ def four_camera_rig(
             for k, T in enumerate(poses)
         ),
     )
+
+
+def placed_looking_at(centre: Array, direction: Array, standoff_mm: float = STANDOFF_MM) -> Array:
+    """T_base_rig of :func:`four_camera_rig` with its volume centre at ``centre`` (base
+    frame, mm), the cameras on the side ``direction`` points to, images upright (the
+    image's y toward the base's −z)."""
+    z = -np.asarray(direction, dtype=np.float64) / np.linalg.norm(direction)
+    down = np.array([0.0, 0.0, -1.0])
+    y = down - z * (down @ z)
+    y /= np.linalg.norm(y)
+    T_base_world = np.eye(4)
+    T_base_world[:3, :3] = np.column_stack([np.cross(y, z), y, z])
+    T_base_world[:3, 3] = np.asarray(centre) - z * standoff_mm
+    out: Array = T_base_world @ _camera_poses(standoff_mm)[0]
+    return out
 
 
 def volume_centre(rig: Rig, standoff_mm: float = STANDOFF_MM) -> Array:

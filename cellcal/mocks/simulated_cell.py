@@ -6,7 +6,8 @@ configuration is only a guess, off by up to 0.5 mm), and the sensors' noise:
 
 * laser tracker: 10 µm along the beam (distance meter) and 6 µm per metre of range
   across it (angle encoders), 1σ per sample — the class of a FARO / Leica tracker;
-* photogrammetry rig: 0.05 mm isotropic per sample.
+* photogrammetry rig: no noise model here; its cameras see rendered images
+  (``rig_twin.py``), and their noise is the images' (grey levels, blur).
 
 Same seed, same truth; the noise comes from a generator seeded from it too.
 """
@@ -31,7 +32,7 @@ from cellcal.mocks.robot_truth import perturbed_model
 @dataclass(frozen=True)
 class SensorTruth:
     """Where a sensor is (T_sensor_base), where its target really is on the flange,
-    and its noise (kind, σ values in mm)."""
+    and a tracker's noise (σ values in mm)."""
 
     name: str
     kind: str
@@ -39,7 +40,6 @@ class SensorTruth:
     target_offset: Array
     sigma_radial: float
     sigma_transverse_per_mm: float
-    sigma_isotropic: float
 
 
 def _pose(position_mm: list[float], rotation_deg: list[float]) -> Array:
@@ -77,6 +77,9 @@ class SimulatedCell:
             for k, name in enumerate(self.sensors)
         }
         self.joint_speed = math.radians(sim.joint_speed_deg_s)
+        self.home_deg = list(config.robot.home_deg)
+        self.cube_centre_mm = list(config.campaign.cube_centre_mm)
+        self.simulation = sim
         self._lock = threading.Lock()
         self._q = np.radians(np.asarray(config.robot.home_deg, dtype=np.float64))
 
@@ -95,12 +98,9 @@ class SimulatedCell:
                 offset,
                 sim.tracker_radial_um / 1000.0,
                 sim.tracker_transverse_um_per_m / 1000.0 / 1000.0,
-                0.0,
             )
         T_base_sensor = _pose(sim.rig_position_mm, sim.rig_rotation_deg)
-        return SensorTruth(
-            s.name, s.kind, invert(T_base_sensor), offset, 0.0, 0.0, sim.rig_noise_mm
-        )
+        return SensorTruth(s.name, s.kind, invert(T_base_sensor), offset, 0.0, 0.0)
 
     @property
     def q(self) -> Array:
@@ -149,21 +149,21 @@ class SimulatedCell:
         return out if q is not None and np.ndim(q) == 2 else out[0]
 
     def sample(self, sensor: str, n: int) -> Array:
-        """n noisy measurements of the target at the robot's current position (n×3, mm)."""
+        """n noisy measurements of a tracker's target at the robot's current position
+        (n×3, mm)."""
         s = self.sensors[sensor]
+        if s.kind != "laser-tracker":
+            raise ValueError(f"{sensor}: the simulated cell samples trackers only")
         p = self.true_position(sensor)
         with self._lock:
             z = self.noise[sensor].normal(size=(n, 3))
-        if s.kind != "laser-tracker":
-            out: Array = p + s.sigma_isotropic * z
-            return out
         r = float(np.linalg.norm(p))
         u = p / r
         a = np.cross(u, [0.0, 0.0, 1.0] if abs(u[2]) < 0.9 else [1.0, 0.0, 0.0])
         a /= np.linalg.norm(a)
         b = np.cross(u, a)
         st = s.sigma_transverse_per_mm * r
-        out = p + np.outer(z[:, 0] * s.sigma_radial, u) + np.outer(z[:, 1] * st, a)
+        out: Array = p + np.outer(z[:, 0] * s.sigma_radial, u) + np.outer(z[:, 1] * st, a)
         out += np.outer(z[:, 2] * st, b)
         return out
 

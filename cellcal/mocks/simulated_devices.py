@@ -13,8 +13,8 @@ import numpy as np
 
 from cellcal.calib.geometry import Array
 from cellcal.clock import Clock
-from cellcal.device_options import SimulatedRigOptions, SimulatedRobotOptions
-from cellcal.drivers.base import DeviceContext, Series
+from cellcal.device_options import SimulatedRobotOptions
+from cellcal.drivers.base import DeviceContext
 from cellcal.errors import DeviceError
 from cellcal.mocks.motion import JointMove
 from cellcal.mocks.simulated_cell import SimulatedCell
@@ -57,34 +57,6 @@ class SimulatedRobot:
 
     def stop(self) -> None:
         pass
-
-    def close(self) -> None:
-        pass
-
-
-class SimulatedSensor:
-    def __init__(self, cell: SimulatedCell, clock: Clock, name: str) -> None:
-        if name not in cell.sensors:
-            raise DeviceError(f"simulated cell has no sensor {name!r}")
-        self.cell = cell
-        self.clock = clock
-        self.name = name
-        self._device_epoch = 1000.0 + 37.0 * len(name)  # its own clock, not the host's
-
-    @classmethod
-    def from_options(cls, options: SimulatedRigOptions, context: DeviceContext) -> SimulatedSensor:
-        return cls(_cell(context), context.clock, options.name)
-
-    def connect(self) -> None:
-        pass
-
-    def measure(self, n: int, rate_hz: float) -> Series:
-        t0 = self.clock.now()
-        xyz = self.cell.sample(self.name, n)
-        # One sleep for the whole series: concurrent sensors overlap on the clock.
-        self.clock.sleep(n / rate_hz)
-        t = t0 + np.arange(n) / rate_hz
-        return Series(self.name, t, t + self._device_epoch, xyz)
 
     def close(self) -> None:
         pass

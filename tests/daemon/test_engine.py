@@ -1,7 +1,12 @@
-"""The engine on a simulated clock: time as planned, no wall time, stop and resume."""
+"""The engine on a simulated clock: time as planned, no wall time, stop and resume.
+
+The second sensor, "rig", is an in-process test double that spends its sampling time on
+the clock (the engine treats every sensor alike; the rig's own path, rendered images
+through GigE Vision twins, is tested in tests/e2e and tests/drivers)."""
 
 from __future__ import annotations
 
+import dataclasses
 import threading
 import time
 
@@ -11,11 +16,12 @@ import pytest
 from cellcal.clock import SimulatedClock
 from cellcal.config import config_from_dict
 from cellcal.daemon.devices import build_devices
-from cellcal.daemon.engine import acquire
+from cellcal.daemon.engine import SensorSetting, acquire
 from cellcal.daemon.plan import make_plan
 from cellcal.daemon.records import CampaignEvent, PoseStored, RecordStream
 from cellcal.daemon.store import Store, StoreError
 from cellcal.daemon.store_writer import StoreWriter
+from cellcal.drivers.base import Series
 from cellcal.errors import DeviceError, NoTargetError
 from cellcal.modelfiles import load_model
 
@@ -28,7 +34,7 @@ CONFIG = config_from_dict(
                 "reference": True,
                 "target_offset_mm": [25, -40, 130],
             },
-            {"name": "rig", "kind": "photogrammetry", "target_offset_mm": [-30, 45, 120]},
+            {"name": "rig", "kind": "laser-tracker", "target_offset_mm": [-30, 45, 120]},
         ],
         "campaign": {"grid": [2, 2, 2], "validation_inside": 2, "validation_per_region": 0},
     }
@@ -36,11 +42,38 @@ CONFIG = config_from_dict(
 MODEL = load_model("kuka-kr5-arc").model
 
 
+class PacedSensor:
+    """n samples of the simulated truth with 0.05 mm noise, n / rate seconds on the clock."""
+
+    def __init__(self, cell, clock, name):
+        self.cell, self.clock, self.name = cell, clock, name
+        self.rng = np.random.default_rng(11)
+
+    def connect(self):
+        self.rng = np.random.default_rng(11)
+
+    def measure(self, n, rate_hz):
+        t0 = self.clock.now()
+        xyz = self.cell.true_position(self.name) + 0.05 * self.rng.normal(size=(n, 3))
+        self.clock.sleep(n / rate_hz)
+        t = t0 + np.arange(n) / rate_hz
+        return Series(self.name, t, t + 1111.0, xyz)
+
+    def close(self):
+        self.rng = np.random.default_rng(11)
+
+
 def _setup(tmp_path, clock):
     plan = make_plan(
         CONFIG.campaign, MODEL, np.radians(CONFIG.robot.home_deg), np.array([25.0, -40.0, 130.0])
     )
     devices = build_devices(CONFIG, MODEL, clock, mock=True, seed=3)
+    paced = PacedSensor(devices.simulated_cell, clock, "rig")
+    sensors = tuple(
+        SensorSetting(paced, s.rate_hz) if s.sensor.name == "rig" else s for s in devices.sensors
+    )
+    devices.sensors[1].sensor.close()
+    devices = dataclasses.replace(devices, sensors=sensors)
     store = Store(tmp_path / "c.db")
     cid = store.create_campaign(
         config_json=CONFIG.model_dump_json(),

@@ -26,8 +26,8 @@ def bundled_cells() -> list[CellConfig]:
 
 
 def cell_for(family: Family) -> CellConfig:
-    """A bundled cell whose device of this family's role already uses it, or the default
-    cell with that device's driver replaced."""
+    """A bundled cell whose device of this family's role (for a sensor: its last)
+    already uses it, or the default cell with that device's driver replaced."""
     cells = bundled_cells()
     if family.role == "robot":
         for c in cells:
@@ -38,6 +38,10 @@ def cell_for(family: Family) -> CellConfig:
         data["robot"] = {k: v for k, v in data["robot"].items() if k in keep}
         data["robot"]["driver"] = family.driver
         return config_from_dict(data, f"{family.tag} cell")
+    for c in cells:
+        last = c.sensor[-1]
+        if (last.kind, last.driver) == (family.kind, family.driver):
+            return c
     data = cells[0].model_dump()
     extra = {"name": "probe", "kind": family.kind, "driver": family.driver, "rate_hz": 20.0}
     data["sensor"] = [s for s in data["sensor"] if s["reference"]] + [extra]

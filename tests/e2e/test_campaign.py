@@ -15,16 +15,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cellcal.commands.run import bundled_mock_cell
 from cellcal.config import with_robot
 from cellcal.daemon.campaign import resume_campaign, start_campaign
 from cellcal.errors import CampaignError
 from cellcal.mocks.simulated_cell import SimulatedCell
 from cellcal.modelfiles import load_model
+from tests.conftest import TRACKER_CELL, tracker_cell
 
 
 def test_mock_campaign_recovers_the_injected_errors(tmp_path):
-    config, _ = bundled_mock_cell()
+    config = tracker_cell()
     out = start_campaign(config, str(tmp_path / "c.db"), config_path=None, mock=True)
     s = out.summary
     assert s is not None and s.n_calibration == 80
@@ -48,14 +48,13 @@ def test_mock_campaign_recovers_the_injected_errors(tmp_path):
         assert abs(p.value - true) < 5 * p.std + 1e-4, p.name
         checked += 1
     assert checked == 18
-    # Each sensor registered to the base; the rig's residual is its noise once calibrated.
+    # The tracker registered to the base; its residual is its noise once calibrated.
     reg = {r.sensor: r for r in s.registrations}
     assert reg["tracker"].rms_calibrated_mm < 0.01 < reg["tracker"].rms_nominal_mm
-    assert 0.005 < reg["rig"].rms_calibrated_mm < 0.03
 
 
 def test_same_seed_same_campaign_and_resume_refuses_a_complete_one(tmp_path):
-    config, _ = bundled_mock_cell()
+    config = tracker_cell()
     a = start_campaign(config, str(tmp_path / "a.db"), config_path=None, mock=True, seed=7)
     b = start_campaign(config, str(tmp_path / "b.db"), config_path=None, mock=True, seed=7)
     assert a.summary.validation_after.rms == b.summary.validation_after.rms
@@ -78,7 +77,7 @@ def _cli(*args, timeout=120):
 
 
 def test_run_json_contract(tmp_path):
-    res = _cli("run", "--mock", "--db", tmp_path / "c.db", "--json")
+    res = _cli("run", "--mock", "--config", TRACKER_CELL, "--db", tmp_path / "c.db", "--json")
     assert res.returncode == 0, res.stderr
     doc = json.loads(res.stdout)
     for key in (
@@ -91,10 +90,10 @@ def test_run_json_contract(tmp_path):
         "improvement_pct",
     ):
         assert key in doc
-    assert doc["samples_per_pose"] == 20 and doc["sensors"] == ["tracker", "rig"]
+    assert doc["samples_per_pose"] == 20 and doc["sensors"] == ["tracker"]
     assert doc["rms_after_mm"] < doc["rms_before_mm"] / 10
-    assert doc["clock_seconds"] >= doc["n_poses"] * 9  # 7 s dwell + 2 s sampling, on the clock
-    human = _cli("run", "--mock", "--db", tmp_path / "c.db")
+    assert doc["clock_seconds"] >= doc["n_poses"] * 7  # the 7 s dwell, on the clock
+    human = _cli("run", "--mock", "--config", TRACKER_CELL, "--db", tmp_path / "c.db")
     assert human.returncode == 0
     assert "campaign 2 complete" in human.stdout and "inside the cube" in human.stdout
 
@@ -147,8 +146,8 @@ def _check_complete(db: Path, n_poses: int) -> None:
     assert _count(db, "SELECT COUNT(*) FROM poses") == n_poses
     assert _count(db, "SELECT COUNT(DISTINCT idx) FROM poses") == n_poses
     assert _count(db, "SELECT MAX(idx) FROM poses") == n_poses - 1
-    assert _count(db, "SELECT COUNT(*) FROM samples") == n_poses * 2 * 20
-    assert _count(db, "SELECT COUNT(*) FROM pose_stats") == n_poses * 2
+    assert _count(db, "SELECT COUNT(*) FROM samples") == n_poses * 20  # the tracker alone
+    assert _count(db, "SELECT COUNT(*) FROM pose_stats") == n_poses
     orphans = "SELECT COUNT(*) FROM samples WHERE pose_id NOT IN (SELECT id FROM poses)"
     assert _count(db, orphans) == 0
     assert _count(db, "SELECT COUNT(*) FROM campaigns WHERE status = 'complete'") == 1
@@ -164,6 +163,8 @@ def test_sigkill_at_any_moment_then_resume_loses_nothing(tmp_path, kill_after):
         "cellcal",
         "run",
         "--mock",
+        "--config",
+        str(TRACKER_CELL),
         "--db",
         str(db),
         "--time-scale",
@@ -212,6 +213,8 @@ def test_sigterm_ends_cleanly_and_resumes(tmp_path):
         "cellcal",
         "run",
         "--mock",
+        "--config",
+        str(TRACKER_CELL),
         "--db",
         str(db),
         "--time-scale",
@@ -236,7 +239,7 @@ def test_sigterm_ends_cleanly_and_resumes(tmp_path):
 
 
 def test_refusals_before_anything_is_written(tmp_path):
-    config, _ = bundled_mock_cell()
+    config = tracker_cell()
     db = tmp_path / "c.db"
     small = config.model_copy(
         update={"campaign": config.campaign.model_copy(update={"grid": [2, 2, 2]})}
@@ -257,7 +260,7 @@ def test_one_run_per_database(tmp_path):
     from cellcal.daemon.campaign import _RunLock
 
     db = str(tmp_path / "c.db")
-    config, _ = bundled_mock_cell()
+    config = tracker_cell()
     with _RunLock(db), pytest.raises(CampaignError, match="another cellcal run"):
         start_campaign(config, db, config_path=None, mock=True)
 
@@ -265,7 +268,7 @@ def test_one_run_per_database(tmp_path):
 def test_device_fault_is_one_line_with_a_resume_hint_and_resumes(tmp_path, monkeypatch):
     from cellcal.mocks import simulated_devices
 
-    config, _ = bundled_mock_cell()
+    config = tracker_cell()
     db = str(tmp_path / "c.db")
     original = simulated_devices.SimulatedRobot.move_joints
     calls = {"n": 0}
@@ -303,7 +306,7 @@ def test_device_fault_is_one_line_with_a_resume_hint_and_resumes(tmp_path, monke
     def noise(idx):
         rows = conn.execute(
             "SELECT s.x, s.y, s.z FROM samples s JOIN poses p ON p.id = s.pose_id "
-            "WHERE p.idx = ? AND s.sensor = 'rig' ORDER BY s.id",
+            "WHERE p.idx = ? AND s.sensor = 'tracker' ORDER BY s.id",
             (idx,),
         ).fetchall()
         a = np.array(rows)
@@ -334,7 +337,7 @@ def test_campaigns_run_on_devices_they_are_handed_and_leave_them_open(tmp_path):
     from cellcal.daemon.devices import build_devices
     from cellcal.daemon.records import CampaignEnded, CampaignStarted, PoseStored
 
-    config, _ = bundled_mock_cell()
+    config = tracker_cell()
     config = config.model_copy(
         update={
             "campaign": config.campaign.model_copy(

@@ -14,15 +14,15 @@ import numpy as np
 import pytest
 
 from cellcal.cli import main
-from cellcal.commands.run import bundled_mock_cell
 from cellcal.daemon.campaign import resume_campaign, start_campaign
 from cellcal.errors import AcceptanceError
 from cellcal.mocks.simulated_cell import SimulatedCell
+from tests.conftest import TRACKER_CELL, tracker_cell
 
 
-def _cli(*args: str) -> subprocess.CompletedProcess[str]:
+def _cli(*args: str, timeout: float = 300) -> subprocess.CompletedProcess[str]:
     return subprocess.run(
-        [sys.executable, "-m", "cellcal", *args], capture_output=True, text=True, timeout=300
+        [sys.executable, "-m", "cellcal", *args], capture_output=True, text=True, timeout=timeout
     )
 
 
@@ -40,7 +40,7 @@ def static_tracker(monkeypatch):
 
 
 def test_a_target_that_does_not_follow_the_robot_is_refused_and_kept(tmp_path, static_tracker):
-    config, _ = bundled_mock_cell()
+    config = tracker_cell()
     db = str(tmp_path / "c.db")
     with pytest.raises(AcceptanceError) as info:
         start_campaign(config, db, config_path=None, mock=True)
@@ -63,7 +63,7 @@ def test_a_target_that_does_not_follow_the_robot_is_refused_and_kept(tmp_path, s
 
 def test_run_exits_3_with_one_line(tmp_path, static_tracker, capsys):
     with pytest.raises(SystemExit) as info:
-        main(["run", "--mock", "--db", str(tmp_path / "c.db")])
+        main(["run", "--mock", "--config", str(TRACKER_CELL), "--db", str(tmp_path / "c.db")])
     assert info.value.code == 3
     err = capsys.readouterr().err.strip().splitlines()
     assert err[-1].startswith("cellcal: refused: target does not follow the robot")
@@ -71,14 +71,62 @@ def test_run_exits_3_with_one_line(tmp_path, static_tracker, capsys):
 
 @pytest.fixture(scope="module")
 def finished(tmp_path_factory):
+    """The bundled cell's whole campaign, tracker and camera rig (GigE Vision twins that
+    render what each camera sees), once for this module: minutes, not seconds."""
     folder = tmp_path_factory.mktemp("finished")
     res = _cli(
-        "run", "--mock", "--db", str(folder / "c.db"), "--report", str(folder / "r"), "--json"
+        "run",
+        "--mock",
+        "--db",
+        str(folder / "c.db"),
+        "--report",
+        str(folder / "r"),
+        "--json",
+        timeout=1200,
     )
     assert res.returncode == 0, res.stderr
     return folder, json.loads(res.stdout)
 
 
+@pytest.mark.timeout(1500)  # the first to ask runs the rig campaign
+def test_the_rig_measures_every_pose_it_sees_with_an_honest_covariance(finished):
+    folder, run = finished
+    conn = sqlite3.connect(folder / "c.db")
+    # every rig sample carries its covariance and the target's orientation; the tracker's none
+    n, cov, ori = conn.execute(
+        "SELECT COUNT(*), COUNT(cov_xx), COUNT(ori_w) FROM samples WHERE sensor = 'rig'"
+    ).fetchone()
+    assert n > 0 and cov == ori == n
+    assert conn.execute(
+        "SELECT COUNT(cov_xx) FROM samples WHERE sensor = 'tracker'"
+    ).fetchone() == (0,)
+    sigma = np.sqrt(conn.execute("SELECT cov_xx, cov_yy, cov_zz FROM samples WHERE sensor = 'rig'")
+                    .fetchall())  # fmt: skip
+    assert 0.003 < float(np.median(sigma)) < 0.05  # mm per sample, 1σ
+    # the rig sees the cube; poses it does not see are kept without it, each said once
+    kinds = dict(conn.execute("SELECT kind, COUNT(*) FROM events GROUP BY kind").fetchall())
+    rig_poses = conn.execute(
+        "SELECT COUNT(*) FROM pose_stats s JOIN poses p ON p.id = s.pose_id "
+        "WHERE s.sensor = 'rig' AND p.role = 'calibration'"
+    ).fetchone()[0]
+    assert rig_poses == run["n_calibration_poses"] == 80
+    n_rig = conn.execute("SELECT COUNT(*) FROM pose_stats WHERE sensor = 'rig'").fetchone()[0]
+    assert kinds.get("no-target", 0) == run["n_poses"] - n_rig
+    # registered like the tracker: a few µm above the tracker's residual, under 0.03 mm
+    reg = {r["sensor"]: r for r in run["registrations"]}
+    assert reg["tracker"]["rms_calibrated_mm"] < reg["rig"]["rms_calibrated_mm"] < 0.03
+    # after registration the rig agrees with the tracker as its covariance says
+    (agree,) = run["agreements"]
+    assert agree["sensor"] == "rig" and agree["n"] == n_rig
+    assert 0.5 < agree["chi2_per_dof"] < 2.0
+    # one fused point per pose, with both sensors where the rig measured
+    rows = conn.execute("SELECT sensors, mahalanobis2 FROM fused").fetchall()
+    assert len(rows) == run["n_poses"] == run["n_fused"]
+    assert sum(json.loads(s) == ["tracker", "rig"] for s, _ in rows) == n_rig
+    conn.close()
+
+
+@pytest.mark.timeout(1500)  # the first to ask runs the rig campaign
 def test_report_folder_reads_back_to_the_same_calibration(finished):
     folder, run = finished
     rep = folder / "r"
@@ -110,6 +158,7 @@ def test_report_folder_reads_back_to_the_same_calibration(finished):
     assert mode & stat.S_IRGRP  # readable by others, like any file the user writes
 
 
+@pytest.mark.timeout(1500)  # the first to ask runs the rig campaign
 def test_report_and_list_on_a_read_only_folder(finished, tmp_path):
     folder, _ = finished
     db = folder / "c.db"
@@ -131,6 +180,7 @@ def test_report_and_list_on_a_read_only_folder(finished, tmp_path):
         os.chmod(folder, 0o755)
 
 
+@pytest.mark.timeout(1500)  # the first to ask runs the rig campaign
 def test_campaign_list_text_and_errors(finished, tmp_path):
     folder, run = finished
     res = _cli("campaign", "list", "--db", str(folder / "c.db"))
@@ -174,7 +224,7 @@ def test_a_read_only_database_is_one_line_on_a_new_campaign(tmp_path, monkeypatc
         self.conn.execute("PRAGMA query_only = 1")
 
     monkeypatch.setattr(store_module.Store, "__init__", read_only)
-    config, _ = bundled_mock_cell()
+    config = tracker_cell()
     with pytest.raises(UserError) as info:
         start_campaign(config, str(tmp_path / "c.db"), config_path=None, mock=True)
     text = str(info.value)
@@ -194,7 +244,7 @@ def test_a_disk_that_fills_during_a_campaign_is_one_line_and_keeps_the_poses(tmp
             self.conn.execute("PRAGMA max_page_count = 60")
 
     monkeypatch.setattr(store_module.Store, "__init__", small_disk)
-    config, _ = bundled_mock_cell()
+    config = tracker_cell()
     db = str(tmp_path / "c.db")
     with pytest.raises(UserError) as info:
         start_campaign(config, db, config_path=None, mock=True)
@@ -204,4 +254,4 @@ def test_a_disk_that_fills_during_a_campaign_is_one_line_and_keeps_the_poses(tmp
     stored = conn.execute("SELECT COUNT(*) FROM poses").fetchone()[0]
     samples = conn.execute("SELECT COUNT(*) FROM samples").fetchone()[0]
     conn.close()
-    assert 0 < stored < 128 and samples == stored * 2 * 20  # whole poses, nothing torn
+    assert 0 < stored < 128 and samples == stored * 20  # whole poses, nothing torn

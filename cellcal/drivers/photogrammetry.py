@@ -1,0 +1,236 @@
+"""The photogrammetry rig as a campaign sensor: cameras grab sets, each set measures the
+target (``calib/rig_measurement.py``), a pose's series carries every set's reference
+point with its covariance and the target's orientation.
+
+Configured as a ``[[sensor]]`` with ``kind = "photogrammetry"`` and ``driver =
+"cameras"``: the rig file (``rig calibrate --out``), the target file, and under
+``[sensor.capture]`` the cameras (a backend's options, ``docs/cameras.md``). A series at
+one pose triggers ``n`` sets at ``rate_hz``; a set whose target is not measured (seen by
+fewer than ``min_cameras``) is left out and named in the series' note; a series whose
+first :data:`GIVE_UP_SETS` sets all miss is a :class:`~cellcal.errors.NoTargetError`
+(the campaign keeps the pose with the other sensors). A camera that gives nothing after
+its own retries is named in the note, and the set is measured with the others; a set
+with no frame at all is a device fault. The series' note becomes a ``sensor-note``
+event of the campaign.
+"""
+
+from __future__ import annotations
+
+import logging
+from concurrent.futures import Future, ThreadPoolExecutor, wait
+from pathlib import Path
+from typing import Annotated, Literal
+
+import numpy as np
+from pydantic import Field
+from scipy.spatial.transform import Rotation
+
+from cellcal.calib.camera_rig import Rig, Target
+from cellcal.calib.rig_measurement import TargetMeter, mean_of
+from cellcal.calib.target_pose import TargetPose
+from cellcal.clock import Clock
+from cellcal.device_options import SensorOptions
+from cellcal.drivers.base import DeviceContext, Series
+from cellcal.drivers.camera_aravis import AravisRigOptions
+from cellcal.drivers.camera_files import FilesRigOptions
+from cellcal.drivers.camera_opencv import OpenCVRigOptions
+from cellcal.drivers.cameras import CameraRig, FrameSet, rig_class
+from cellcal.errors import DeviceError, MeasurementError, NoTargetError
+from cellcal.imagefiles import write_image
+from cellcal.photofiles import read_rig, read_target
+
+log = logging.getLogger("cellcal.photogrammetry")
+
+#: A series whose first sets all miss the target stops after this many.
+GIVE_UP_SETS = 3
+
+#: What ``[sensor.capture]`` may be: a backend's rig options, told apart by ``backend``.
+CaptureOptions = Annotated[
+    AravisRigOptions | OpenCVRigOptions | FilesRigOptions, Field(discriminator="backend")
+]
+
+
+class CameraRigOptions(SensorOptions):
+    """A photogrammetry rig of cameras: ``rig_file`` (its calibration), ``target_file``
+    (the marker fixture on the flange), ``capture`` (the cameras), ``min_cameras`` (a
+    set needs the target in this many), ``keep_images`` (a folder: each set's images are
+    kept there for audit, ``<sensor>/<host time ms>/<camera>.png``; empty: not kept)."""
+
+    kind: Literal["photogrammetry"] = "photogrammetry"
+    driver: Literal["cameras"] = "cameras"
+    rig_file: Annotated[str, Field(min_length=1)]
+    target_file: Annotated[str, Field(min_length=1)]
+    capture: CaptureOptions
+    min_cameras: Annotated[int, Field(ge=2, le=64)] = 2
+    keep_images: str = ""
+
+    def endpoint(self) -> str:
+        """The cameras' addresses (a recording's folder for ``files``)."""
+        if isinstance(self.capture, FilesRigOptions):
+            return self.capture.directory
+        return ", ".join(c.address for c in self.capture.cameras if c.address)
+
+    def relative_to(self, folder: Path) -> CameraRigOptions:
+        """Relative file paths taken relative to the configuration's folder."""
+
+        def at(path: str) -> str:
+            return path if not path or Path(path).is_absolute() else str(folder / path)
+
+        capture = self.capture
+        if isinstance(capture, FilesRigOptions):
+            capture = capture.model_copy(update={"directory": at(capture.directory)})
+        return self.model_copy(
+            update={
+                "rig_file": at(self.rig_file),
+                "target_file": at(self.target_file),
+                "keep_images": at(self.keep_images),
+                "capture": capture,
+            }
+        )
+
+
+def quaternion(R: np.ndarray) -> np.ndarray:
+    """A rotation matrix as a unit quaternion (w, x, y, z), w ≥ 0."""
+    x, y, z, w = Rotation.from_matrix(R).as_quat()
+    q = np.array([w, x, y, z])
+    return q if w >= 0 else -q
+
+
+class CameraRigSensor:
+    """A :class:`~cellcal.drivers.base.PositionSensor` made of a camera rig, its
+    calibration and the target it measures."""
+
+    def __init__(
+        self,
+        name: str,
+        cameras: CameraRig,
+        rig: Rig,
+        target: Target,
+        clock: Clock,
+        *,
+        min_cameras: int = 2,
+        keep_images: str = "",
+    ) -> None:
+        missing = sorted({c.name for c in rig.cameras} - set(cameras.cameras))
+        extra = sorted(set(cameras.cameras) - {c.name for c in rig.cameras})
+        if missing or extra:
+            raise DeviceError(
+                f"{name}: the capture's cameras {list(cameras.cameras)} are not the rig "
+                f"file's {[c.name for c in rig.cameras]} (missing {missing}, unknown {extra})"
+            )
+        self.name = name
+        self.cameras = cameras
+        self.rig = rig
+        self.target = target
+        self.clock = clock
+        self.meter = TargetMeter(rig, target, min_cameras=min_cameras)
+        self.keep_images = Path(keep_images) if keep_images else None
+        self._grabber = ThreadPoolExecutor(max_workers=1, thread_name_prefix=f"{name}-grab")
+
+    @classmethod
+    def from_options(cls, options: CameraRigOptions, context: DeviceContext) -> CameraRigSensor:
+        try:
+            rig = read_rig(options.rig_file)
+            target = read_target(options.target_file)
+        except Exception as exc:
+            raise DeviceError(f"sensor {options.name}: {exc}") from None
+        cameras = rig_class(options.capture.backend).from_options(
+            options.capture, clock=context.clock
+        )
+        return cls(
+            options.name,
+            cameras,
+            rig,
+            target,
+            context.clock,
+            min_cameras=options.min_cameras,
+            keep_images=options.keep_images,
+        )
+
+    def connect(self) -> None:
+        self.cameras.connect()
+
+    def close(self) -> None:
+        self._grabber.shutdown(wait=True)
+        self.cameras.close()
+
+    def measure(self, n: int, rate_hz: float) -> Series:
+        """``n`` sets at ``rate_hz``: the reference point of each set that measured.
+        The next set is grabbed while this one is measured."""
+        self.meter.reset()
+        t0 = self.clock.now()
+        poses: list[TargetPose] = []
+        host: list[float] = []
+        device: list[float] = []
+        notes: list[str] = []
+        retries = 0
+        pending = self._trigger(t0)
+        try:
+            for k in range(n):
+                frames = pending.result()
+                if k + 1 < n:
+                    pending = self._trigger(t0 + (k + 1) / rate_hz)
+                retries += frames.retries
+                if not frames.frames:
+                    lost = "; ".join(f"{c}: {why}" for c, why in frames.lost.items())
+                    raise DeviceError(f"{self.name}: no camera gave a frame ({lost})")
+                for cam, why in frames.lost.items():
+                    notes.append(f"set {k}: camera {cam} lost ({why})")
+                self._keep(frames)
+                try:
+                    images = {c: f.image for c, f in frames.frames.items()}
+                    poses.append(self.meter.measure(images))
+                except MeasurementError as exc:
+                    notes.append(f"set {k}: {exc}")
+                    if not poses and k + 1 >= GIVE_UP_SETS:
+                        break  # the robot holds still: the next sets would not see it either
+                    continue
+                first = next(iter(frames.frames.values()))
+                host.append(float(np.mean([f.host_time for f in frames.frames.values()])))
+                device.append(first.device_time)
+        finally:
+            wait([pending])
+        if not poses:
+            raise NoTargetError(f"{self.name}: no set measured the target ({notes[0]})")
+        mean = mean_of(poses)
+        return Series(
+            self.name,
+            np.array(host),
+            np.array(device),
+            np.array([p.xyz_mm for p in poses]),
+            retries=retries,
+            cov=np.array([p.cov_mm2 for p in poses]),
+            orientation=np.array([quaternion(p.T_rig_target[:3, :3]) for p in poses]),
+            mean_cov=mean.cov_mm2,
+            note=_summary(notes, n),
+        )
+
+    def _trigger(self, when: float) -> Future[FrameSet]:
+        """Wait on the clock until ``when``, then grab a set in the background (on a
+        branch of the clock from ``when``: its frames are stamped in this series' time)."""
+        wait_s = when - self.clock.now()
+        if wait_s > 0:
+            self.clock.sleep(wait_s)
+
+        def grab() -> FrameSet:
+            with self.clock.branch(when):
+                return self.cameras.grab()
+
+        return self._grabber.submit(grab)
+
+    def _keep(self, frames: FrameSet) -> None:
+        if self.keep_images is None:
+            return
+        t = np.mean([f.host_time for f in frames.frames.values()])
+        folder = self.keep_images / self.name / f"{round(t * 1000):013d}"
+        folder.mkdir(parents=True, exist_ok=True)
+        for cam, f in frames.frames.items():
+            write_image(folder / f"{cam}.png", f.image)
+
+
+def _summary(notes: list[str], n: int) -> str:
+    """The series' note: how many of ``n`` sets had trouble, and the first reasons."""
+    if not notes:
+        return ""
+    shown = "; ".join(notes[:3]) + ("; …" if len(notes) > 3 else "")
+    return f"{len(notes)} problem(s) in {n} sets: {shown}"

@@ -1,0 +1,269 @@
+"""The simulated cell's camera rig: what each camera sees of the flange's marker fixture.
+
+At every trigger the twin renders the target where the simulated robot really holds it:
+``T_rig_target = T_rig_base · T_base_flange(q, true geometry) · T_flange_target``, through
+each camera's model in the rig file (``camera_render.py``: supersampled, blurred), one
+clean image per camera per robot pose, fresh sensor noise per frame. The fixture is
+mounted with its reference point at the sensor's true target offset and its face turned
+toward the rig at the home orientation.
+
+Mock mode serves those frames as GigE Vision cameras (``gige_cameras.py``, in a network
+namespace of their own) and the configured ``aravis`` driver grabs them unchanged. Where
+no namespace can be made (no root, no user namespaces), or for the ``opencv`` and
+``files`` backends, it says so in one line and hands the rendered frames to the same
+measuring code in-process (:class:`RenderedRig`).
+"""
+
+from __future__ import annotations
+
+import itertools
+import logging
+import threading
+from dataclasses import dataclass
+from typing import Any, Literal
+
+import cv2
+import numpy as np
+
+from cellcal.calib.camera_rig import Rig, Target
+from cellcal.calib.geometry import Array, invert
+from cellcal.calib.kinematics import target_kinematics
+from cellcal.clock import Clock, WallClock
+from cellcal.device_options import Strict
+from cellcal.drivers.camera_aravis import AravisRigOptions, aravis_missing
+from cellcal.drivers.cameras import Frame, FrameSet, RigOptions
+from cellcal.drivers.photogrammetry import CameraRigOptions
+from cellcal.errors import DeviceError
+from cellcal.mocks.camera_render import Image, Optics, SceneRenderer, exposed, render
+from cellcal.mocks.simulated_cell import SimulatedCell
+from cellcal.photofiles import read_rig, read_target
+
+log = logging.getLogger("cellcal.mocks.rig")
+
+#: Frames of plain background with noise drawn ahead per camera: a frame is one of them
+#: with the target's window (fresh noise on every frame) written in.
+NOISE_BANK = 8
+#: How long mock mode waits for one camera's frame, s (rendering it takes time).
+MOCK_TIMEOUT_S = 5.0
+#: Sub-pixel samples per pixel side in the campaign's renders, as in the benchmark: 4
+#: costs a quarter but leaves 0.02 mm of systematic error per pose mean, not 0.01.
+SUPERSAMPLE = 8
+
+
+#: a camera's clean image, its target window (rows, columns) and its noisy backgrounds
+_View = tuple[Image, tuple[slice, slice], list[Image]]
+
+
+def facing(toward: Array) -> Array:
+    """A rotation whose z axis points along ``toward`` (x as level as it can be)."""
+    z = toward / np.linalg.norm(toward)
+    helper = np.array([0.0, 0.0, 1.0]) if abs(z[2]) < 0.9 else np.array([1.0, 0.0, 0.0])
+    x = np.cross(helper, z)
+    x /= np.linalg.norm(x)
+    return np.column_stack([x, np.cross(z, x), z])
+
+
+class RigScene:
+    """The rig's view of the simulated cell: ``image(camera)`` is that camera's frame
+    now. Thread-safe: the cameras are triggered together from their own threads."""
+
+    def __init__(
+        self,
+        cell: SimulatedCell,
+        sensor: str,
+        rig: Rig,
+        target: Target,
+        optics: Optics | None = None,
+    ) -> None:
+        truth = cell.sensors[sensor]
+        self.cell = cell
+        self.rig = rig
+        sim = cell.simulation
+        optics = optics or Optics(
+            supersample=SUPERSAMPLE, blur_px=sim.rig_blur_px, noise_grey=sim.rig_noise_grey
+        )
+        self.renderer = SceneRenderer.for_target(rig.cameras, target, optics)
+        self.T_rig_base = truth.T_sensor_base
+        # the fixture faces the rig's cameras when the flange is at home
+        home = np.radians(np.asarray(cell.home_deg, dtype=np.float64))
+        R0 = target_kinematics(cell.model, home[None], np.zeros(3), jacobian=False).R_flange[0]
+        eyes = np.array([c.T_rig_cam[:3, 3] for c in rig.cameras]).mean(axis=0)
+        T_base_rig = invert(self.T_rig_base)
+        toward = T_base_rig[:3, :3] @ eyes + T_base_rig[:3, 3] - np.asarray(cell.cube_centre_mm)
+        R = R0.T @ facing(toward)
+        self.T_flange_target = np.eye(4)
+        self.T_flange_target[:3, :3] = R
+        self.T_flange_target[:3, 3] = truth.target_offset - R @ target.reference
+        self._lock = threading.Lock()
+        self._q: Array | None = None
+        self._T = np.eye(4)
+        self._clean: dict[str, _View] = {}
+        self._rng = np.random.default_rng([cell.seed, 2, len(sensor)])
+        self._bank: dict[str, list[Image]] = {}
+        for c in rig.cameras:
+            background = np.full((c.height, c.width), optics.background, dtype=np.float32)
+            self._bank[c.name] = [
+                exposed(background, self._rng, optics.noise_grey) for _ in range(NOISE_BANK)
+            ]
+
+    def T_rig_target(self, q: Array) -> Array:
+        k = target_kinematics(self.cell.model, q[None], np.zeros(3), jacobian=False)
+        T_base_flange = np.eye(4)
+        T_base_flange[:3, :3] = k.R_flange[0]
+        T_base_flange[:3, 3] = k.p[0]
+        out: Array = self.T_rig_base @ T_base_flange @ self.T_flange_target
+        return out
+
+    def image(self, camera: str) -> Image:
+        """Camera ``camera``'s frame of the target where the robot holds it now. Each
+        camera renders its own view once per robot pose, on its own thread."""
+        q = self.cell.q
+        with self._lock:
+            if self._q is None or not np.array_equal(q, self._q):
+                self._q, self._T = q, self.T_rig_target(q)
+                self._clean.clear()
+            T = self._T
+            cached = self._clean.get(camera)
+        if cached is None:
+            cached = self._render(camera, T)
+            with self._lock:
+                if self._q is not None and np.array_equal(q, self._q):
+                    self._clean[camera] = cached
+        clean, (rows, cols), bank = cached
+        with self._lock:
+            k = int(self._rng.integers(len(bank)))
+            noise = None
+            if rows.stop > rows.start and cols.stop > cols.start:
+                shape = (rows.stop - rows.start, cols.stop - cols.start)
+                noise = self._rng.standard_normal(shape, dtype=np.float32)
+        frame = bank[k].copy()
+        if noise is not None:
+            noise *= np.float32(self.renderer.optics.noise_grey)
+            frame[rows, cols] = cv2.add(clean[rows, cols], noise, dtype=cv2.CV_8U)
+        return frame
+
+    def _render(self, camera: str, T_rig_target: Array) -> _View:
+        """One camera's clean image, the window where it differs from the plain
+        background, and that camera's bank of noisy background frames."""
+        optics = self.renderer.optics
+        cam = self.rig.camera(camera)
+        clean = render(cam, self.renderer.faces, T_rig_target, optics)
+        rows, cols = np.nonzero(np.abs(clean - np.float32(optics.background)) > 1e-3)
+        if rows.size:
+            window = (slice(rows.min(), rows.max() + 1), slice(cols.min(), cols.max() + 1))
+        else:
+            window = (slice(0, 0), slice(0, 0))
+        with self._lock:
+            bank = self._bank.get(camera)
+            if bank is None:
+                background = np.full(clean.shape, optics.background, dtype=np.float32)
+                bank = [
+                    exposed(background, self._rng, optics.noise_grey) for _ in range(NOISE_BANK)
+                ]
+                self._bank[camera] = bank
+        return clean, window, bank
+
+
+class RenderedRigOptions(Strict):
+    """Mock mode's in-process rig: the scene's rendered frames, no camera protocol."""
+
+    name: str = "rig"
+    backend: Literal["rendered"] = "rendered"
+    cameras: tuple[str, ...]
+    scene: int
+
+
+#: live scenes by id (the options of an in-process rig name theirs)
+_SCENES: dict[int, RigScene] = {}
+_ids = itertools.count(1)
+
+
+class RenderedRig:
+    """A :class:`~cellcal.drivers.cameras.CameraRig` that renders its frames in-process."""
+
+    def __init__(self, options: RenderedRigOptions, clock: Clock | None = None) -> None:
+        scene = _SCENES.get(options.scene)
+        if scene is None:
+            raise DeviceError(f"rig {options.name}: its simulated scene is gone")
+        self.name = options.name
+        self.cameras = options.cameras
+        self.scene = scene
+        self.clock = clock or WallClock()
+        self._frame_id = 0
+
+    @classmethod
+    def from_options(cls, options: RenderedRigOptions, clock: Clock | None = None) -> RenderedRig:
+        return cls(options, clock)
+
+    def connect(self) -> None:
+        self._frame_id = 0
+
+    def grab(self) -> FrameSet:
+        self._frame_id += 1
+        t = self.clock.now()
+        frames = {
+            c: Frame(c, self.scene.image(c), self._frame_id, t, t + 500.0) for c in self.cameras
+        }
+        return FrameSet(frames, {})
+
+    def close(self) -> None:
+        self._frame_id = 0
+
+
+@dataclass
+class RigTwin:
+    """A running twin of a configured rig: ``options`` point the driver at it."""
+
+    options: CameraRigOptions
+    server: Any = None
+    scene_id: int | None = None
+
+    def stop(self) -> None:
+        if self.server is not None:
+            self.server.stop()
+            self.server = None
+        if self.scene_id is not None:
+            _SCENES.pop(self.scene_id, None)
+
+
+def serve(options: CameraRigOptions, cell: SimulatedCell, time_scale: float) -> RigTwin:
+    """The simulated cell's cameras for the configured rig: GigE Vision cameras when the
+    capture is ``aravis`` and a network namespace can be made, else in-process."""
+    try:
+        rig = read_rig(options.rig_file)
+        target = read_target(options.target_file)
+    except Exception as exc:
+        raise DeviceError(f"sensor {options.name}: {exc}") from None
+    scene = RigScene(cell, options.name, rig, target)
+    capture = options.capture
+    why = _why_in_process(capture)
+    if why is None and isinstance(capture, AravisRigOptions):
+        from cellcal.mocks.gige_cameras import serve_rig
+        from cellcal.mocks.netns import NamespaceUnavailableError
+
+        w, h = rig.cameras[0].width, rig.cameras[0].height
+        # a camera's first frame at a new robot pose is rendered (0.1-0.5 s on a busy
+        # machine), which a real camera does not need: mock mode waits longer for it
+        slow = [
+            c.model_copy(update={"timeout_s": max(c.timeout_s, MOCK_TIMEOUT_S)})
+            for c in capture.cameras
+        ]
+        capture = capture.model_copy(update={"cameras": slow})
+        try:
+            running = serve_rig(capture, scene.image, width=w, height=h)
+        except NamespaceUnavailableError as exc:
+            why = str(exc)
+        else:
+            return RigTwin(options.model_copy(update={"capture": running.options}), running)
+    log.warning("sensor %s: cameras simulated in-process (%s)", options.name, why)
+    sid = next(_ids)
+    _SCENES[sid] = scene
+    names = tuple(c.name for c in capture.cameras)
+    rendered = RenderedRigOptions(name=capture.name, cameras=names, scene=sid)
+    return RigTwin(options.model_copy(update={"capture": rendered}), None, sid)
+
+
+def _why_in_process(capture: RigOptions) -> str | None:
+    if not isinstance(capture, AravisRigOptions):
+        return f'backend "{capture.backend}" has no protocol twin'
+    return aravis_missing()
