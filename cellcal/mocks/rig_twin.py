@@ -98,12 +98,19 @@ class RigScene:
         self._q: Array | None = None
         self._T = np.eye(4)
         self._clean: dict[str, _View] = {}
-        self._rng = np.random.default_rng([cell.seed, 2, len(sensor)])
+        # one generator per camera: each camera's frames come in order on its own thread,
+        # so the same seed gives the same images whatever the threads' order (a resumed
+        # campaign, the cell's next noise stream, draws fresh noise)
+        self._rngs = {
+            c.name: np.random.default_rng([cell.seed, 2, cell.noise_stream, k])
+            for k, c in enumerate(rig.cameras)
+        }
         self._bank: dict[str, list[Image]] = {}
         for c in rig.cameras:
             background = np.full((c.height, c.width), optics.background, dtype=np.float32)
+            rng = self._rngs[c.name]
             self._bank[c.name] = [
-                exposed(background, self._rng, optics.noise_grey) for _ in range(NOISE_BANK)
+                exposed(background, rng, optics.noise_grey) for _ in range(NOISE_BANK)
             ]
 
     def T_rig_target(self, q: Array) -> Array:
@@ -131,11 +138,12 @@ class RigScene:
                     self._clean[camera] = cached
         clean, (rows, cols), bank = cached
         with self._lock:
-            k = int(self._rng.integers(len(bank)))
+            rng = self._rngs[camera]
+            k = int(rng.integers(len(bank)))
             noise = None
             if rows.stop > rows.start and cols.stop > cols.start:
                 shape = (rows.stop - rows.start, cols.stop - cols.start)
-                noise = self._rng.standard_normal(shape, dtype=np.float32)
+                noise = rng.standard_normal(shape, dtype=np.float32)
         frame = bank[k].copy()
         if noise is not None:
             noise *= np.float32(self.renderer.optics.noise_grey)
@@ -153,15 +161,7 @@ class RigScene:
             window = (slice(rows.min(), rows.max() + 1), slice(cols.min(), cols.max() + 1))
         else:
             window = (slice(0, 0), slice(0, 0))
-        with self._lock:
-            bank = self._bank.get(camera)
-            if bank is None:
-                background = np.full(clean.shape, optics.background, dtype=np.float32)
-                bank = [
-                    exposed(background, self._rng, optics.noise_grey) for _ in range(NOISE_BANK)
-                ]
-                self._bank[camera] = bank
-        return clean, window, bank
+        return clean, window, self._bank[camera]
 
 
 class RenderedRigOptions(Strict):

@@ -61,6 +61,7 @@ class SimulatedCell:
     ) -> None:
         sim = config.simulation
         self.seed = sim.seed if seed is None else seed
+        self.noise_stream = noise_stream
         rng = np.random.default_rng(self.seed)
         self.nominal = nominal
         self.model = perturbed_model(
