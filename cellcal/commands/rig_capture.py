@@ -12,17 +12,18 @@ import click
 
 from cellcal.commands.output import SEED
 from cellcal.config import CellConfig, load_config
+from cellcal.drivers.photogrammetry import CameraRigOptions
 from cellcal.errors import DeviceError, InputError
 
 HOSTS = re.compile(r"^127\.0\.0\.(\d{1,3})-(\d{1,3})$")
 
 
-def _rig_sensor(config: CellConfig, name: str | None, source: str) -> object:
+def _rig_sensor(config: CellConfig, name: str | None, source: str) -> CameraRigOptions:
     """The configuration's photogrammetry sensor (the one named, else the first)."""
     rigs = [s for s in config.sensor if s.kind == "photogrammetry"]
     if name is not None:
         rigs = [s for s in rigs if s.name == name]
-    if not rigs:
+    if not rigs or not isinstance(rigs[0], CameraRigOptions):
         what = f"no photogrammetry sensor {name!r}" if name else "no photogrammetry sensor"
         raise InputError(f"{source}: {what}")
     return rigs[0]
@@ -41,12 +42,10 @@ def rig_capture(
     ``<camera>.png`` in each (what ``rig measure --sets`` and the ``files`` backend read).
     """
     from cellcal.drivers.cameras import rig_class
-    from cellcal.drivers.photogrammetry import CameraRigOptions
     from cellcal.imagefiles import write_image
 
     config = load_config(config_path)
     options = _rig_sensor(config, sensor, config_path)
-    assert isinstance(options, CameraRigOptions)
     out = Path(out_dir)
     try:
         out.mkdir(parents=True, exist_ok=True)
@@ -113,7 +112,7 @@ def mock_cameras(
     first = _hosts(hosts, len(rig.cameras))
     config, cell = simulated_cell_of(config_path, seed)
     sensor = _rig_sensor(config, None, config_path or "the bundled cell")
-    scene = RigScene(cell, getattr(sensor, "name", "rig"), rig, target)
+    scene = RigScene(cell, sensor.name, rig, target)
     cam = rig.cameras[0]
     twin = GigECameraTwin(
         [c.name for c in rig.cameras],

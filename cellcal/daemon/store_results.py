@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import json
 import sqlite3
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from typing import Any, Protocol
 
 import numpy as np
@@ -26,9 +26,8 @@ class AnalysisTables:
     in the caller's (one analysis is stored whole or not at all)."""
 
     conn: sqlite3.Connection
-
-    def transaction(self) -> _Transaction:
-        raise TypeError("AnalysisTables is a mixin of Store")
+    #: the store's: BEGIN IMMEDIATE … COMMIT (nested: the outer one's)
+    transaction: Callable[[], _Transaction]
 
     def add_registration(
         self,

@@ -16,7 +16,6 @@ event of the campaign.
 
 from __future__ import annotations
 
-import logging
 from concurrent.futures import Future, ThreadPoolExecutor, wait
 from pathlib import Path
 from typing import Annotated, Literal
@@ -35,11 +34,9 @@ from cellcal.drivers.camera_aravis import AravisRigOptions
 from cellcal.drivers.camera_files import FilesRigOptions
 from cellcal.drivers.camera_opencv import OpenCVRigOptions
 from cellcal.drivers.cameras import CameraRig, FrameSet, rig_class
-from cellcal.errors import DeviceError, MeasurementError, NoTargetError
+from cellcal.errors import DeviceError, MeasurementError, NoTargetError, UserError
 from cellcal.imagefiles import write_image
 from cellcal.photofiles import read_rig, read_target
-
-log = logging.getLogger("cellcal.photogrammetry")
 
 #: A series whose first sets all miss the target stops after this many.
 GIVE_UP_SETS = 3
@@ -89,6 +86,14 @@ class CameraRigOptions(SensorOptions):
         )
 
 
+def rig_and_target(options: CameraRigOptions) -> tuple[Rig, Target]:
+    """The configured rig and target files, read; one line naming the sensor if not."""
+    try:
+        return read_rig(options.rig_file), read_target(options.target_file)
+    except UserError as exc:
+        raise DeviceError(f"sensor {options.name}: {exc}") from None
+
+
 def quaternion(R: np.ndarray) -> np.ndarray:
     """A rotation matrix as a unit quaternion (w, x, y, z), w ≥ 0."""
     x, y, z, w = Rotation.from_matrix(R).as_quat()
@@ -129,11 +134,7 @@ class CameraRigSensor:
 
     @classmethod
     def from_options(cls, options: CameraRigOptions, context: DeviceContext) -> CameraRigSensor:
-        try:
-            rig = read_rig(options.rig_file)
-            target = read_target(options.target_file)
-        except Exception as exc:
-            raise DeviceError(f"sensor {options.name}: {exc}") from None
+        rig, target = rig_and_target(options)
         cameras = rig_class(options.capture.backend).from_options(
             options.capture, clock=context.clock
         )

@@ -28,12 +28,12 @@ from cellcal.calib.geometry import Array, invert
 STANDOFF_MM = 1250.0
 
 
-def look_at(eye: Array, centre: Array, up: Array) -> Array:
+def look_at(eye: Array, centre: Array, down: Array) -> Array:
     """``T_world_cam`` of a camera at ``eye`` looking at ``centre`` (OpenCV axes: z to
-    the scene, y down, so ``up`` appears up in the image)."""
+    the scene, y down the image, along ``down`` as far as it is square to the view)."""
     z = centre - eye
     z = z / np.linalg.norm(z)
-    x = np.cross(z, -up)
+    x = np.cross(down, z)
     x = x / np.linalg.norm(x)
     y = np.cross(z, x)
     T = np.eye(4)
@@ -55,12 +55,12 @@ def _rot_x(deg: float) -> Array:
 def _camera_poses(standoff_mm: float) -> list[Array]:
     """T_world_cam of the four cameras; the volume centre is at (0, 0, standoff)."""
     centre = np.array([0.0, 0.0, standoff_mm])
-    up = np.array([0.0, -1.0, 0.0])
+    down = np.array([0.0, -1.0, 0.0])
     poses = []
     for el in (20.0, -20.0):
         for az in (-25.0, 25.0):
             eye = centre + _rot_y(az) @ _rot_x(el) @ np.array([0.0, 0.0, -standoff_mm])
-            poses.append(look_at(eye, centre, up))
+            poses.append(look_at(eye, centre, down))
     return poses
 
 
@@ -89,13 +89,9 @@ def placed_looking_at(centre: Array, direction: Array, standoff_mm: float = STAN
     """T_base_rig of :func:`four_camera_rig` with its volume centre at ``centre`` (base
     frame, mm), the cameras on the side ``direction`` points to, images upright (the
     image's y toward the base's −z)."""
-    z = -np.asarray(direction, dtype=np.float64) / np.linalg.norm(direction)
-    down = np.array([0.0, 0.0, -1.0])
-    y = down - z * (down @ z)
-    y /= np.linalg.norm(y)
-    T_base_world = np.eye(4)
-    T_base_world[:3, :3] = np.column_stack([np.cross(y, z), y, z])
-    T_base_world[:3, 3] = np.asarray(centre) - z * standoff_mm
+    centre = np.asarray(centre, dtype=np.float64)
+    eye = centre + standoff_mm * np.asarray(direction) / np.linalg.norm(direction)
+    T_base_world = look_at(eye, centre, np.array([0.0, 0.0, -1.0]))
     out: Array = T_base_world @ _camera_poses(standoff_mm)[0]
     return out
 

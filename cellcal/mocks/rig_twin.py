@@ -32,11 +32,10 @@ from cellcal.clock import Clock, WallClock
 from cellcal.device_options import Strict
 from cellcal.drivers.camera_aravis import AravisRigOptions, aravis_missing
 from cellcal.drivers.cameras import Frame, FrameSet, RigOptions
-from cellcal.drivers.photogrammetry import CameraRigOptions
+from cellcal.drivers.photogrammetry import CameraRigOptions, rig_and_target
 from cellcal.errors import DeviceError
 from cellcal.mocks.camera_render import Image, Optics, SceneRenderer, exposed, render
 from cellcal.mocks.simulated_cell import SimulatedCell
-from cellcal.photofiles import read_rig, read_target
 
 log = logging.getLogger("cellcal.mocks.rig")
 
@@ -229,11 +228,7 @@ class RigTwin:
 def serve(options: CameraRigOptions, cell: SimulatedCell, time_scale: float) -> RigTwin:
     """The simulated cell's cameras for the configured rig: GigE Vision cameras when the
     capture is ``aravis`` and a network namespace can be made, else in-process."""
-    try:
-        rig = read_rig(options.rig_file)
-        target = read_target(options.target_file)
-    except Exception as exc:
-        raise DeviceError(f"sensor {options.name}: {exc}") from None
+    rig, target = rig_and_target(options)
     scene = RigScene(cell, options.name, rig, target)
     capture = options.capture
     why = _why_in_process(capture)
