@@ -1,3 +1,4 @@
 from cellcal.cli import main
 
-main()
+if __name__ == "__main__":  # not when a spawned process (the camera twin) imports it
+    main()

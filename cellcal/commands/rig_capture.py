@@ -105,14 +105,14 @@ def mock_cameras(
     robot holds the target (at home), until Ctrl-C or SIGTERM."""
     from cellcal.commands.mock import simulated_cell_of, wait_for_signal
     from cellcal.mocks.gige_cameras import GigECameraTwin
-    from cellcal.mocks.rig_twin import RigScene
+    from cellcal.mocks.rig_twin import RigScene, RigTruth
     from cellcal.photofiles import read_rig, read_target
 
     rig, target = read_rig(rig_path), read_target(target_path)
     first = _hosts(hosts, len(rig.cameras))
     config, cell = simulated_cell_of(config_path, seed)
     sensor = _rig_sensor(config, None, config_path or "the bundled cell")
-    scene = RigScene(cell, sensor.name, rig, target)
+    scene = RigScene(RigTruth.of(cell, sensor.name), rig, target, lambda: cell.q)
     cam = rig.cameras[0]
     twin = GigECameraTwin(
         [c.name for c in rig.cameras],
@@ -120,6 +120,7 @@ def mock_cameras(
         width=cam.width,
         height=cam.height,
         first_address=first,
+        writer=scene.write,
     )
     try:
         twin.start()

@@ -6,7 +6,8 @@ GVCP and streams GVSP like a real one. It is driven through ctypes only: its fil
 callback, given through PyGObject, crashes on the first frame. The callback runs on the
 camera's thread each time a software trigger is accepted and asks
 ``source(camera_name)`` for the image of that instant (a numpy uint8/uint16 array,
-height × width): the simulated cell renders its current pose there.
+height × width), or has ``writer(camera_name, buffer)`` write it straight into the
+camera's buffer: the simulated cell renders its current pose there.
 
 The cameras need their addresses on an interface and GVCP's port 3956 is fixed, so they
 live in a private network namespace (:mod:`cellcal.mocks.netns`) made for a thread of
@@ -18,7 +19,8 @@ Adaptations of the fill: an image of another size than the camera's region is cr
 padded with black; uint8 for Mono16 is scaled by 257, uint16 for Mono8 keeps its high
 byte. A source that raises or gives no 2-D image makes a black frame (counted in
 :meth:`errors`, logged once). The fake camera polls its trigger register
-(``trigger_poll_hz``, 1000 here; Aravis's default of 25 Hz adds up to 40 ms a frame).
+(``trigger_poll_hz``, 200 here; Aravis's default of 25 Hz adds up to 40 ms a frame, and
+its loop spins through the last millisecond before each poll, so faster costs CPU).
 Its frame ids start at 65401 and wrap after 65535 to 1, as Aravis does on purpose; its
 timestamps are the host's wall clock in ns, or ``device_clock()`` (s) when given.
 """
@@ -43,11 +45,14 @@ from cellcal.mocks.twins import RunningTwin
 if TYPE_CHECKING:
     from cellcal.drivers.camera_aravis import AravisRigOptions
 
-__all__ = ["PIXEL_FORMATS", "FrameSource", "GigECameraTwin", "serve_rig"]
+__all__ = ["PIXEL_FORMATS", "FrameSource", "FrameWriter", "GigECameraTwin", "serve_rig"]
 
 log = logging.getLogger("cellcal.mocks.gige_cameras")
 
 FrameSource = Callable[[str], NDArray[Any]]
+#: Writes camera ``name``'s frame of this instant into the given (height, width) array of
+#: the stream's pixel type: the camera's own buffer, so no image is allocated per frame.
+FrameWriter = Callable[[str, NDArray[Any]], None]
 
 #: GenICam pixel format codes the twin serves.
 PIXEL_FORMATS = {"Mono8": 0x01080001, "Mono16": 0x01100007}
@@ -149,9 +154,10 @@ class GigECameraTwin:
         width: int = 1280,
         height: int = 1024,
         pixel_format: str = "Mono8",
-        trigger_poll_hz: float = 1000.0,
+        trigger_poll_hz: float = 200.0,
         device_clock: Callable[[], float] | None = None,
         first_address: int = 2,
+        writer: FrameWriter | None = None,
     ) -> None:
         if len(set(names)) != len(names) or not names:
             raise ValueError(f"camera twin: camera names must be distinct, got {list(names)}")
@@ -162,6 +168,7 @@ class GigECameraTwin:
         addresses = loopback_addresses(len(names), first_address)
         self.cameras = {n: _Camera(n, a) for n, a in zip(names, addresses, strict=True)}
         self.source = source
+        self.writer = writer
         self.width, self.height = width, height
         self.pixel_format = pixel_format
         self.trigger_poll_hz = trigger_poll_hz
@@ -274,14 +281,22 @@ class GigECameraTwin:
                     c.errors += 1
                     return
                 h, w = lib.height(buffer), lib.width(buffer)
-                try:
-                    image = fit(self.source(c.name), h, w, dtype)
-                except Exception as exc:
-                    if c.errors == 0:
-                        log.warning("camera twin %s: frame source failed: %s", c.name, exc)
-                    c.errors += 1
-                    image = np.zeros((h, w), dtype)
-                ctypes.memmove(lib.data(buffer, None), image.ctypes.data, image.nbytes)
+                data = lib.data(buffer, None)
+                if self.writer is not None:
+                    raw = (ctypes.c_uint8 * (h * w * dtype.itemsize)).from_address(data)
+                    out = np.frombuffer(raw, dtype).reshape(h, w)
+                    try:
+                        self.writer(c.name, out)
+                    except Exception as exc:
+                        _source_failed(c, exc)
+                        out[:] = 0
+                else:
+                    try:
+                        image = fit(self.source(c.name), h, w, dtype)
+                    except Exception as exc:
+                        _source_failed(c, exc)
+                        image = np.zeros((h, w), dtype)
+                    ctypes.memmove(data, image.ctypes.data, image.nbytes)
                 if self.device_clock is not None:
                     lib.set_timestamp(buffer, max(0, int(self.device_clock() * 1e9)))
                 c.frames += 1
@@ -291,6 +306,13 @@ class GigECameraTwin:
         return fill
 
 
+def _source_failed(c: _Camera, exc: Exception) -> None:
+    """A frame the source could not give goes out black: counted, logged once."""
+    if c.errors == 0:
+        log.warning("camera twin %s: frame source failed: %s", c.name, exc)
+    c.errors += 1
+
+
 def serve_rig(
     options: AravisRigOptions,
     source: FrameSource,
@@ -298,10 +320,12 @@ def serve_rig(
     width: int = 1280,
     height: int = 1024,
     device_clock: Callable[[], float] | None = None,
+    writer: FrameWriter | None = None,
 ) -> RunningTwin:
     """Start a twin of the configured rig (its cameras by name, sensors ``width`` ×
     ``height``, the first camera's pixel format) and return it with the options pointed
-    at it: each camera's address is its twin's, ``netns`` the twin's namespace."""
+    at it: each camera's address is its twin's, ``netns`` the twin's namespace. With a
+    ``writer`` the frames are written into the cameras' buffers (``source`` unused)."""
     names = [c.name for c in options.cameras]
     twin = GigECameraTwin(
         names,
@@ -310,6 +334,7 @@ def serve_rig(
         height=height,
         pixel_format=options.cameras[0].pixel_format,
         device_clock=device_clock,
+        writer=writer,
     ).start()
     cameras = [c.model_copy(update={"address": twin.addresses[c.name]}) for c in options.cameras]
     pointed = options.model_copy(update={"cameras": cameras, "netns": twin.netns})

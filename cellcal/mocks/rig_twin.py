@@ -19,6 +19,7 @@ from __future__ import annotations
 import itertools
 import logging
 import threading
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, Literal
 
@@ -28,14 +29,24 @@ import numpy as np
 from cellcal.calib.camera_rig import Rig, Target
 from cellcal.calib.geometry import Array, invert
 from cellcal.calib.kinematics import target_kinematics
+from cellcal.calib.robot_model import RobotModel
 from cellcal.clock import Clock, WallClock
 from cellcal.device_options import Strict
 from cellcal.drivers.camera_aravis import AravisRigOptions, aravis_missing
 from cellcal.drivers.cameras import Frame, FrameSet, RigOptions
 from cellcal.drivers.photogrammetry import CameraRigOptions, rig_and_target
 from cellcal.errors import DeviceError
-from cellcal.mocks.camera_render import Image, Optics, SceneRenderer, exposed, render
+from cellcal.mocks.camera_render import (
+    Image,
+    Optics,
+    Region,
+    SceneRenderer,
+    exposed,
+    render_region,
+)
+from cellcal.mocks.gige_cameras import fit
 from cellcal.mocks.simulated_cell import SimulatedCell
+from cellcal.mocks.twins import RunningTwin
 
 log = logging.getLogger("cellcal.mocks.rig")
 
@@ -49,8 +60,9 @@ MOCK_TIMEOUT_S = 5.0
 SUPERSAMPLE = 8
 
 
-#: a camera's clean image, its target window (rows, columns) and its noisy backgrounds
-_View = tuple[Image, tuple[slice, slice], list[Image]]
+#: a camera's clean view of the target (the part of its image that is not plain
+#: background, and where that part is) and its noisy frames of the plain background
+_View = tuple[Image, Region, list[Image]]
 
 
 def facing(toward: Array) -> Array:
@@ -62,33 +74,66 @@ def facing(toward: Array) -> Array:
     return np.column_stack([x, np.cross(z, x), z])
 
 
+@dataclass(frozen=True, eq=False)
+class RigTruth:
+    """What the rig's twin needs of the simulated cell (picklable: a twin in a process of
+    its own gets it): the true robot, where the rig truly is, the target's true offset
+    on the flange, the imaging conditions and the seeds of the noise."""
+
+    model: RobotModel
+    T_rig_base: Array
+    target_offset: Array
+    home_deg: tuple[float, ...]
+    cube_centre_mm: tuple[float, ...]
+    blur_px: float
+    noise_grey: float
+    seed: int
+    noise_stream: int
+
+    @classmethod
+    def of(cls, cell: SimulatedCell, sensor: str) -> RigTruth:
+        truth = cell.sensors[sensor]
+        sim = cell.simulation
+        return cls(
+            cell.model,
+            truth.T_sensor_base,
+            truth.target_offset,
+            tuple(cell.home_deg),
+            tuple(cell.cube_centre_mm),
+            sim.rig_blur_px,
+            sim.rig_noise_grey,
+            cell.seed,
+            cell.noise_stream,
+        )
+
+
 class RigScene:
     """The rig's view of the simulated cell: ``image(camera)`` is that camera's frame
-    now. Thread-safe: the cameras are triggered together from their own threads."""
+    now, with the robot at ``joints()`` (rad). Thread-safe: the cameras are triggered
+    together from their own threads."""
 
     def __init__(
         self,
-        cell: SimulatedCell,
-        sensor: str,
+        truth: RigTruth,
         rig: Rig,
         target: Target,
+        joints: Callable[[], Array],
         optics: Optics | None = None,
     ) -> None:
-        truth = cell.sensors[sensor]
-        self.cell = cell
+        self.truth = truth
+        self.joints = joints
         self.rig = rig
-        sim = cell.simulation
         optics = optics or Optics(
-            supersample=SUPERSAMPLE, blur_px=sim.rig_blur_px, noise_grey=sim.rig_noise_grey
+            supersample=SUPERSAMPLE, blur_px=truth.blur_px, noise_grey=truth.noise_grey
         )
         self.renderer = SceneRenderer.for_target(rig.cameras, target, optics)
-        self.T_rig_base = truth.T_sensor_base
+        self.T_rig_base = truth.T_rig_base
         # the fixture faces the rig's cameras when the flange is at home
-        home = np.radians(np.asarray(cell.home_deg, dtype=np.float64))
-        R0 = target_kinematics(cell.model, home[None], np.zeros(3), jacobian=False).R_flange[0]
+        home = np.radians(np.asarray(truth.home_deg, dtype=np.float64))
+        R0 = target_kinematics(truth.model, home[None], np.zeros(3), jacobian=False).R_flange[0]
         eyes = np.array([c.T_rig_cam[:3, 3] for c in rig.cameras]).mean(axis=0)
         T_base_rig = invert(self.T_rig_base)
-        toward = T_base_rig[:3, :3] @ eyes + T_base_rig[:3, 3] - np.asarray(cell.cube_centre_mm)
+        toward = T_base_rig[:3, :3] @ eyes + T_base_rig[:3, 3] - np.asarray(truth.cube_centre_mm)
         R = R0.T @ facing(toward)
         self.T_flange_target = np.eye(4)
         self.T_flange_target[:3, :3] = R
@@ -101,7 +146,7 @@ class RigScene:
         # so the same seed gives the same images whatever the threads' order (a resumed
         # campaign, the cell's next noise stream, draws fresh noise)
         self._rngs = {
-            c.name: np.random.default_rng([cell.seed, 2, cell.noise_stream, k])
+            c.name: np.random.default_rng([truth.seed, 2, truth.noise_stream, k])
             for k, c in enumerate(rig.cameras)
         }
         self._bank: dict[str, list[Image]] = {}
@@ -113,7 +158,7 @@ class RigScene:
             ]
 
     def T_rig_target(self, q: Array) -> Array:
-        k = target_kinematics(self.cell.model, q[None], np.zeros(3), jacobian=False)
+        k = target_kinematics(self.truth.model, q[None], np.zeros(3), jacobian=False)
         T_base_flange = np.eye(4)
         T_base_flange[:3, :3] = k.R_flange[0]
         T_base_flange[:3, 3] = k.p[0]
@@ -123,7 +168,16 @@ class RigScene:
     def image(self, camera: str) -> Image:
         """Camera ``camera``'s frame of the target where the robot holds it now. Each
         camera renders its own view once per robot pose, on its own thread."""
-        q = self.cell.q
+        c = self.rig.camera(camera)
+        frame = np.empty((c.height, c.width), dtype=np.uint8)
+        self.write(camera, frame)
+        return frame
+
+    def write(self, camera: str, out: Image) -> None:
+        """:meth:`image` written into ``out`` (the camera's own frame buffer: no image
+        is allocated per frame); another size or pixel type is cropped, padded or
+        scaled as :func:`~cellcal.mocks.gige_cameras.fit` does."""
+        q = self.joints()
         with self._lock:
             if self._q is None or not np.array_equal(q, self._q):
                 self._q, self._T = q, self.T_rig_target(q)
@@ -135,7 +189,7 @@ class RigScene:
             with self._lock:
                 if self._q is not None and np.array_equal(q, self._q):
                     self._clean[camera] = cached
-        clean, (rows, cols), bank = cached
+        part, (rows, cols), bank = cached
         with self._lock:
             rng = self._rngs[camera]
             k = int(rng.integers(len(bank)))
@@ -143,24 +197,21 @@ class RigScene:
             if rows.stop > rows.start and cols.stop > cols.start:
                 shape = (rows.stop - rows.start, cols.stop - cols.start)
                 noise = rng.standard_normal(shape, dtype=np.float32)
-        frame = bank[k].copy()
+        frame = out if out.dtype == np.uint8 and out.shape == bank[k].shape else bank[k].copy()
+        if frame is out:
+            np.copyto(out, bank[k])
         if noise is not None:
             noise *= np.float32(self.renderer.optics.noise_grey)
-            frame[rows, cols] = cv2.add(clean[rows, cols], noise, dtype=cv2.CV_8U)
-        return frame
+            frame[rows, cols] = cv2.add(part, noise, dtype=cv2.CV_8U)
+        if frame is not out:
+            np.copyto(out, fit(frame, out.shape[0], out.shape[1], out.dtype))
 
     def _render(self, camera: str, T_rig_target: Array) -> _View:
-        """One camera's clean image, the window where it differs from the plain
-        background, and that camera's bank of noisy background frames."""
-        optics = self.renderer.optics
+        """One camera's clean view of the target and its bank of noisy frames of the
+        plain background."""
         cam = self.rig.camera(camera)
-        clean = render(cam, self.renderer.faces, T_rig_target, optics)
-        rows, cols = np.nonzero(np.abs(clean - np.float32(optics.background)) > 1e-3)
-        if rows.size:
-            window = (slice(rows.min(), rows.max() + 1), slice(cols.min(), cols.max() + 1))
-        else:
-            window = (slice(0, 0), slice(0, 0))
-        return clean, window, self._bank[camera]
+        part, region = render_region(cam, self.renderer.faces, T_rig_target, self.renderer.optics)
+        return part, region, self._bank[camera]
 
 
 class RenderedRigOptions(Strict):
@@ -226,36 +277,47 @@ class RigTwin:
 
 
 def serve(options: CameraRigOptions, cell: SimulatedCell, time_scale: float) -> RigTwin:
-    """The simulated cell's cameras for the configured rig: GigE Vision cameras when the
-    capture is ``aravis`` and a network namespace can be made, else in-process."""
+    """The simulated cell's cameras for the configured rig: GigE Vision cameras in a
+    process of their own when the capture is ``aravis`` and a network namespace can be
+    made, else in-process."""
     rig, target = rig_and_target(options)
-    scene = RigScene(cell, options.name, rig, target)
+    truth = RigTruth.of(cell, options.name)
     capture = options.capture
     why = _why_in_process(capture)
     if why is None and isinstance(capture, AravisRigOptions):
-        from cellcal.mocks.gige_cameras import serve_rig
         from cellcal.mocks.netns import NamespaceUnavailableError
+        from cellcal.mocks.rig_process import serve_in_process
 
-        w, h = rig.cameras[0].width, rig.cameras[0].height
-        # a camera's first frame at a new robot pose is rendered (0.1-0.5 s on a busy
-        # machine), which a real camera does not need: mock mode waits longer for it
-        slow = [
-            c.model_copy(update={"timeout_s": max(c.timeout_s, MOCK_TIMEOUT_S)})
-            for c in capture.cameras
-        ]
-        capture = capture.model_copy(update={"cameras": slow})
         try:
-            running = serve_rig(capture, scene.image, width=w, height=h)
+            running = serve_in_process(options.model_copy(update={"capture": capture}), truth, cell)
         except NamespaceUnavailableError as exc:
             why = str(exc)
         else:
             return RigTwin(options.model_copy(update={"capture": running.options}), running)
     log.warning("sensor %s: cameras simulated in-process (%s)", options.name, why)
     sid = next(_ids)
-    _SCENES[sid] = scene
+    _SCENES[sid] = RigScene(truth, rig, target, lambda: cell.q)
     names = tuple(c.name for c in capture.cameras)
     rendered = RenderedRigOptions(name=capture.name, cameras=names, scene=sid)
     return RigTwin(options.model_copy(update={"capture": rendered}), None, sid)
+
+
+def serve_gige(options: CameraRigOptions, scene: RigScene) -> RunningTwin:
+    """The scene's cameras as GigE Vision devices for the rig's ``aravis`` capture (in a
+    network namespace of this process), the options pointed at them."""
+    from cellcal.mocks.gige_cameras import serve_rig
+
+    capture = options.capture
+    assert isinstance(capture, AravisRigOptions)
+    cam = scene.rig.cameras[0]
+    # a camera's first frame at a new robot pose is rendered (0.05-0.5 s on a busy
+    # machine), which a real camera does not need: mock mode waits longer for it
+    slow = [
+        c.model_copy(update={"timeout_s": max(c.timeout_s, MOCK_TIMEOUT_S)})
+        for c in capture.cameras
+    ]
+    capture = capture.model_copy(update={"cameras": slow})
+    return serve_rig(capture, scene.image, width=cam.width, height=cam.height, writer=scene.write)
 
 
 def _why_in_process(capture: RigOptions) -> str | None:

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import math
 import threading
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -83,6 +84,7 @@ class SimulatedCell:
         self.simulation = sim
         self._lock = threading.Lock()
         self._q = np.radians(np.asarray(config.robot.home_deg, dtype=np.float64))
+        self._watchers: list[Callable[[Array], None]] = []
 
     @staticmethod
     def _sensor_truth(
@@ -111,6 +113,22 @@ class SimulatedCell:
     def set_q(self, q: Array) -> None:
         with self._lock:
             self._q = np.asarray(q, dtype=np.float64).copy()
+            for tell in self._watchers:
+                tell(self._q)
+
+    def watch(self, tell: Callable[[Array], None]) -> Callable[[], None]:
+        """Call ``tell(q)`` at every move from now on (a twin in another process follows
+        the robot so); returns the call that stops it."""
+        with self._lock:
+            self._watchers.append(tell)
+            tell(self._q)
+
+        def unwatch() -> None:
+            with self._lock:
+                if tell in self._watchers:
+                    self._watchers.remove(tell)
+
+        return unwatch
 
     def flange_pose(self, q: Array) -> Array:
         """What a controller reports: T_base_flange (4×4, mm) from its *nominal*

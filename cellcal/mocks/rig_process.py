@@ -1,0 +1,160 @@
+"""The rig's GigE Vision twin in a process of its own.
+
+Rendering the target and filling the cameras' frames is Python and numpy work; in the
+campaign's process it would take turns under one interpreter lock with the driver
+measuring those frames, as a real rig's cameras do not. So mock mode starts the twin in
+a child process (``spawn``: the campaign's threads are not forked):
+
+* the child gets the rig's truth (:class:`~cellcal.mocks.rig_twin.RigTruth`) and the
+  sensor's options, reads the rig and target files itself, makes its network namespace
+  and serves the cameras there (:func:`~cellcal.mocks.rig_twin.serve_gige`);
+* it follows the simulated robot through six shared doubles the campaign's process
+  writes at every move (:meth:`~cellcal.mocks.simulated_cell.SimulatedCell.watch`);
+* it answers with the options that point the ``aravis`` driver at its cameras (the
+  namespace as ``/proc/<child>/fd/<n>``), or with the reason it could not;
+* it serves until told to stop, or until the campaign's process is gone (its end of the
+  pipe closes): a killed campaign leaves no camera behind. Tests may have it stop one
+  camera (fault injection).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import multiprocessing
+from multiprocessing.connection import Connection
+from multiprocessing.process import BaseProcess
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from cellcal.calib.geometry import Array
+from cellcal.drivers.photogrammetry import CameraRigOptions, rig_and_target
+from cellcal.errors import DeviceError
+from cellcal.mocks.netns import NamespaceUnavailableError
+from cellcal.mocks.simulated_cell import SimulatedCell
+from cellcal.mocks.twins import RunningTwin
+
+if TYPE_CHECKING:
+    from cellcal.mocks.rig_twin import RigTruth
+
+log = logging.getLogger("cellcal.mocks.rig")
+
+#: How long the child may take to import, render its noise bank and open its cameras, s.
+START_S = 60.0
+#: How long it may take to stop, s, before it is terminated.
+STOP_S = 10.0
+
+
+class _Joints:
+    """The robot's joint angles (rad) shared between the two processes."""
+
+    def __init__(self, shared: Any) -> None:
+        self.shared = shared
+
+    def write(self, q: Array) -> None:
+        with self.shared.get_lock():
+            self.shared[:] = [float(v) for v in q]
+
+    def read(self) -> Array:
+        with self.shared.get_lock():
+            return np.array(self.shared[:], dtype=np.float64)
+
+
+class _Child:
+    """The running child: ``stop()`` ends it (and stops following the robot)."""
+
+    def __init__(self, process: BaseProcess, pipe: Connection, unwatch: Any) -> None:
+        self.process = process
+        self.pipe = pipe
+        self.unwatch = unwatch
+
+    def stop_camera(self, name: str) -> None:
+        """Fault injection: camera ``name`` answers nothing more (as in
+        :meth:`~cellcal.mocks.gige_cameras.GigECameraTwin.stop_camera`)."""
+        self.pipe.send(("stop_camera", name))
+        if not self.pipe.poll(STOP_S) or self.pipe.recv() != "done":
+            raise DeviceError(f"camera twin: camera {name} did not stop")
+
+    def stop(self) -> None:
+        self.unwatch()
+        with contextlib.suppress(OSError, ValueError):  # the child may be gone already
+            self.pipe.send("stop")
+        self.process.join(STOP_S)
+        if self.process.is_alive():
+            log.warning("camera twin: did not stop within %g s; terminated", STOP_S)
+            self.process.terminate()
+            self.process.join(STOP_S)
+        self.pipe.close()
+
+
+def serve_in_process(
+    options: CameraRigOptions, truth: RigTruth, cell: SimulatedCell
+) -> RunningTwin:
+    """Start the rig's twin in a child process; its options point the driver at it.
+    Raises :class:`NamespaceUnavailableError` when the child cannot make its namespace,
+    :class:`DeviceError` when it fails otherwise."""
+    ctx = multiprocessing.get_context("spawn")
+    joints = _Joints(ctx.Array("d", len(cell.q)))
+    unwatch = cell.watch(joints.write)
+    ours, theirs = ctx.Pipe()
+    process = ctx.Process(
+        target=_child_main,
+        args=(options, truth, joints.shared, theirs),
+        name=f"{options.name}-cameras",
+        daemon=True,
+    )
+    try:
+        process.start()
+    except OSError as exc:
+        unwatch()
+        raise DeviceError(f"camera twin: cannot start its process ({exc})") from None
+    theirs.close()
+    child = _Child(process, ours, unwatch)
+    try:
+        if not ours.poll(START_S):
+            raise DeviceError(f"camera twin: its process did not start within {START_S:g} s")
+        kind, payload = ours.recv()
+    except EOFError:
+        child.stop()
+        raise DeviceError(
+            f"camera twin: its process ended on start (exit code {process.exitcode})"
+        ) from None
+    except BaseException:
+        child.stop()
+        raise
+    if kind != "ok":
+        child.stop()
+        if kind == "unavailable":
+            raise NamespaceUnavailableError(payload)
+        raise DeviceError(f"camera twin: {payload}")
+    return RunningTwin(payload, child)
+
+
+def _child_main(options: CameraRigOptions, truth: RigTruth, shared: Any, pipe: Connection) -> None:
+    """The child: serve the rig's cameras until told to stop or orphaned."""
+    from cellcal.mocks.gige_cameras import GigECameraTwin
+    from cellcal.mocks.rig_twin import RigScene, serve_gige
+
+    joints = _Joints(shared)
+    try:
+        rig, target = rig_and_target(options)
+        running = serve_gige(options, RigScene(truth, rig, target, joints.read))
+    except NamespaceUnavailableError as exc:
+        pipe.send(("unavailable", str(exc)))
+        return
+    except Exception as exc:  # the parent reports it in one line
+        pipe.send(("error", str(exc) or type(exc).__name__))
+        return
+    try:
+        pipe.send(("ok", running.options))
+        # until "stop", or EOFError when the campaign's process is gone
+        while (message := pipe.recv()) != "stop":
+            if isinstance(message, tuple) and message[0] == "stop_camera":
+                assert isinstance(running.server, GigECameraTwin)
+                running.server.stop_camera(message[1])
+                pipe.send("done")
+    except (EOFError, OSError):
+        pass
+    finally:
+        running.stop()
