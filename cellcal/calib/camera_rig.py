@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import cached_property
 
 import cv2
 import numpy as np
@@ -151,11 +152,18 @@ class Camera:
         """Pixel coordinates (n, 2) of points (n, 3) given in the rig frame (mm).
         Points behind the camera are projected too; the caller decides what is seen."""
         p = np.asarray(points_rig, dtype=np.float64).reshape(-1, 3)
-        T_cam_rig = np.linalg.inv(self.T_rig_cam)
-        rvec, _ = cv2.Rodrigues(T_cam_rig[:3, :3])
-        px, _ = cv2.projectPoints(p, rvec, T_cam_rig[:3, 3].copy(), self.K, self.dist)
+        rvec, tvec = self._rig_in_camera
+        px, _ = cv2.projectPoints(p, rvec, tvec, self.K, self.dist)
         out: Array = px.reshape(-1, 2).astype(np.float64)
         return out
+
+    @cached_property
+    def _rig_in_camera(self) -> tuple[Array, Array]:
+        """The rig frame in the camera's, as OpenCV's (rvec, tvec)."""
+        T_cam_rig = np.linalg.inv(self.T_rig_cam)
+        rvec, _ = cv2.Rodrigues(T_cam_rig[:3, :3])
+        tvec: Array = np.array(T_cam_rig[:3, 3], dtype=np.float64)
+        return np.asarray(rvec, dtype=np.float64), tvec
 
     def normalised(self, pixels: Array) -> Array:
         """Undistorted normalised coordinates (x/z, y/z) (n, 2) of pixel positions (n, 2)."""

@@ -23,6 +23,7 @@ normalised coordinates out.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -147,18 +148,31 @@ class MarkerFinder:
         """Markers already identified, measured where they are expected (``corners_px``
         (m, 4, 2), within a pixel or two) without running the detector: a still target
         filmed again. Markers whose edges are not found there are left out."""
-        _, grey = grey_levels(image)
-        return self._measure(grey, ids, corners_px, FOLLOW_PASSES)
+        return self.follow_many([image], [(ids, corners_px)])[0]
+
+    def follow_many(
+        self, images: Sequence[Image], expected: Sequence[tuple[list[int], Array]]
+    ) -> list[list[MarkerImage]]:
+        """:meth:`follow` in several images at once (one set of cameras): the same
+        numbers, a quarter of the work for four cameras."""
+        greys = [grey_levels(image)[1] for image in images]
+        ids = [e[0] for e in expected]
+        corners = [e[1] for e in expected]
+        edges = _edge_points(greys, corners, self._bits, FOLLOW_PASSES)
+        return [_found(i, c, e) for i, c, e in zip(ids, corners, edges, strict=True)]
 
     def _measure(
         self, grey: Image, ids: list[int], corners_px: Array, passes: int = PASSES
     ) -> list[MarkerImage]:
-        edges = edge_points(grey, corners_px, self._bits, passes)
-        return [
-            MarkerImage(mid, c, e)
-            for mid, c, e in zip(ids, corners_px, edges, strict=True)
-            if e is not None
-        ]
+        return _found(ids, corners_px, edge_points(grey, corners_px, self._bits, passes))
+
+
+def _found(ids: list[int], corners_px: Array, edges: list[Edges | None]) -> list[MarkerImage]:
+    return [
+        MarkerImage(mid, c, e)
+        for mid, c, e in zip(ids, corners_px, edges, strict=True)
+        if e is not None
+    ]
 
 
 def edge_points(
@@ -176,6 +190,24 @@ def edge_points(
     noise, with no interpolation between pixels. The window is centred on a first
     estimate and the sum taken again.
     """
+    return _edge_points([grey], [corners_px], bits, passes)[0]
+
+
+def _edge_points(
+    greys: Sequence[Image], corners: Sequence[Array], bits: int, passes: int
+) -> list[list[Edges | None]]:
+    """:func:`edge_points` of the markers ``corners[k]`` (m_k, 4, 2) in image ``greys[k]``,
+    all images' markers in one pass of numpy (the per-call cost, not the pixels, is what
+    a few markers per image cost)."""
+    counts = [len(c) for c in corners]
+    if sum(counts) == 0:
+        return [[] for _ in corners]
+    corners_px = np.concatenate(
+        [np.asarray(c, dtype=np.float64).reshape(-1, 4, 2) for c in corners]
+    )
+    owner = np.repeat(np.arange(len(corners)), [4 * n for n in counts])  # image of each edge
+    h = np.array([g.shape[0] for g in greys])[owner]
+    w = np.array([g.shape[1] for g in greys])[owner]
     m = corners_px.shape[0]
     a = corners_px.reshape(-1, 2)  # edge k of marker i starts at corner k ...
     b = np.roll(corners_px, -1, axis=1).reshape(-1, 2)  # ... and ends at corner k+1
@@ -201,13 +233,13 @@ def edge_points(
     inward = np.where(c_ac[:, None] > e, 1.0, -1.0)[:, 0]
     # the window's half-width along the scanline: across the edge it reaches BLUR_REACH
     # short of the marker's inner bits, and at least 1.2 px
-    half = np.clip((border - BLUR_REACH_PX) / cos, 1.2 / cos, WINDOW_HALF_PX)
+    half = np.minimum(np.maximum((border - BLUR_REACH_PX) / cos, 1.2 / cos), WINDOW_HALF_PX)
     reach = 0.5 * border / cos
     offs = np.arange(-int(WINDOW_HALF_PX) - 1, int(WINDOW_HALF_PX) + 2)
-    h, w = grey.shape
     ok_edge = (border >= MIN_BORDER_PX) & (count >= MIN_EDGE_POINTS)
 
-    flat = grey.reshape(-1)
+    flats = [g.reshape(-1) for g in greys]
+    first = np.concatenate([[0], np.cumsum([4 * n for n in counts])])  # each image's edges
     stride: Image = np.where(along == 1, w, 1)  # scan coordinate j: a row (x along) or a column
     step: Image = np.where(along == 1, 1, w)
     limit_j: Image = h * along + w * (1 - along)
@@ -219,7 +251,10 @@ def edge_points(
         shape = (-1,) + (1,) * (max(j.ndim, i.ndim) - 1)
         inside = (j >= 0) & (j < limit_j.reshape(shape)) & (i >= 0) & (i < limit_i.reshape(shape))
         idx = j * stride.reshape(shape) + i * step.reshape(shape)
-        out = flat.take(idx, mode="clip").astype(np.float64)
+        out = np.empty(idx.shape, dtype=np.float64)
+        for k, flat in enumerate(flats):
+            part = slice(first[k], first[k + 1])
+            out[part] = flat.take(idx[part], mode="clip")
         return np.where(inside, out, np.nan)
 
     ok = valid.copy()
@@ -238,11 +273,10 @@ def edge_points(
         lo_e = e - half[:, None]
         hi_e = e + half[:, None]
         pix = centre_i[:, :, None] + offs[None, None, :]
-        weight = np.clip(
-            np.minimum(pix + 0.5, hi_e[:, :, None]) - np.maximum(pix - 0.5, lo_e[:, :, None]),
-            0.0,
-            1.0,
+        inside_px = np.minimum(pix + 0.5, hi_e[:, :, None]) - np.maximum(
+            pix - 0.5, lo_e[:, :, None]
         )
+        weight = np.minimum(np.maximum(inside_px, 0.0), 1.0)
         win = gather(js[:, :, None], pix)
         total = np.where(weight > 0, win * weight, 0.0).sum(axis=2)
         with np.errstate(all="ignore"):
@@ -265,7 +299,8 @@ def edge_points(
             pts[:, 1 - along[k]] = e[k, sel]
             edges.append(pts)
         out.append((edges[0], edges[1], edges[2], edges[3]))
-    return out
+    marker_first = np.concatenate([[0], np.cumsum(counts)])
+    return [out[marker_first[k] : marker_first[k + 1]] for k in range(len(counts))]
 
 
 @dataclass(frozen=True, eq=False)
@@ -282,17 +317,28 @@ def marker_corners(camera: Camera, markers: list[MarkerImage]) -> list[MarkerCor
     """The corners where each marker's fitted edge lines meet, in normalised
     coordinates. A marker whose edge cannot be fitted, or whose adjacent edges are within
     3° of parallel, is left out."""
-    if not markers:
-        return []
-    f = float(np.sqrt(camera.K[0, 0] * camera.K[1, 1]))
-    n_e = 4 * len(markers)
-    counts = [len(e) for mk in markers for e in mk.edges_px]
+    return marker_corners_many([camera], [markers])[0]
+
+
+def marker_corners_many(
+    cameras: Sequence[Camera], markers: Sequence[list[MarkerImage]]
+) -> list[list[MarkerCorners]]:
+    """:func:`marker_corners` for several cameras' markers at once (one set)."""
+    every = [mk for found in markers for mk in found]
+    if not every:
+        return [[] for _ in markers]
+    n_e = 4 * len(every)
+    counts = [len(e) for mk in every for e in mk.edges_px]
     n_j = max(counts)
-    flat = np.concatenate([e for mk in markers for e in mk.edges_px])
-    xy_flat = camera.normalised(flat) * f  # px-sized units keep the fit well scaled
+    scaled = []
+    for camera, found in zip(cameras, markers, strict=True):
+        if found:
+            f = float(np.sqrt(camera.K[0, 0] * camera.K[1, 1]))
+            pts = np.concatenate([e for mk in found for e in mk.edges_px])
+            scaled.append(camera.normalised(pts) * f)  # px-sized units keep the fit scaled
     pts = np.zeros((n_e, n_j, 2))
     mask = np.arange(n_j)[None, :] < np.array(counts)[:, None]
-    pts[mask] = xy_flat
+    pts[mask] = np.concatenate(scaled)
     normal, c, rms, ok = _fit_lines(pts, mask)
     n1, c1 = np.roll(normal.reshape(-1, 4, 2), 1, axis=1), np.roll(c.reshape(-1, 4), 1, axis=1)
     n2, c2 = normal.reshape(-1, 4, 2), c.reshape(-1, 4)
@@ -302,11 +348,19 @@ def marker_corners(camera: Camera, markers: list[MarkerImage]) -> list[MarkerCor
     y = (n1[..., 0] * c2 - n2[..., 0] * c1) / safe
     good: Image = np.asarray(ok.reshape(-1, 4).all(axis=1) & (np.abs(det) >= 0.05).all(axis=1))
     rms_m = np.sqrt((rms.reshape(-1, 4) ** 2).mean(axis=1))
-    return [
-        MarkerCorners(mk.id, np.stack([x[i], y[i]], axis=1) / f, float(rms_m[i]))
-        for i, mk in enumerate(markers)
-        if good[i]
-    ]
+    out: list[list[MarkerCorners]] = []
+    i = 0
+    for camera, found in zip(cameras, markers, strict=True):
+        f = float(np.sqrt(camera.K[0, 0] * camera.K[1, 1]))
+        mine = []
+        for mk in found:
+            if good[i]:
+                mine.append(
+                    MarkerCorners(mk.id, np.stack([x[i], y[i]], axis=1) / f, float(rms_m[i]))
+                )
+            i += 1
+        out.append(mine)
+    return out
 
 
 def _row_median(x: Array) -> Array:
@@ -314,8 +368,8 @@ def _row_median(x: Array) -> Array:
     nanmedian goes through masked arrays and is ten times slower here."""
     n = np.isfinite(x).sum(axis=1)
     s = np.sort(np.where(np.isfinite(x), x, np.inf), axis=1)
-    lo = np.clip((n - 1) // 2, 0, x.shape[1] - 1)
-    hi = np.clip(n // 2, 0, x.shape[1] - 1)
+    lo = np.minimum(np.maximum((n - 1) // 2, 0), x.shape[1] - 1)
+    hi = np.minimum(n // 2, x.shape[1] - 1)
     rows = np.arange(x.shape[0])
     out: Array = np.where(n > 0, 0.5 * (s[rows, lo] + s[rows, hi]), np.nan)
     return out

@@ -5,8 +5,9 @@ A series is a still target filmed 20 times. The first frame is searched whole wi
 detector. In each next frame the markers a camera saw are followed: their edges are
 measured where the last pose projects them, without the detector, and the last pose
 starts the fit. Where a followed marker is not found, the detector searches a window
-around the expected markers (with a margin), and failing that the whole image; a fit
-from the last pose that leaves a large residual is started afresh. A target that moved
+around the expected markers (with a margin), and failing that the whole image; a camera
+whose whole image showed no marker is not searched again while the target holds still;
+a fit from the last pose that leaves a large residual is started afresh. A target that moved
 is found again, not lost.
 
 The mean's covariance is given two ways: propagated (the frames' covariances averaged
@@ -24,7 +25,13 @@ import numpy as np
 
 from cellcal.calib.camera_rig import Rig, Target
 from cellcal.calib.geometry import Array
-from cellcal.calib.marker_corners import Image, MarkerFinder, MarkerImage, Window, marker_corners
+from cellcal.calib.marker_corners import (
+    Image,
+    MarkerFinder,
+    MarkerImage,
+    Window,
+    marker_corners_many,
+)
 from cellcal.calib.target_pose import TargetPose, measure_target
 from cellcal.errors import InputError, MeasurementError
 
@@ -65,32 +72,37 @@ class TargetMeter:
         self._finder = MarkerFinder(target.dictionary, frozenset(m.id for m in target.markers))
         self._last: TargetPose | None = None
         self._seen: dict[str, list[int]] = {}
+        self._blind: set[str] = set()  # cameras whose last whole search found nothing
+        self._corners = {m.id: m.corners() for m in target.markers}
 
     def reset(self) -> None:
         """Forget the last pose: the next frame is searched whole (a new robot pose)."""
         self._last = None
         self._seen = {}
+        self._blind = set()
 
     def measure(self, images: Mapping[str, Image]) -> TargetPose:
         """The target in one set of images (camera name → image)."""
         unknown = sorted(set(images) - {c.name for c in self.rig.cameras})
         if unknown:
             raise InputError(f"images of cameras not in rig {self.rig.name!r}: {unknown}")
-        views = {}
-        for cam in self.rig.cameras:
-            if cam.name not in images:
-                continue
-            views[cam.name] = marker_corners(cam, self._find(cam.name, images[cam.name]))
+        cams = [c for c in self.rig.cameras if c.name in images]
+        found = self._find({c.name: images[c.name] for c in cams})
+        corners = marker_corners_many(cams, [found[c.name] for c in cams])
+        views = {c.name: v for c, v in zip(cams, corners, strict=True)}
         start = None if self._last is None else self._last.T_rig_target
         try:
             pose = measure_target(
                 self.rig, self.target, views, min_cameras=self.min_cameras, start=start
             )
             if start is not None and pose.reprojection_rms_px > RESTART_RMS_PX:
-                # the target moved: fit again from each camera's own estimate
+                # the target moved: fit again from each camera's own estimate, and look
+                # again everywhere next time
+                self._blind.clear()
                 pose = measure_target(self.rig, self.target, views, min_cameras=self.min_cameras)
         except MeasurementError:
             self._last = None
+            self._blind.clear()
             raise
         self._last = pose
         return pose
@@ -120,29 +132,48 @@ class TargetMeter:
         cam = self.rig.camera(cam_name)
         T = self._last.T_rig_target
         ids = self._seen[cam_name]
-        markers = {m.id: m for m in self.target.markers}
-        pts = np.concatenate([markers[i].corners() for i in ids]) @ T[:3, :3].T + T[:3, 3]
+        pts = np.concatenate([self._corners[i] for i in ids]) @ T[:3, :3].T + T[:3, 3]
         return ids, cam.project(pts).reshape(-1, 4, 2)
 
-    def _find(self, cam_name: str, image: Image) -> list[MarkerImage]:
-        """Follow the markers seen last time; where they are not all found, detect in a
-        window around them; failing that, in the whole image."""
-        expected = self._expected(cam_name)
-        found: list[MarkerImage] = []
-        if expected is not None:
-            ids, corners = expected
-            found = self._finder.follow(image, ids, corners)
-            if len(found) < len(ids):
-                lo = np.floor(corners.reshape(-1, 2).min(axis=0)).astype(int) - WINDOW_MARGIN_PX
-                hi = np.ceil(corners.reshape(-1, 2).max(axis=0)).astype(int) + WINDOW_MARGIN_PX
-                window = Window(int(lo[0]), int(lo[1]), int(hi[0]), int(hi[1]))
-                found = self._finder.find(image, window)
-                if len(found) < len(ids):
-                    found = self._finder.find(image)
-        else:
-            found = self._finder.find(image)
-        self._seen[cam_name] = [m.id for m in found]
+    def _find(self, images: dict[str, Image]) -> dict[str, list[MarkerImage]]:
+        """Follow the markers each camera saw last time (all cameras at once); where
+        they are not all found, detect in a window around them, and where nothing is
+        found there either, in the whole image. A camera whose whole image showed no
+        marker is not searched again while the target holds still (a target hidden
+        from one camera costs that camera one search per series)."""
+        expected = {n: e for n in images if (e := self._expected(n)) is not None}
+        names = list(expected)
+        followed = self._finder.follow_many(
+            [images[n] for n in names], [expected[n] for n in names]
+        )
+        found = dict(zip(names, followed, strict=True))
+        for name, image in images.items():
+            if name not in expected:
+                if self._last is None or name not in self._blind:
+                    found[name] = self._finder.find(image)
+                    if not found[name]:
+                        self._blind.add(name)
+                else:
+                    found[name] = []
+                continue
+            ids, corners = expected[name]
+            if len(found[name]) < len(ids):
+                near = self._finder.find(image, _around(corners))
+                if not near and not found[name]:
+                    near = self._finder.find(image)  # the target moved out of its window
+                    self._blind.clear()
+                if len(near) > len(found[name]):
+                    found[name] = near
+        for name, markers in found.items():
+            self._seen[name] = [m.id for m in markers]
         return found
+
+
+def _around(corners_px: Array) -> Window:
+    """The window around markers' corners (m, 4, 2), with the search margin."""
+    lo = np.floor(corners_px.reshape(-1, 2).min(axis=0)).astype(int) - WINDOW_MARGIN_PX
+    hi = np.ceil(corners_px.reshape(-1, 2).max(axis=0)).astype(int) + WINDOW_MARGIN_PX
+    return Window(int(lo[0]), int(lo[1]), int(hi[0]), int(hi[1]))
 
 
 def mean_of(poses: list[TargetPose], failures: tuple[str, ...] = ()) -> SeriesMean:

@@ -140,7 +140,7 @@ def _refine(model: _Model, T: Array, o: _Obs) -> Array:
         step = np.asarray(np.linalg.lstsq(A, r.reshape(-1), rcond=None)[0], dtype=np.float64)
         T[:3, :3] = so3_exp(step[:3]) @ T[:3, :3]
         T[:3, 3] += step[3:]
-        if np.abs(step[:3]).max() < 1e-10 and np.abs(step[3:]).max() < 1e-7:
+        if np.abs(step[:3]).max() < 1e-9 and np.abs(step[3:]).max() < 1e-6:
             break
     return T
 

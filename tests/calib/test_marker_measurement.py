@@ -224,3 +224,41 @@ def test_a_target_that_moves_is_found_again() -> None:
     assert np.linalg.norm(pose.xyz_mm - T2[:3, 3]) < 0.1
     with pytest.raises(InputError, match="not in rig"):
         meter.measure({"cam9": np.zeros((10, 10), np.uint8)})
+
+
+def test_a_camera_that_sees_no_marker_is_searched_once_per_still_target() -> None:
+    """A camera the target is hidden from is searched whole on the first frame and not
+    again while the others follow a still target; a new series, or a target that moved,
+    has it searched again."""
+    from cellcal.calib.rig_measurement import TargetMeter
+
+    rig, target, renderer, centre = _cube_scene()
+    rng = np.random.default_rng(23)
+    T = _facing_pose(rng, centre)
+    clean = renderer.clean(T)
+    hidden = rig.cameras[3].name
+    blank = np.full((1024, 1280), 40, np.uint8)
+
+    def frames() -> dict[str, np.ndarray]:
+        return {**renderer.frames(clean, rng), hidden: blank}
+
+    meter = TargetMeter(rig, target)
+    searched: list[int] = []
+    original = meter._finder.find
+
+    def counting(image: np.ndarray, window: object = None) -> list:
+        if image is blank:
+            searched.append(1)
+        return original(image, window)  # type: ignore[arg-type]
+
+    meter._finder.find = counting  # type: ignore[method-assign]
+    mean, poses = meter.series([frames() for _ in range(6)])
+    assert mean.n == 6 and all(hidden not in p.cameras for p in poses)
+    assert len(searched) == 1
+    meter.series([frames() for _ in range(3)])  # a new series looks again, once
+    assert len(searched) == 2
+    moved = T.copy()
+    moved[:3, 3] += [40.0, -25.0, 10.0]
+    meter.measure({**renderer.frames(renderer.clean(moved), rng), hidden: blank})
+    meter.measure({**renderer.frames(renderer.clean(moved), rng), hidden: blank})
+    assert len(searched) == 3  # the target moved: searched again (then not)
