@@ -76,6 +76,7 @@ bench: $(STAMP)
 	$(BIN)/python benchmarks/registration.py
 	$(BIN)/python benchmarks/calibration.py
 	$(BIN)/python benchmarks/campaign.py
+	$(BIN)/python benchmarks/photogrammetry.py
 
 clean:
 	rm -rf $(VENV) .pytest_cache .mypy_cache .ruff_cache .hypothesis
