@@ -146,15 +146,14 @@ def _child_main(options: CameraRigOptions, truth: RigTruth, shared: Any, pipe: C
     except Exception as exc:  # the parent reports it in one line
         pipe.send(("error", str(exc) or type(exc).__name__))
         return
+    # serve until "stop", or until EOFError / OSError: the campaign's process is gone
     try:
-        pipe.send(("ok", running.options))
-        # until "stop", or EOFError when the campaign's process is gone
-        while (message := pipe.recv()) != "stop":
-            if isinstance(message, tuple) and message[0] == "stop_camera":
-                assert isinstance(running.server, GigECameraTwin)
-                running.server.stop_camera(message[1])
-                pipe.send("done")
-    except (EOFError, OSError):
-        pass
+        with contextlib.suppress(EOFError, OSError):
+            pipe.send(("ok", running.options))
+            while (message := pipe.recv()) != "stop":
+                if isinstance(message, tuple) and message[0] == "stop_camera":
+                    assert isinstance(running.server, GigECameraTwin)
+                    running.server.stop_camera(message[1])
+                    pipe.send("done")
     finally:
         running.stop()

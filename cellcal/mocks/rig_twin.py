@@ -197,9 +197,11 @@ class RigScene:
             if rows.stop > rows.start and cols.stop > cols.start:
                 shape = (rows.stop - rows.start, cols.stop - cols.start)
                 noise = rng.standard_normal(shape, dtype=np.float32)
-        frame = out if out.dtype == np.uint8 and out.shape == bank[k].shape else bank[k].copy()
-        if frame is out:
-            np.copyto(out, bank[k])
+        if out.dtype == np.uint8 and out.shape == bank[k].shape:
+            np.copyto(out, bank[k])  # the camera's own buffer: written in place
+            frame = out
+        else:
+            frame = bank[k].copy()
         if noise is not None:
             noise *= np.float32(self.renderer.optics.noise_grey)
             frame[rows, cols] = cv2.add(part, noise, dtype=cv2.CV_8U)
@@ -289,7 +291,7 @@ def serve(options: CameraRigOptions, cell: SimulatedCell, time_scale: float) -> 
         from cellcal.mocks.rig_process import serve_in_process
 
         try:
-            running = serve_in_process(options.model_copy(update={"capture": capture}), truth, cell)
+            running = serve_in_process(options, truth, cell)
         except NamespaceUnavailableError as exc:
             why = str(exc)
         else:
