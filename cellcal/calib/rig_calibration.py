@@ -30,9 +30,17 @@ from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
 from cellcal.calib import rig_bundle
+from cellcal.calib.board_corners import (
+    CornerDetection,
+    board_not_found,
+    board_points,
+    detect_corners,
+    grey8,
+    mirrored_count,
+    shows_mirrored,
+)
 from cellcal.calib.camera_rig import Board, Camera, Rig
 from cellcal.calib.geometry import Array
-from cellcal.calib.marker_corners import grey
 from cellcal.calib.rig_bundle import (
     ScaleBar,
     ScaleCheck,
@@ -75,14 +83,6 @@ class RigCalibrationOptions:
     outlier_sigma: float = 4.0
     #: a camera losing more than this fraction of its corners as outliers is suspect
     max_rejected_fraction: float = 0.1
-
-
-@dataclass(frozen=True, eq=False)
-class CornerDetection:
-    """ChArUco corners found in one image: their ids (n,) and pixel positions (n, 2)."""
-
-    ids: NDArray[np.int64]
-    pixels: Array
 
 
 @dataclass(frozen=True, eq=False)
@@ -145,61 +145,6 @@ class RigCalibration:
     iterations: int
 
 
-# --- detection -------------------------------------------------------------------------
-
-
-def grey8(image: Image) -> Image:
-    """An 8-bit grey image from 8/16-bit grey or colour (BGR/BGRA) data; 16-bit data are
-    scaled so that their brightest pixel becomes 255."""
-    img = grey(image)
-    if img.ndim != 2:
-        raise InputError(f"image: expected a grey or colour image, got shape {img.shape}")
-    if img.dtype == np.uint8:
-        return img
-    top = max(float(img.max()), 1.0)
-    out: Image = np.clip(np.rint(img.astype(np.float64) * (255.0 / top)), 0, 255).astype(np.uint8)
-    return out
-
-
-def detect_corners(
-    board: Board, image: Image, min_corners: int = 6, detector: Any = None
-) -> CornerDetection | None:
-    """The board's chessboard corners in ``image``; None when fewer than
-    ``min_corners`` are found or all of them lie on one line."""
-    det = detector or cv2.aruco.CharucoDetector(board.cv_board())
-    corners, ids, _, _ = det.detectBoard(grey8(image))
-    if ids is None or len(ids) < min_corners:
-        return None
-    ids = np.asarray(ids, dtype=np.int64).ravel()
-    obj = _board_points(board)[ids][:, :2]
-    centred = obj - obj.mean(axis=0)
-    spread = np.linalg.svd(centred, compute_uv=False)[1] / np.sqrt(len(ids))
-    if spread < 0.25 * board.square:
-        return None
-    return CornerDetection(ids, np.asarray(corners, dtype=np.float64).reshape(-1, 2))
-
-
-def _board_points(board: Board) -> Array:
-    """The chessboard's inner corners (n, 3) in the board frame, mm, by id."""
-    return np.asarray(board.cv_board().getChessboardCorners(), dtype=np.float64).reshape(-1, 3)
-
-
-def _board_not_found(board: Board, images: list[Image], min_corners: int) -> MeasurementError:
-    """The refusal when no image shows the board; tries the other ``legacy`` pattern."""
-    other = Board(board.dictionary, board.squares, board.square, board.marker, not board.legacy)
-    det = cv2.aruco.CharucoDetector(other.cv_board())
-    for img in images[:12]:
-        if detect_corners(other, img, min_corners, det) is not None:
-            return MeasurementError(
-                f"board not found in any view — is `legacy` right? (the images show a "
-                f"board with legacy = {str(other.legacy).lower()})"
-            )
-    return MeasurementError(
-        "board not found in any view — is `legacy` right? (check also the board's "
-        "dictionary, squares and that the images are not mirrored)"
-    )
-
-
 # --- the calibration -------------------------------------------------------------------
 
 
@@ -241,6 +186,31 @@ def _observations(
         np.concatenate(P),
         np.concatenate(px),
     )
+
+
+def _unseen_views(
+    board: Board,
+    views: Sequence[Mapping[str, Image]],
+    det: list[dict[str, CornerDetection]],
+    names: list[str],
+    min_corners: int,
+) -> list[str]:
+    """One warning per view in which no camera found the board; it says so when the
+    board shows mirrored there (turned over: seen through from its back)."""
+    out = []
+    detector = cv2.aruco.CharucoDetector(board.cv_board())
+    for v, view in enumerate(views):
+        if det[v] or not view:
+            continue
+        flipped = [n for n, im in view.items() if shows_mirrored(board, im, min_corners, detector)]
+        if flipped:
+            out.append(
+                f"view {names[v]}: the board shows mirrored ({', '.join(flipped)}) — turned "
+                "over, seen through from its back? The view is left out"
+            )
+        else:
+            out.append(f"view {names[v]}: no camera found the board; the view is left out")
+    return out
 
 
 def _check_inputs(
@@ -285,18 +255,25 @@ def calibrate_rig(
         }
         det.append({c: d for c, d in found.items() if d is not None})
     if not any(det):
-        raise _board_not_found(board, [img for v in views for img in v.values()], opt.min_corners)
+        raise board_not_found(board, [img for v in views for img in v.values()], opt.min_corners)
+    unseen = _unseen_views(board, views, det, vnames, opt.min_corners)
     every = opt.holdout_every
     held = [v for v in range(len(views)) if every > 0 and v % every == every - 1 and det[v]]
     fit = [v for v in range(len(views)) if v not in held and det[v]]
-    pts = _board_points(board)
+    pts = board_points(board)
     K0, d0, rms0, T_cam_board = {}, {}, {}, {}
     for n in names:
         dets = [(v, det[v][n]) for v in fit if n in det[v]]
         if len(dets) < opt.min_views:
+            missed = [views[v][n] for v in fit if n in views[v] and n not in det[v]]
+            hint = (
+                " — its images show the board mirrored: is ReverseX or ReverseY set on it?"
+                if mirrored_count(board, missed, opt.min_corners)
+                else ""
+            )
             raise MeasurementError(
                 f"{n}: the board was found in {len(dets)} of the fitted views, "
-                f"at least {opt.min_views} are needed"
+                f"at least {opt.min_views} are needed{hint}"
             )
         K0[n], d0[n], rms0[n], poses = _intrinsics(n, cameras[n], dets, pts, opt)
         T_cam_board.update({(v, n): T for v, T in poses.items()})
@@ -321,7 +298,7 @@ def calibrate_rig(
     holdout = (
         _holdout(board, rig, det, held, [vnames[v] for v in held], free, opt) if held else None
     )
-    warnings, suspects = [], []
+    warnings, suspects = list(unseen), []
     for r in reports:
         total = r.corners + r.rejected
         if r.rejected > opt.max_rejected_fraction * total:
@@ -415,7 +392,7 @@ def _holdout(
 ) -> HoldoutCheck:
     """Reprojection and length errors on the held-out views, cameras fixed."""
     names = [c.name for c in rig.cameras]
-    pts = _board_points(board)
+    pts = board_points(board)
     boards = []
     for v in held:
         n = max(det[v], key=lambda k: len(det[v][k].ids))

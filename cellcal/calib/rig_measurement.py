@@ -38,11 +38,13 @@ from cellcal.errors import InputError, MeasurementError
 #: Margin around the predicted markers of a search window, px.
 WINDOW_MARGIN_PX = 24
 #: The part of a corner's error that does not average over frames of a still target,
-#: per image coordinate, px: measured as the corners' RMS error on the camera twin's
-#: noise-free images (blur 0.8 px, 40 poses up to 43° of incidence; the detector's and
-#: the renderer's bias together). A real rig adds its calibration's error, which no
-#: covariance here contains.
-CORNER_FLOOR_PX = 0.011
+#: per image coordinate, px (the detector's and the renderer's bias together): the value
+#: for which the series means' squared Mahalanobis distance per coordinate averages 1
+#: on the camera twin's images (blur 0.8 px, noise 2 grey levels, 80 series of 20
+#: frames in two independent draws: 0.0093 and 0.0082 px). Noise-free images would
+#: overstate it (0.014 px): without noise the grey levels' quantisation is not dithered.
+#: A real rig adds its calibration's error, which no covariance here contains.
+CORNER_FLOOR_PX = 0.009
 #: A fit started from the last pose that leaves more than this RMS is started afresh.
 RESTART_RMS_PX = 1.0
 

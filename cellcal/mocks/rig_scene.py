@@ -20,8 +20,9 @@ about 40° of incidence.
 from __future__ import annotations
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
-from cellcal.calib.camera_rig import Camera, Marker, Rig, Target
+from cellcal.calib.camera_rig import Board, Camera, Marker, Rig, Target
 from cellcal.calib.geometry import Array, invert
 
 #: Distance from each camera to the centre of the measuring volume, mm.
@@ -101,6 +102,31 @@ def volume_centre(rig: Rig, standoff_mm: float = STANDOFF_MM) -> Array:
     T = rig.cameras[0].T_rig_cam
     out: Array = T[:3, :3] @ np.array([0.0, 0.0, standoff_mm]) + T[:3, 3]
     return out
+
+
+def board_poses(rig: Rig, board: Board, n: int, seed: int, tilt_deg: float = 35.0) -> list[Array]:
+    """``n`` poses ``T_rig_board`` of a ChArUco board held in front of the rig, as in a
+    calibration capture: facing the rig, tilted up to ±``tilt_deg`` about two axes on a
+    spiral, turned ±17° in plane, shifted ±150 mm (±120 mm vertically) about the
+    volume's centre."""
+    rng = np.random.default_rng(seed)
+    centre = volume_centre(rig)
+    mean = np.mean([c.T_rig_cam[:3, 3] for c in rig.cameras], axis=0)
+    z = (centre - mean) / np.linalg.norm(centre - mean)  # into the board
+    x = np.cross([0.0, 1.0, 0.0], z)
+    x /= np.linalg.norm(x)
+    R0 = np.column_stack([x, np.cross(z, x), z])
+    half = np.array([board.squares[0], board.squares[1], 0.0]) * board.square / 2
+    poses = []
+    for i in range(n):
+        phase = 6.0 * np.pi * i / n + 0.3
+        a = np.radians(tilt_deg) * np.sqrt((i + 1) / n) * np.array([np.cos(phase), np.sin(phase)])
+        R = R0 @ Rotation.from_euler("xyz", [a[0], a[1], rng.uniform(-0.3, 0.3)]).as_matrix()
+        T = np.eye(4)
+        T[:3, :3] = R
+        T[:3, 3] = centre - R @ half + rng.uniform([-150, -120, -150], [150, 120, 150])
+        poses.append(T)
+    return poses
 
 
 def dome_target(

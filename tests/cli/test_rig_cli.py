@@ -12,7 +12,7 @@ from scipy.spatial.transform import Rotation
 from cellcal.cli import main
 from cellcal.imagefiles import write_image
 from cellcal.mocks.camera_render import Optics, SceneRenderer
-from cellcal.mocks.rig_scene import dome_target, four_camera_rig, volume_centre
+from cellcal.mocks.rig_scene import board_poses, dome_target, four_camera_rig, volume_centre
 from cellcal.photofiles import write_rig, write_target
 
 
@@ -141,12 +141,12 @@ def test_rig_calibrate_writes_a_rig_that_measures(
     """ChArUco views rendered for the simulated rig → `rig calibrate` → a rig file within
     its reported uncertainty of the truth, with which `rig measure` gets lengths right."""
     from cellcal.photofiles import read_rig, write_board
-    from tests.calib.test_rig_calibration import BOARD, _board_poses
+    from tests.calib.test_rig_calibration import BOARD
 
     rig = four_camera_rig()
     renderer = SceneRenderer.for_board(rig.cameras, BOARD, Optics(supersample=3))
     rng = np.random.default_rng(9)
-    for k, T in enumerate(_board_poses(rig, 12, seed=3)):
+    for k, T in enumerate(board_poses(rig, BOARD, 12, seed=3)):
         for cam, img in renderer.frames(renderer.clean(T), rng).items():
             (tmp_path / "views" / f"v{k}").mkdir(parents=True, exist_ok=True)
             write_image(tmp_path / "views" / f"v{k}" / f"{cam}.png", img)
