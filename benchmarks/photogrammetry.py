@@ -49,6 +49,7 @@ import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from cellcal.calib.board_corners import board_points
 from cellcal.calib.camera_rig import Board, Camera, Rig, Target
 from cellcal.calib.geometry import Array, invert
 from cellcal.calib.rig_calibration import (
@@ -127,14 +128,14 @@ def opencv_rig(board: Board, rig: Rig, views: list[dict[str, Image]]) -> Rig:
     """The peer's calibration: ``calibrateCamera`` per camera on its ChArUco corners,
     then ``stereoCalibrate`` of each camera against the first (intrinsics fixed) on the
     corners both saw; the rig frame is the first camera's."""
-    pts = np.asarray(board.cv_board().getChessboardCorners(), dtype=np.float32).reshape(-1, 3)
+    pts = board_points(board).astype(np.float32)
     dets = [{n: detect_corners(board, img) for n, img in v.items()} for v in views]
     size = {c.name: (c.width, c.height) for c in rig.cameras}
     intr = {}
     for cam in rig.cameras:
-        found = [d[cam.name] for d in dets if d.get(cam.name) is not None]
-        obj = [pts[d.ids] for d in found if d is not None]
-        img = [d.pixels.astype(np.float32) for d in found if d is not None]
+        found = [d for v in dets if (d := v.get(cam.name)) is not None]
+        obj = [pts[d.ids] for d in found]
+        img = [d.pixels.astype(np.float32) for d in found]
         flags = cv2.CALIB_FIX_K3 | cv2.CALIB_ZERO_TANGENT_DIST
         _, K, dist, _, _ = cv2.calibrateCamera(obj, img, size[cam.name], None, None, flags=flags)
         intr[cam.name] = (K, dist.ravel()[:5])
