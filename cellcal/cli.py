@@ -16,11 +16,13 @@ import click
 
 from cellcal import __version__
 from cellcal.commands.calibrate import calibrate
+from cellcal.commands.campaign import campaign
+from cellcal.commands.daemon import daemon
 from cellcal.commands.mock import mock
 from cellcal.commands.models import models
 from cellcal.commands.predict import predict
 from cellcal.commands.register import register
-from cellcal.commands.report import campaign, report
+from cellcal.commands.report import report
 from cellcal.commands.rig import rig
 from cellcal.commands.rig_capture import mock_cameras, rig_capture
 from cellcal.commands.run import run
@@ -47,7 +49,19 @@ def cli(verbose: int) -> None:
     logging.basicConfig(level=level, format="cellcal: %(name)s: %(message)s", force=True)
 
 
-for command in (run, register, calibrate, predict, models, tracker, mock, report, campaign, rig):
+for command in (
+    run,
+    register,
+    calibrate,
+    predict,
+    models,
+    tracker,
+    mock,
+    report,
+    campaign,
+    rig,
+    daemon,
+):
     cli.add_command(command)
 rig.add_command(rig_capture)
 mock.add_command(mock_cameras)

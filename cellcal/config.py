@@ -259,10 +259,10 @@ def load_config(path: str | Path, *, relative_paths: bool = True) -> CellConfig:
     except FileFormatError as exc:
         raise ConfigError(str(exc)) from None
     config = config_from_dict(data, str(p))
-    return _relative_to(config, p.parent, database=relative_paths)
+    return relative_to(config, p.parent, database=relative_paths)
 
 
-def _relative_to(config: CellConfig, folder: Path, *, database: bool = True) -> CellConfig:
+def relative_to(config: CellConfig, folder: Path, *, database: bool = True) -> CellConfig:
     """Relative file paths in a configuration (a robot model file, a sensor's files, the
     database) are relative to the configuration file's folder, not to where the command
     runs."""

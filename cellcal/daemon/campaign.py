@@ -6,11 +6,12 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import json
+import os
 import threading
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import IO
+from typing import IO, Any
 
 import numpy as np
 
@@ -21,7 +22,7 @@ from cellcal.clock import Clock, SimulatedClock, WallClock
 from cellcal.config import CellConfig, config_from_dict, upgrade_stored
 from cellcal.daemon.analysis import CampaignSummary, analyse
 from cellcal.daemon.devices import Devices, build_devices
-from cellcal.daemon.engine import Acquisition, acquire
+from cellcal.daemon.engine import Acquisition, PhaseWatcher, acquire
 from cellcal.daemon.plan import CALIBRATION, VALIDATION, Plan, make_plan
 from cellcal.daemon.records import (
     CampaignEnded,
@@ -84,15 +85,18 @@ def _plan(config: CellConfig) -> tuple[Plan, RobotModel]:
     return plan, nominal
 
 
-class _RunLock:
-    """One cellcal run per database file at a time: an advisory lock on ``<db>.lock``,
-    released by the OS if the process dies (SIGKILL included)."""
+class RunLock:
+    """One process per database file at a time (a ``cellcal run`` or the service): an
+    advisory lock on ``<db>.lock``, released by the OS if the process dies (SIGKILL
+    included). The holder writes who it is into the file, so a refusal names it."""
 
-    def __init__(self, db_path: str) -> None:
+    def __init__(self, db_path: str, holder: str = "cellcal run") -> None:
         self.path = f"{db_path}.lock"
+        self.holder = holder
         self.fh: IO[str] | None = None
+        self.previous = ""  # what the last holder wrote (after a crash: who crashed)
 
-    def __enter__(self) -> _RunLock:
+    def __enter__(self) -> RunLock:
         import fcntl
 
         try:
@@ -102,10 +106,16 @@ class _RunLock:
         try:
             fcntl.flock(self.fh.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
         except OSError:
+            self.fh.seek(0)
+            who = self.fh.read().strip() or "another cellcal process"
             self.fh.close()
-            raise CampaignError(
-                f"{self.path}: another cellcal run is using this database"
-            ) from None
+            raise CampaignError(f"{self.path}: this database is in use by {who}") from None
+        self.fh.seek(0)
+        self.previous = self.fh.read().strip()
+        self.fh.seek(0)
+        self.fh.truncate()
+        self.fh.write(f"{self.holder} (pid {os.getpid()})\n")
+        self.fh.flush()
         return self
 
     def __exit__(self, *exc: object) -> None:
@@ -127,13 +137,39 @@ def _stream(store: Store, subscribers: Sequence[Subscriber]) -> RecordStream:
     return stream
 
 
-def _fail(stream: RecordStream, campaign_id: int, total: int, kind: str, message: str) -> None:
-    """Note a failure and mark the campaign resumable — if the database still takes
-    writes (a full disk may not): the failure itself is what the user must see."""
+def _fail(
+    stream: RecordStream,
+    campaign_id: int,
+    total: int,
+    kind: str,
+    message: str,
+    status: str = "interrupted",
+) -> None:
+    """Note a failure and mark the campaign resumable (``interrupted``, or ``paused`` in
+    the service) — if the database still takes writes (a full disk may not): the failure
+    itself is what the user must see."""
     with contextlib.suppress(StoreError):
         stream.emit(CampaignEvent(campaign_id, kind, message))
     with contextlib.suppress(StoreError):
-        stream.emit(CampaignEnded(campaign_id, "interrupted", None, total, message))
+        stream.emit(CampaignEnded(campaign_id, status, None, total, message))
+
+
+def _interrupted() -> str:
+    return "interrupted"
+
+
+@dataclass(frozen=True)
+class Held:
+    """How a campaign runs on devices someone else holds (the service): a hold request
+    (deferred pause), the phase watcher (heartbeat, status page), the status a stopped
+    acquisition ends in (``paused``, ``aborted``, ``interrupted``: asked when it
+    stops), the status a device fault leaves it in, and the hint a failure shows."""
+
+    hold: threading.Event | None = None
+    phase: PhaseWatcher | None = None
+    halted: Callable[[], str] = _interrupted
+    on_fault: str = "interrupted"
+    hint: str = ""
 
 
 def _run(
@@ -150,8 +186,10 @@ def _run(
     accept: bool,
     resumed: bool,
     close_devices: bool,
+    held: Held | None = None,
 ) -> CampaignOutcome:
-    hint = (
+    held = held or Held()
+    hint = held.hint or (
         f"campaign {campaign_id} is resumable: cellcal run --resume {campaign_id} --db {store.path}"
     )
     total = len(plan.poses)
@@ -174,21 +212,25 @@ def _run(
             samples_per_pose=config.campaign.samples_per_pose,
             speed=config.robot.speed,
             stop=stop,
+            hold=held.hold,
+            phase=held.phase,
         )
     except UserError as exc:
-        _fail(stream, campaign_id, total, "error", f"{type(exc).__name__}: {exc}")
+        _fail(stream, campaign_id, total, "error", f"{type(exc).__name__}: {exc}", held.on_fault)
         raise CampaignError(f"{exc}; {hint}") from exc
     except BaseException as exc:
-        _fail(stream, campaign_id, total, "error", f"{type(exc).__name__}: {exc}")
+        _fail(stream, campaign_id, total, "error", f"{type(exc).__name__}: {exc}", held.on_fault)
         raise
     finally:
         if close_devices:
             devices.close()
     n = acquisition.stored
     if acquisition.interrupted:
-        message = f"stopped after {n} poses"
-        stream.emit(CampaignEvent(campaign_id, "interrupted", message))
-        stream.emit(CampaignEnded(campaign_id, "interrupted", n, total, message))
+        status = held.halted()
+        verb = "stopped" if status == "interrupted" else status
+        message = f"{verb} after {n} poses"
+        stream.emit(CampaignEvent(campaign_id, status, message))
+        stream.emit(CampaignEnded(campaign_id, status, n, total, message))
         return CampaignOutcome(campaign_id, store.path, config, plan, acquisition, None)
     try:
         summary = analyse(store, campaign_id, nominal, config.reference_sensor.name, accept=accept)
@@ -231,7 +273,7 @@ def start_campaign(
     plan, nominal = _plan(config)
     if clock is None:
         clock = SimulatedClock(time_scale) if mock else WallClock()
-    with _RunLock(db_path):
+    with RunLock(db_path):
         own = devices is None
         if devices is None:
             devices = build_devices(config, nominal, clock, mock=mock, seed=config.simulation.seed)
@@ -257,14 +299,7 @@ def start_campaign(
             )
             stream = _stream(store, subscribers)
             for u in plan.unreachable:
-                stream.emit(
-                    CampaignEvent(
-                        campaign_id,
-                        "unreachable",
-                        f"{u.role} pose in {u.region} at "
-                        f"{np.round(u.target_mm, 1).tolist()} mm: {u.reason}",
-                    )
-                )
+                stream.emit(CampaignEvent(campaign_id, "unreachable", _unreachable(u)))
             return _run(
                 store,
                 stream,
@@ -288,6 +323,90 @@ def start_campaign(
             store.close()
 
 
+def stored_plan(store: Store, campaign_id: int) -> tuple[CellConfig, Plan, RobotModel]:
+    """A stored campaign's configuration and plan, computed again; it must come out the
+    same as when the campaign was created."""
+    row = store.campaign(campaign_id)
+    stored = upgrade_stored(json.loads(row.config_json))
+    config = config_from_dict(stored, f"campaign {campaign_id}")
+    plan, nominal = _plan(config)
+    if plan.digest != row.plan_digest:
+        raise CampaignError(
+            f"campaign {campaign_id}: the plan computed now differs from the stored one "
+            "(another cellcal version or robot model?); start a new campaign"
+        )
+    return config, plan, nominal
+
+
+def queue_campaign(
+    store: Store, config: CellConfig, *, config_path: str | None, mock: bool, time_scale: float
+) -> tuple[int, Plan]:
+    """Plan a campaign and store it as ``queued`` (the service runs it later with
+    :func:`run_stored`); a plan that cannot work is refused before anything is written."""
+    plan, _ = _plan(config)
+    campaign_id = store.create_campaign(
+        config_json=config.model_dump_json(),
+        config_path=config_path,
+        mock=mock,
+        seed=config.simulation.seed if mock else None,
+        time_scale=time_scale if mock else None,
+        model=config.robot.model,
+        sensors=[s.name for s in config.sensor],
+        n_poses=len(plan.poses),
+        samples_per_pose=config.campaign.samples_per_pose,
+        dwell_s=config.campaign.dwell_s,
+        plan_digest=plan.digest,
+        status="queued",
+    )
+    for u in plan.unreachable:
+        store.add_event(campaign_id, "unreachable", _unreachable(u), None)
+    return campaign_id, plan
+
+
+def _unreachable(u: Any) -> str:
+    return f"{u.role} pose in {u.region} at {np.round(u.target_mm, 1).tolist()} mm: {u.reason}"
+
+
+def run_stored(
+    store: Store,
+    campaign_id: int,
+    devices: Devices,
+    clock: Clock,
+    *,
+    stop: threading.Event | None = None,
+    held: Held | None = None,
+    subscribers: Sequence[Subscriber] = (),
+    accept: bool = False,
+) -> CampaignOutcome:
+    """Run a queued campaign, or go on with a paused or interrupted one, on devices the
+    caller holds (the service, which also holds the database's run lock): every pose not
+    yet stored, exactly once."""
+    row = store.campaign(campaign_id)
+    if row.status in ("complete", "aborted"):
+        raise CampaignError(f"campaign {campaign_id} is {row.status}")
+    config, plan, nominal = stored_plan(store, campaign_id)
+    stream = _stream(store, subscribers)
+    resumed = row.status != "queued"
+    if resumed:
+        stored = len(store.completed_indices(campaign_id))
+        stream.emit(CampaignEvent(campaign_id, "resumed", f"{stored} poses stored"))
+    return _run(
+        store,
+        stream,
+        campaign_id,
+        config,
+        plan,
+        nominal,
+        devices,
+        clock,
+        stop=stop,
+        accept=accept,
+        resumed=resumed,
+        close_devices=False,
+        held=held,
+    )
+
+
 def resume_campaign(
     db_path: str,
     campaign_id: int,
@@ -301,21 +420,13 @@ def resume_campaign(
     configuration; the plan must come out the same."""
     if not Path(db_path).is_file():
         raise CampaignError(f"{db_path}: no such database")
-    with _RunLock(db_path):
+    with RunLock(db_path):
         store = Store(db_path)
         try:
             row = store.campaign(campaign_id)
-            if row.status == "complete":
-                raise CampaignError(f"campaign {campaign_id} is already complete")
-            config = config_from_dict(
-                upgrade_stored(json.loads(row.config_json)), f"campaign {campaign_id}"
-            )
-            plan, nominal = _plan(config)
-            if plan.digest != row.plan_digest:
-                raise CampaignError(
-                    f"campaign {campaign_id}: the plan computed now differs from the stored one "
-                    "(another cellcal version or robot model?); start a new campaign"
-                )
+            if row.status in ("complete", "aborted"):
+                raise CampaignError(f"campaign {campaign_id} is already {row.status}")
+            config, plan, nominal = stored_plan(store, campaign_id)
             stored = len(store.completed_indices(campaign_id))
             scale = time_scale if time_scale is not None else (row.time_scale or 0.0)
             # The simulated clock goes on from the last stored pose; the noise is fresh.

@@ -9,13 +9,16 @@ event) → emit the pose with its raw samples (the store, a critical subscriber,
 transaction before the next move). Poses already stored (a resumed campaign) are
 skipped. A stop request (Ctrl-C, SIGTERM, the service) acts at once during the dwell
 and between steps: the pose under way is abandoned unstored, so the campaign stays
-resumable and loses nothing. The devices are left open: whoever built them closes them.
+resumable and loses nothing. A hold request (the service's deferred pause) lets the pose
+under way finish and be stored, then stops. The devices are left open: whoever built
+them closes them. Whoever watches the engine's progress (the service's heartbeat and
+status page) is told each phase as it begins: ``move``, ``dwell``, ``sample``.
 """
 
 from __future__ import annotations
 
 import threading
-from collections.abc import Collection, Sequence
+from collections.abc import Callable, Collection, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 
@@ -31,6 +34,13 @@ from cellcal.errors import DeviceError, NoTargetError
 IN_POSITION_TOL = 1e-3
 #: A sensor that fails at a pose (after its own driver's retries) is asked again this often.
 SAMPLE_RETRIES = 2
+
+#: Told each phase of a pose as it begins: (phase, the pose, the clock's time).
+PhaseWatcher = Callable[[str, PlannedPose, float], None]
+
+
+def _unwatched(phase: str, pose: PlannedPose, t: float) -> None:
+    """No one watches the phases."""
 
 
 @dataclass(frozen=True)
@@ -63,9 +73,13 @@ def acquire(
     samples_per_pose: int,
     speed: float,
     stop: threading.Event | None = None,
+    hold: threading.Event | None = None,
+    phase: PhaseWatcher | None = None,
 ) -> Acquisition:
     """Visit every planned pose not in ``done``; see the module docstring."""
     stop = stop or threading.Event()
+    hold = hold or threading.Event()
+    watch = phase or _unwatched
     todo = [p for p in plan.poses if p.idx not in done]
     total = len(plan.poses)
     t0 = clock.now()
@@ -73,7 +87,7 @@ def acquire(
     interrupted = False
     with ThreadPoolExecutor(max_workers=max(1, len(sensors)), thread_name_prefix="sensor") as pool:
         for pose in todo:
-            if stop.is_set():
+            if stop.is_set() or hold.is_set():
                 interrupted = True
                 break
             try:
@@ -91,6 +105,7 @@ def acquire(
                     speed=speed,
                     done=len(done) + stored_now,
                     total=total,
+                    phase=watch,
                 )
             except DeviceError as exc:
                 event = CampaignEvent(campaign_id, "device-error", str(exc), pose.idx, clock.now())
@@ -129,9 +144,11 @@ def _visit(
     speed: float,
     done: int,
     total: int,
+    phase: PhaseWatcher,
 ) -> PoseStored | None:
     """One pose, measured; None if a stop request came first."""
     t_start = clock.now()
+    phase("move", pose, t_start)
     robot.move_joints(pose.q, speed)
     reached = robot.actual_joints()
     if float(np.max(np.abs(reached - pose.q))) > IN_POSITION_TOL:
@@ -139,9 +156,11 @@ def _visit(
             f"{robot.name}: reports {np.degrees(reached).round(3).tolist()}° after a "
             f"move to {np.degrees(pose.q).round(3).tolist()}° (pose {pose.idx})"
         )
+    phase("dwell", pose, clock.now())
     if stop.is_set() or clock.wait(stop, dwell_s):
         return None
     start = clock.now()
+    phase("sample", pose, start)
 
     def sample(s: SensorSetting) -> Series:
         with clock.branch(start):

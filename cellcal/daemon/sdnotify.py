@@ -57,6 +57,8 @@ class Notifier:
         text = "".join(f"{k}={' '.join(str(v).splitlines())}\n" for k, v in fields.items())
         try:
             with socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM | socket.SOCK_CLOEXEC) as s:
+                # Never block the service's loop on a supervisor that does not read.
+                s.setblocking(False)
                 s.sendto(text.encode("utf-8"), self.address)
         except OSError as exc:
             if not self._warned:

@@ -179,14 +179,16 @@ class Store(AnalysisTables):
         samples_per_pose: int,
         dwell_s: float,
         plan_digest: str,
+        status: str = "running",
     ) -> int:
         with self.transaction():
             cur = self.conn.execute(
                 """INSERT INTO campaigns (created, status, mock, seed, time_scale, model,
                 sensors, n_poses, samples_per_pose, dwell_s, plan_digest, config_path,
-                config_json) VALUES (?, 'running', ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)""",
+                config_json) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)""",
                 (
                     utc_now(),
+                    status,
                     int(mock),
                     seed,
                     time_scale,
@@ -227,7 +229,7 @@ class Store(AnalysisTables):
         )
 
     def set_status(self, campaign_id: int, status: str) -> None:
-        finished = utc_now() if status in ("complete", "failed", "refused") else None
+        finished = utc_now() if status in ("complete", "failed", "refused", "aborted") else None
         with self.transaction():
             self.conn.execute(
                 "UPDATE campaigns SET status = ?, finished = ? WHERE id = ?",

@@ -257,12 +257,17 @@ def test_refusals_before_anything_is_written(tmp_path):
 
 
 def test_one_run_per_database(tmp_path):
-    from cellcal.daemon.campaign import _RunLock
+    import os
+
+    from cellcal.daemon.campaign import RunLock
 
     db = str(tmp_path / "c.db")
     config = tracker_cell()
-    with _RunLock(db), pytest.raises(CampaignError, match="another cellcal run"):
+    who = rf"in use by cellcal daemon \(pid {os.getpid()}\)"
+    with RunLock(db, "cellcal daemon"), pytest.raises(CampaignError, match=who):
         start_campaign(config, db, config_path=None, mock=True)
+    with RunLock(db) as lock:  # free again; it remembers who held it last
+        assert lock.previous == f"cellcal daemon (pid {os.getpid()})"
 
 
 def test_device_fault_is_one_line_with_a_resume_hint_and_resumes(tmp_path, monkeypatch):

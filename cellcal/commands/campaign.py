@@ -1,0 +1,248 @@
+"""``cellcal campaign ...``: start, control and watch the service's campaigns; ``list``
+also reads a database file directly (``--db``)."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+from typing import Any
+
+import click
+
+from cellcal.commands.output import SEED, print_json
+from cellcal.commands.service_client import call, follow, socket_path
+from cellcal.daemon.report import list_campaigns
+from cellcal.daemon.store import Store
+from cellcal.errors import InputError
+
+EXIT_REFUSED = 3
+
+SOCKET = click.option(
+    "--socket",
+    "sock",
+    help="The service's control socket (default: $CELLCAL_SOCKET, else /run/cellcal/control.sock).",
+)
+JSON = click.option("--json", "as_json", is_flag=True, help="Print JSON on stdout.")
+
+
+def _fmt(v: float | None) -> str:
+    return "—" if v is None else f"{v:.4f}"
+
+
+@click.group()
+def campaign() -> None:
+    """Start, control and watch campaigns in the cell service; list a database's."""
+
+
+@campaign.command("list")
+@click.option("--db", "db_path", help="Read this campaign database instead of asking the service.")
+@SOCKET
+@JSON
+def list_command(db_path: str | None, sock: str | None, as_json: bool) -> None:
+    """Campaigns with status, poses stored and result."""
+    if db_path is not None:
+        store = Store(db_path, readonly=True)
+        try:
+            rows = [r.as_dict() for r in list_campaigns(store)]
+        finally:
+            store.close()
+        source = db_path
+    else:
+        path = socket_path(sock)
+        rows = call(path, "GET", "/v1/campaigns?limit=1000")["campaigns"]
+        source = path
+    if as_json:
+        print_json({"database" if db_path else "socket": source, "campaigns": rows})
+        return
+    click.echo(
+        f"{'id':>4}  {'created (UTC)':<19} {'status':<12} {'poses':>11}  {'RMS before':>11}"
+        f"  {'RMS after':>10}  model / sensors"
+    )
+    for r in rows:
+        created = r["created"][:19].replace("T", " ")
+        click.echo(
+            f"{r['id']:>4}  {created:<19} {r['status']:<12} {r['poses_stored']:>5} / "
+            f"{r['n_poses']:<4} {_fmt(r['rms_before_mm']):>11}  {_fmt(r['rms_after_mm']):>10}  "
+            f"{r['model']} / {', '.join(r['sensors'])}"
+        )
+
+
+@campaign.command("start")
+@click.option("--config", "config_path", help="Cell configuration (TOML) sent to the service.")
+@click.option("--mock", is_flag=True, help="The service's simulated cell (a --mock service).")
+@click.option("--seed", type=SEED, help="Mock mode: the plan's seed.")
+@click.option("--queue", is_flag=True, help="Queue it behind the campaign that runs.")
+@SOCKET
+@JSON
+def start(
+    config_path: str | None,
+    mock: bool,
+    seed: int | None,
+    queue: bool,
+    sock: str | None,
+    as_json: bool,
+) -> None:
+    """Ask the service to run a campaign (with this configuration's text, or its own)."""
+    body: dict[str, Any] = {"when": "queue" if queue else "now", "seed": seed}
+    if mock:
+        body["mock"] = True
+    if config_path is not None:
+        p = Path(config_path)
+        try:
+            body["config_toml"] = p.read_text(encoding="utf-8")
+        except (OSError, UnicodeDecodeError) as exc:
+            raise InputError(f"{config_path}: cannot read ({exc})") from None
+        body["config_name"] = str(p.resolve())
+    path = socket_path(sock)
+    answer = call(path, "POST", "/v1/campaigns", body)
+    if as_json:
+        print_json(answer)
+        return
+    cid = answer["campaign_id"]
+    click.echo(
+        f"campaign {cid} {'queued' if queue else 'accepted'} ({answer['n_poses']} poses); "
+        f"watch it: cellcal campaign watch {cid}"
+    )
+
+
+@campaign.command("status")
+@SOCKET
+@JSON
+def status(sock: str | None, as_json: bool) -> None:
+    """The service's state, its campaign's progress, the devices and the queue."""
+    snap = call(socket_path(sock), "GET", "/v1/status")
+    if as_json:
+        print_json(snap)
+        return
+    click.echo(f"{snap['state']}: {snap['reason']}")
+    c = snap.get("campaign")
+    if c and snap["state"] not in ("idle",):
+        eta = c.get("eta_s")
+        click.echo(
+            f"campaign {c['id']}: {c.get('stored', 0)} of {c.get('planned', 0)} poses stored, "
+            f"phase {c.get('phase')}" + (f", about {eta:.0f} s to go" if eta else "")
+        )
+    devices = ", ".join(f"{k} {v['state']}" for k, v in snap["devices"].items())
+    click.echo(f"devices: {devices}")
+    queue = snap.get("queue") or []
+    click.echo(f"queue: {', '.join(map(str, queue)) if queue else 'empty'}")
+    if snap.get("paused_campaign") is not None:
+        cid = snap["paused_campaign"]
+        click.echo(
+            f"to go on: cellcal campaign resume {cid}; to drop it: cellcal campaign abort {cid}"
+        )
+
+
+def _act(sock: str | None, campaign_id: int | None, action: str, body: dict[str, Any]) -> Any:
+    which = "current" if campaign_id is None else str(campaign_id)
+    return call(socket_path(sock), "POST", f"/v1/campaigns/{which}/{action}", body)
+
+
+@campaign.command("pause")
+@click.option("--now", is_flag=True, help="Abandon the pose under way (redone in full on resume).")
+@SOCKET
+@JSON
+def pause(now: bool, sock: str | None, as_json: bool) -> None:
+    """Pause the running campaign after the pose under way (or at once with --now)."""
+    answer = _act(sock, None, "pause", {"mode": "immediate" if now else "deferred"})
+    if as_json:
+        print_json(answer)
+    else:
+        when = "now" if now else "after the pose under way"
+        click.echo(f"campaign {answer['campaign_id']}: pausing {when}")
+
+
+@campaign.command("resume")
+@click.argument("campaign_id", type=int, required=False)
+@SOCKET
+@JSON
+def resume(campaign_id: int | None, sock: str | None, as_json: bool) -> None:
+    """Go on with the paused (or an interrupted) campaign: every pose exactly once."""
+    answer = _act(sock, campaign_id, "resume", {})
+    if as_json:
+        print_json(answer)
+    else:
+        click.echo(f"campaign {answer['campaign_id']}: resuming")
+
+
+@campaign.command("abort")
+@click.argument("campaign_id", type=int, required=False)
+@SOCKET
+@JSON
+def abort(campaign_id: int | None, sock: str | None, as_json: bool) -> None:
+    """Abort the running campaign (robot stopped at once), or a paused or queued one."""
+    answer = _act(sock, campaign_id, "abort", {})
+    if as_json:
+        print_json(answer)
+    else:
+        click.echo(f"campaign {answer['campaign_id']}: {answer['state']}")
+
+
+@campaign.command("watch")
+@click.argument("campaign_id", type=int, required=False)
+@SOCKET
+@click.option("--json", "as_json", is_flag=True, help="One JSON event per line (NDJSON).")
+def watch(campaign_id: int | None, sock: str | None, as_json: bool) -> int:
+    """Follow a campaign live until it ends (default: the current one)."""
+    path = socket_path(sock)
+    target: dict[str, int | None] = {"id": campaign_id}
+    ended: dict[str, str] = {}
+    shown = {"state": ""}
+
+    def handle(event_id: int, kind: str, data: Any) -> bool:
+        running = data.get("state") in ("running", "pausing", "aborting", "analysing")
+        if kind == "status" and target["id"] is None and data.get("campaign") and running:
+            target["id"] = int(data["campaign"]["id"])
+        mine = target["id"] is None or data.get("campaign_id") in (None, target["id"])
+        if as_json:
+            if mine:
+                click.echo(_line({"id": event_id, "event": kind, "data": data}))
+        elif kind == "status":
+            line = f"{data['state']}: {data['reason']}"
+            if line != shown["state"]:
+                shown["state"] = line
+                _show(kind, data)
+        elif mine:
+            _show(kind, data)
+        if kind == "campaign-end" and data.get("campaign_id") == target["id"]:
+            ended["status"] = data["status"]
+            return True
+        return False
+
+    if not follow(path, handle):
+        click.echo("the service closed the event stream (stopped?)", err=True)
+        return 0
+    return EXIT_REFUSED if ended.get("status") == "refused" else 0
+
+
+def _line(obj: Any) -> str:
+    import json
+
+    return json.dumps(obj, separators=(",", ":"))
+
+
+def _show(kind: str, data: dict[str, Any]) -> None:
+    if kind == "status":
+        c = data.get("campaign") or {}
+        progress = f" [{c.get('stored', 0)}/{c.get('planned', 0)}]" if c else ""
+        click.echo(f"{data['state']}{progress}: {data['reason']}")
+    elif kind == "pose":
+        sigma = ", ".join(
+            f"{name} σ {max(s['std_mm']):.4f} mm" for name, s in data["sensors"].items()
+        )
+        click.echo(
+            f"pose {data['stored']}/{data['planned']} stored ({data['role']}, {data['region']}; "
+            f"{sigma})"
+        )
+    elif kind == "event":
+        click.echo(f"{data['kind']}: {data['message']}")
+    elif kind == "campaign-end":
+        v = data.get("validation_mm")
+        tail = ""
+        if v:
+            tail = (
+                f"; validation RMS {v['before']['rms']:.4f} → {v['after']['rms']:.4f} mm "
+                f"({v['improvement_pct']:.1f} % reduction)"
+            )
+        click.echo(f"campaign {data['campaign_id']} {data['status']}: {data['message']}{tail}")
+    sys.stdout.flush()

@@ -1,0 +1,397 @@
+"""The control API: HTTP/1.1 and JSON on a Unix socket (aiohttp), server-sent events
+for watching. A mutating call answers ``202`` once accepted; clients learn the outcome
+from the event stream. Errors have one shape: ``{"error": {"code", "message"}}`` with
+one line of message. Every mutating call records the caller (SO_PEERCRED) in the
+campaign's events."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import pwd
+import socket
+import struct
+import tomllib
+from collections import deque
+from collections.abc import Awaitable, Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from aiohttp import web
+
+from cellcal import __version__
+from cellcal.config import CellConfig, config_from_dict, relative_to
+from cellcal.daemon.campaign import queue_campaign
+from cellcal.daemon.control import Control, ControlError
+from cellcal.daemon.report import list_campaigns
+from cellcal.daemon.store import Store
+from cellcal.errors import CellcalError
+
+API_VERSION = 1
+#: Events kept for ``Last-Event-ID``.
+EVENT_BUFFER = 2000
+SO_PEERGROUPS = 59  # Linux 4.13+, not in Python's socket module
+
+
+class EventHub:
+    """The event stream's buffer and its listeners (loop thread only)."""
+
+    def __init__(self) -> None:
+        self.next_id = 1
+        self.buffer: deque[tuple[int, str, str]] = deque(maxlen=EVENT_BUFFER)
+        self.listeners: set[asyncio.Queue[tuple[int, str, str] | None]] = set()
+
+    def publish(self, kind: str, data: dict[str, Any]) -> None:
+        item = (self.next_id, kind, json.dumps(data, separators=(",", ":")))
+        self.next_id += 1
+        self.buffer.append(item)
+        for q in self.listeners:
+            q.put_nowait(item)
+
+    def since(self, last_id: int) -> list[tuple[int, str, str]]:
+        return [e for e in self.buffer if e[0] > last_id]
+
+    def close(self) -> None:
+        for q in self.listeners:
+            q.put_nowait(None)
+
+
+@dataclass(frozen=True)
+class Peer:
+    pid: int
+    uid: int
+    gid: int
+    groups: tuple[int, ...]
+
+    @property
+    def user(self) -> str:
+        try:
+            return pwd.getpwuid(self.uid).pw_name
+        except KeyError:
+            return str(self.uid)
+
+    def __str__(self) -> str:
+        return f"uid {self.uid} ({self.user}), pid {self.pid}"
+
+
+def peer_of(request: web.Request) -> Peer | None:
+    """The process at the other end of the Unix socket, from the kernel."""
+    transport = request.transport
+    sock = transport.get_extra_info("socket") if transport is not None else None
+    if sock is None or sock.family != socket.AF_UNIX:
+        return None
+    pid, uid, gid = struct.unpack("3i", sock.getsockopt(socket.SOL_SOCKET, socket.SO_PEERCRED, 12))
+    try:
+        raw = sock.getsockopt(socket.SOL_SOCKET, SO_PEERGROUPS, 4 * 256)
+        groups = struct.unpack(f"{len(raw) // 4}I", raw)
+    except OSError:
+        groups = ()
+    return Peer(pid, uid, gid, tuple(groups))
+
+
+def _error(status: int, code: str, message: str) -> web.Response:
+    return web.json_response({"error": {"code": code, "message": message}}, status=status)
+
+
+STATUS_OF_CODE = {
+    "invalid-state": 409,
+    "invalid-params": 400,
+    "not-found": 404,
+    "devices-not-ready": 503,
+    "forbidden": 403,
+}
+
+
+@dataclass
+class Service:
+    """What the handlers need: the control object, the loop thread's database
+    connection, the event hub, the service's configuration and where it listens."""
+
+    control: Control
+    store: Store
+    hub: EventHub
+    config: CellConfig
+    config_path: str | None
+    mock: bool
+    time_scale: float
+    socket_path: str
+    http: str | None
+    group_id: int  # the socket's group: its members may control the service
+
+
+Handler = Callable[[web.Request], Awaitable[web.StreamResponse]]
+
+
+def make_app(svc: Service) -> web.Application:
+    app = web.Application(middlewares=[_errors, _allowed(svc)])
+    app["svc"] = svc
+    app.router.add_get("/v1/info", info)
+    app.router.add_get("/v1/status", status)
+    app.router.add_get("/v1/events", events)
+    app.router.add_get("/v1/campaigns", campaigns)
+    app.router.add_get("/v1/campaigns/{id}", one_campaign)
+    app.router.add_post("/v1/campaigns", start)
+    app.router.add_post("/v1/campaigns/{id}/{action:pause|resume|abort}", act)
+    return app
+
+
+@web.middleware
+async def _errors(request: web.Request, handler: Handler) -> web.StreamResponse:
+    try:
+        return await handler(request)
+    except ControlError as exc:
+        return _error(STATUS_OF_CODE.get(exc.code, 400), exc.code, exc.message)
+    except web.HTTPNotFound:
+        return _error(404, "not-found", f"no such resource: {request.method} {request.path}")
+    except web.HTTPMethodNotAllowed:
+        return _error(405, "invalid-params", f"{request.method} is not allowed on {request.path}")
+
+
+def _allowed(svc: Service) -> Any:
+    """Beyond the socket's file permissions: the caller must be root, the service's own
+    user or a member of the socket's group."""
+    import os
+
+    @web.middleware
+    async def check(request: web.Request, handler: Handler) -> web.StreamResponse:
+        peer = peer_of(request)
+        trusted = peer is None or peer.uid in (0, os.getuid())
+        if peer is not None and not trusted and svc.group_id not in (peer.gid, *peer.groups):
+            return _error(403, "forbidden", f"{peer} is not in the service's group")
+        request["peer"] = peer
+        return await handler(request)
+
+    return check
+
+
+def _svc(request: web.Request) -> Service:
+    svc: Service = request.app["svc"]
+    return svc
+
+
+async def info(request: web.Request) -> web.Response:
+    import os
+
+    svc = _svc(request)
+    return web.json_response(
+        {
+            "name": "cellcal",
+            "version": __version__,
+            "api_version": API_VERSION,
+            "pid": os.getpid(),
+            "db": svc.store.path,
+            "socket": svc.socket_path,
+            "http": svc.http,
+            "config": svc.config_path,
+            "mock": svc.mock,
+        }
+    )
+
+
+def _queue(store: Store) -> list[int]:
+    rows = store.conn.execute("SELECT id FROM campaigns WHERE status = 'queued' ORDER BY id")
+    return [int(r[0]) for r in rows]
+
+
+async def status(request: web.Request) -> web.Response:
+    svc = _svc(request)
+    snap = svc.control.snapshot()
+    snap["queue"] = _queue(svc.store)
+    return web.json_response(snap)
+
+
+async def events(request: web.Request) -> web.StreamResponse:
+    """Server-sent events: ``status``, ``pose``, ``event``, ``campaign-end``; a client
+    that reconnects with ``Last-Event-ID`` gets what it missed (while buffered)."""
+    svc = _svc(request)
+    resp = web.StreamResponse(
+        headers={"Content-Type": "text/event-stream", "Cache-Control": "no-cache"}
+    )
+    await resp.prepare(request)
+    q: asyncio.Queue[tuple[int, str, str] | None] = asyncio.Queue()
+    header = request.headers.get("Last-Event-ID")
+    try:
+        last = int(header) if header else None
+    except ValueError:
+        last = None
+    # A new watcher starts from now (with a snapshot); one that reconnects gets what
+    # it missed, as far as the buffer reaches.
+    backlog = svc.hub.since(last) if last is not None else []
+    svc.hub.listeners.add(q)
+    try:
+        for item in backlog:
+            await _send(resp, item)
+        if not backlog or backlog[-1][1] != "status":
+            snap = svc.control.snapshot()
+            snap["queue"] = _queue(svc.store)
+            await _send(resp, (svc.hub.next_id - 1, "status", json.dumps(snap)))
+        while (pending := await q.get()) is not None:
+            await _send(resp, pending)
+    except (ConnectionResetError, asyncio.CancelledError):
+        pass
+    finally:
+        svc.hub.listeners.discard(q)
+    return resp
+
+
+async def _send(resp: web.StreamResponse, item: tuple[int, str, str]) -> None:
+    i, kind, data = item
+    await resp.write(f"id: {i}\nevent: {kind}\ndata: {data}\n\n".encode())
+
+
+async def campaigns(request: web.Request) -> web.Response:
+    svc = _svc(request)
+    try:
+        limit = int(request.query.get("limit", "50"))
+    except ValueError:
+        raise ControlError("invalid-params", "limit must be a whole number") from None
+    rows = list_campaigns(svc.store)[-limit:] if limit > 0 else []
+    return web.json_response({"campaigns": [r.as_dict() for r in rows]})
+
+
+def _campaign_id(request: web.Request, svc: Service) -> int | None:
+    raw = request.match_info["id"]
+    if raw == "current":
+        return svc.control.current() or svc.control.blocking
+    try:
+        cid = int(raw)
+    except ValueError:
+        raise ControlError("invalid-params", f"campaign id {raw!r} is not a number") from None
+    if svc.store.conn.execute("SELECT 1 FROM campaigns WHERE id = ?", (cid,)).fetchone() is None:
+        raise ControlError("not-found", f"no campaign {cid} in {svc.store.path}")
+    return cid
+
+
+async def one_campaign(request: web.Request) -> web.Response:
+    svc = _svc(request)
+    cid = _campaign_id(request, svc)
+    if cid is None:
+        raise ControlError("not-found", "no campaign is running or paused")
+    rows = [r.as_dict() for r in list_campaigns(svc.store) if r.id == cid]
+    row = rows[0]
+    row["events"] = svc.store.events(cid)
+    return web.json_response(row)
+
+
+async def _body(request: web.Request) -> dict[str, Any]:
+    if not request.can_read_body:
+        return {}
+    try:
+        body = await request.json()
+    except (json.JSONDecodeError, UnicodeDecodeError):
+        raise ControlError("invalid-params", "the body is not JSON") from None
+    if not isinstance(body, dict):
+        raise ControlError("invalid-params", "the body must be a JSON object")
+    return body
+
+
+def _note(svc: Service, request: web.Request, cid: int, what: str) -> None:
+    """The caller of a change, in the campaign's events."""
+    peer: Peer | None = request.get("peer")
+    who = str(peer) if peer is not None else "unknown caller"
+    svc.store.add_event(cid, "operator", f"{what} by {who}", None)
+
+
+async def act(request: web.Request) -> web.Response:
+    svc = _svc(request)
+    action = request.match_info["action"]
+    body = await _body(request)
+    cid = _campaign_id(request, svc)
+    status_of = _status_of(svc.store)
+    if action == "pause":
+        mode = body.get("mode", "deferred")
+        if mode not in ("deferred", "immediate"):
+            raise ControlError("invalid-params", f"mode {mode!r}: deferred or immediate")
+        state = svc.control.pause(cid, immediate=mode == "immediate")
+        cid = svc.control.current()
+        what = f"pause ({mode})"
+    elif action == "resume":
+        state = svc.control.resume(cid, status_of)
+        cid = cid if cid is not None else svc.control.blocking
+        what = "resume"
+    else:
+        state, cid = svc.control.abort(cid, status_of)
+        if state == "aborted":  # not running: marked here
+            svc.store.set_status(cid, "aborted")
+        what = "abort"
+    if cid is not None:
+        _note(svc, request, cid, what)
+    return web.json_response({"state": state, "campaign_id": cid}, status=202)
+
+
+def _status_of(store: Store) -> Callable[[int], str]:
+    def status_of(cid: int) -> str:
+        return store.campaign(cid).status
+
+    return status_of
+
+
+async def start(request: web.Request) -> web.Response:
+    svc = _svc(request)
+    body = await _body(request)
+    when = body.get("when", "now")
+    if when not in ("now", "queue"):
+        raise ControlError("invalid-params", f"when {when!r}: now or queue")
+    config = _campaign_config(svc, body)
+    if when == "now" and (svc.control.current() is not None or svc.control.blocking is not None):
+        busy = svc.control.current() or svc.control.blocking
+        raise ControlError(
+            "invalid-state",
+            f"campaign {busy} is {svc.control.snapshot()['state']}; "
+            "start with --queue to run this one after it",
+        )
+    try:
+        cid, plan = queue_campaign(
+            svc.store,
+            config,
+            config_path=body.get("config_name"),
+            mock=svc.mock,
+            time_scale=svc.time_scale,
+        )
+    except CellcalError as exc:
+        raise ControlError("invalid-params", str(exc)) from None
+    _note(svc, request, cid, f"queued ({len(plan.poses)} poses)")
+    svc.control.work_queued()
+    return web.json_response({"campaign_id": cid, "n_poses": len(plan.poses)}, status=202)
+
+
+def _campaign_config(svc: Service, body: dict[str, Any]) -> CellConfig:
+    """The campaign's configuration: the service's own, or the text sent, which must
+    name the devices the service holds."""
+    mock = body.get("mock")
+    if mock is not None and bool(mock) != svc.mock:
+        held = "the simulated cell (--mock)" if svc.mock else "real devices"
+        raise ControlError("invalid-params", f"the service runs {held}; mock = {bool(mock)} asked")
+    text = body.get("config_toml")
+    config = svc.config
+    if text:
+        name = str(body.get("config_name") or "config")
+        try:
+            data = tomllib.loads(str(text))
+            config = config_from_dict(data, name)
+        except tomllib.TOMLDecodeError as exc:
+            raise ControlError("invalid-params", f"{name}: not TOML ({exc})") from None
+        except CellcalError as exc:
+            raise ControlError("invalid-params", str(exc)) from None
+        if body.get("config_name"):
+            config = relative_to(config, Path(name).parent, database=False)
+        for section in ("robot", "sensor"):
+            if getattr(config, section) != getattr(svc.config, section):
+                raise ControlError(
+                    "invalid-params",
+                    f"{name}: [{section}] differs from the service's configuration "
+                    "(the service holds its devices; restart it with this configuration)",
+                )
+        # The simulated cell is the service's; the campaign brings its plan and dwell.
+        config = config.model_copy(update={"simulation": svc.config.simulation})
+    seed = body.get("seed")
+    if seed is not None:
+        if not svc.mock:
+            raise ControlError("invalid-params", "seed is for mock mode")
+        if not isinstance(seed, int) or seed < 0:
+            raise ControlError("invalid-params", f"seed {seed!r} must be a whole number ≥ 0")
+        config = config.model_copy(
+            update={"campaign": config.campaign.model_copy(update={"seed": seed})}
+        )
+    return config

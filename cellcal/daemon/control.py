@@ -1,0 +1,420 @@
+"""Where the service's two threads meet: the asyncio loop (control API, status page,
+sd_notify, signals) asks, the engine thread acts and reports.
+
+In: pause (deferred or immediate), resume, abort, shutdown, new work — each a method
+that checks the state and either changes it or raises :class:`ControlError` with the API's
+error code and one line. Out: the state, its reason, the campaign's progress, the
+devices' states and the engine's heartbeat, read as one snapshot; and every record
+of the campaign, turned into an event for the event stream and handed to the loop
+with ``call_soon_threadsafe`` (the ``publish`` function given at construction).
+
+States (``specs``: the service): ``idle``, ``running``, ``pausing`` (a deferred pause:
+the pose under way is finished and stored), ``paused``, ``aborting``, ``analysing``,
+``stopping`` (SIGTERM). A paused campaign — by an operator, by a device fault, or found
+running after a crash — holds the queue until an operator resumes or aborts it.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from cellcal.daemon.plan import PlannedPose
+from cellcal.daemon.records import (
+    CampaignEnded,
+    CampaignEvent,
+    CampaignStarted,
+    PoseStored,
+    Record,
+)
+from cellcal.errors import UserError
+
+STATES = ("idle", "running", "pausing", "paused", "aborting", "analysing", "stopping")
+#: Device states.
+ABSENT, CONNECTING, READY, FAULT = "absent", "connecting", "ready", "fault"
+#: The last poses kept for the status page.
+RECENT_POSES = 30
+
+Publish = Callable[[str, dict[str, Any]], None]
+
+
+class ControlError(UserError):
+    """A request the state does not allow: the API's error ``code`` and one line."""
+
+    def __init__(self, code: str, message: str) -> None:
+        super().__init__(message)
+        self.code = code
+        self.message = message
+
+
+@dataclass(frozen=True)
+class Job:
+    """What the engine thread runs next: a campaign, fresh from the queue or resumed."""
+
+    campaign_id: int
+    resume: bool
+
+
+def _mm(v: Any) -> list[float]:
+    return [round(float(x), 4) for x in np.asarray(v).ravel()]
+
+
+def _deg(q: Any) -> list[float]:
+    return [round(float(x), 4) for x in np.degrees(np.asarray(q)).ravel()]
+
+
+class Control:
+    """The thread-safe control object; see the module docstring."""
+
+    def __init__(self, device_names: list[str], publish: Publish) -> None:
+        self._lock = threading.Condition()
+        self._publish = publish
+        self.state = "idle"
+        self.reason = "starting: connecting the devices"
+        self.devices: dict[str, dict[str, str]] = {
+            n: {"state": CONNECTING, "message": ""} for n in device_names
+        }
+        self.stop = threading.Event()  # abandon the pose under way (pause --now, abort, SIGTERM)
+        self.hold = threading.Event()  # finish the pose under way, then stop (pause)
+        self.intent = ""  # what a stopped acquisition becomes: paused, aborted, interrupted
+        self.blocking: int | None = None  # a paused campaign holds the queue
+        self.shutting_down = False
+        self.closing = threading.Event()  # set on SIGTERM: every wait of the engine ends
+        self.heartbeat = time.monotonic()
+        self.campaign: dict[str, Any] | None = None
+        self.recent: deque[dict[str, Any]] = deque(maxlen=RECENT_POSES)
+        self.last_end: dict[str, Any] | None = None
+        self._resume: int | None = None
+
+    # ------------------------------------------------------------ the engine's side
+
+    def beat(self) -> None:
+        self.heartbeat = time.monotonic()
+
+    def next_job(
+        self,
+        queued: Callable[[], int | None],
+        interrupt: Callable[[], bool] = lambda: False,
+        timeout: float = 1.0,
+    ) -> Job | None:
+        """Wait (beating) for work: a resume request, else — unless a paused campaign
+        holds the queue — the oldest queued campaign. None on shutdown or when
+        ``interrupt()`` is true (a reload)."""
+        with self._lock:
+            while not self.shutting_down and not interrupt():
+                self.beat()
+                if self._ready():
+                    if self._resume is not None:
+                        cid, self._resume = self._resume, None
+                        return self._begin(Job(cid, resume=True))
+                    if self.blocking is None:
+                        cid_q = queued()
+                        if cid_q is not None:
+                            return self._begin(Job(cid_q, resume=False))
+                self._lock.wait(timeout)
+            return None
+
+    def _ready(self) -> bool:
+        return all(d["state"] == READY for d in self.devices.values())
+
+    def _begin(self, job: Job) -> Job:
+        self.stop.clear()
+        self.hold.clear()
+        self.intent = ""
+        self.blocking = None
+        self.state = "running"
+        self.reason = f"campaign {job.campaign_id}: {'resuming' if job.resume else 'starting'}"
+        self.campaign = {"id": job.campaign_id, "stored": 0, "planned": 0, "phase": "starting"}
+        self._changed()
+        return job
+
+    def halted(self) -> str:
+        """The status a stopped acquisition ends in (asked by the campaign)."""
+        with self._lock:
+            return self.intent or "interrupted"
+
+    def finished(self, campaign_id: int, status: str, message: str) -> None:
+        """The engine is done with a campaign: it ended in ``status``."""
+        with self._lock:
+            if status == "paused":
+                self.blocking = campaign_id
+                self.state, self.reason = "paused", f"campaign {campaign_id} paused: {message}"
+            else:
+                self.state, self.reason = "idle", f"campaign {campaign_id} {status}: {message}"
+            if self.shutting_down:
+                self.state = "stopping"
+            if self.campaign is not None:
+                self.campaign["phase"] = status
+            self._changed()
+
+    def set_device(self, name: str, state: str, message: str = "") -> None:
+        with self._lock:
+            self.devices[name] = {"state": state, "message": message}
+            if self.state == "idle" and not self.shutting_down:
+                if self._ready():
+                    self.reason = "devices ready, no campaign running"
+                elif state != READY:
+                    self.reason = f"{name}: {state}" + (f" ({message})" if message else "")
+            self._changed()
+            self._lock.notify_all()
+
+    def phase(self, name: str, pose: PlannedPose, t: float) -> None:
+        """The engine's phase watcher: the heartbeat, and the pose under way."""
+        self.beat()
+        with self._lock:
+            if self.campaign is None:
+                return
+            self.campaign.update(
+                phase=name,
+                phase_started=time.time(),
+                pose_idx=pose.idx,
+                role=pose.role,
+                region=pose.region,
+                target_mm=_mm(pose.target_mm),
+                planned_q_deg=_deg(pose.q),
+            )
+        self._publish("status", self.snapshot())
+
+    def record(self, record: Record) -> None:
+        """A subscriber of the campaign's record stream: progress in, events out."""
+        self.beat()
+        with self._lock:
+            c = self.campaign
+            if isinstance(record, CampaignStarted) and c is not None:
+                if self.state == "running":
+                    self.reason = f"campaign {record.campaign_id}: acquiring"
+                c.update(
+                    stored=record.done,
+                    planned=record.total,
+                    dwell_s=None,
+                    started=time.time(),
+                    stored_at_start=record.done,
+                )
+            elif isinstance(record, PoseStored) and c is not None:
+                c["stored"] = record.done
+                c["reached_q_deg"] = _deg(record.reached_q)
+                c["eta_s"] = self._eta(c)
+                if record.done == record.total and self.state == "running":
+                    self.state = "analysing"
+                    self.reason = f"campaign {record.campaign_id}: analysing"
+        data = event_data(record)
+        if isinstance(record, PoseStored):
+            self.recent.append(data)
+        if isinstance(record, CampaignEnded):
+            self.last_end = data
+        self._publish(KINDS[type(record)], data)
+        if isinstance(record, (CampaignStarted, PoseStored, CampaignEnded)):
+            self._publish("status", self.snapshot())
+
+    @staticmethod
+    def _eta(c: dict[str, Any]) -> float | None:
+        done_now = c["stored"] - c.get("stored_at_start", 0)
+        if done_now <= 0 or "started" not in c:
+            return None
+        per_pose = (time.time() - c["started"]) / done_now
+        return round(float(per_pose * (c["planned"] - c["stored"])), 1)
+
+    # ------------------------------------------------------------ the loop's side
+
+    def _changed(self) -> None:
+        """The state changed (lock held): tell the watchers."""
+        self._publish("status", self._snapshot())
+
+    def snapshot(self) -> dict[str, Any]:
+        with self._lock:
+            return self._snapshot()
+
+    def _snapshot(self) -> dict[str, Any]:
+        return {
+            "state": self.state,
+            "reason": self.reason,
+            "campaign": dict(self.campaign) if self.campaign else None,
+            "devices": {k: dict(v) for k, v in self.devices.items()},
+            "heartbeat_age_s": round(time.monotonic() - self.heartbeat, 3),
+            "paused_campaign": self.blocking,
+            "recent_poses": list(self.recent),
+            "last_end": self.last_end,
+        }
+
+    def work_queued(self) -> None:
+        """A campaign was added to the queue, or the engine has something to do."""
+        with self._lock:
+            self._lock.notify_all()
+
+    def current(self) -> int | None:
+        with self._lock:
+            return self._current()
+
+    def _current(self) -> int | None:
+        if self.state in ("running", "pausing", "aborting", "analysing") and self.campaign:
+            return int(self.campaign["id"])
+        return None
+
+    def pause(self, campaign_id: int | None, immediate: bool) -> str:
+        with self._lock:
+            cid = self._current()
+            if cid is None or (campaign_id is not None and campaign_id != cid):
+                raise ControlError("invalid-state", self._not_running("pause", campaign_id))
+            if self.state == "analysing":
+                raise ControlError("invalid-state", f"campaign {cid} is being analysed")
+            if self.state == "aborting":
+                raise ControlError("invalid-state", f"campaign {cid} is being aborted")
+            self.intent = "paused"
+            self.state = "pausing"
+            if immediate:
+                self.reason = f"campaign {cid}: pausing now (the pose under way is abandoned)"
+                self.stop.set()
+            else:
+                self.reason = f"campaign {cid}: pausing after the pose under way"
+                self.hold.set()
+            self._changed()
+            return self.state
+
+    def resume(self, campaign_id: int | None, status_of: Callable[[int], str]) -> str:
+        with self._lock:
+            if self._current() is not None:
+                raise ControlError("invalid-state", f"campaign {self._current()} is {self.state}")
+            cid = campaign_id if campaign_id is not None else self.blocking
+            if cid is None:
+                raise ControlError("invalid-state", "no campaign is paused; name the one to resume")
+            if self.blocking is not None and cid != self.blocking:
+                raise ControlError(
+                    "invalid-state",
+                    f"campaign {self.blocking} is paused: resume or abort it first",
+                )
+            status = status_of(cid)
+            if status not in ("paused", "interrupted", "refused"):
+                raise ControlError("invalid-state", f"campaign {cid} is {status}, not resumable")
+            if not self._ready():
+                raise ControlError("devices-not-ready", self._not_ready())
+            self._resume = cid
+            self.reason = f"campaign {cid}: resume requested"
+            self._changed()
+            self._lock.notify_all()
+            return "running"
+
+    def abort(self, campaign_id: int | None, status_of: Callable[[int], str]) -> tuple[str, int]:
+        """Abort the running campaign (at once, robot stopped), or a paused or queued one
+        (returned for the caller to mark ``aborted``)."""
+        with self._lock:
+            cid = self._current()
+            if cid is not None and campaign_id in (None, cid):
+                if self.state == "analysing":
+                    raise ControlError("invalid-state", f"campaign {cid} is being analysed")
+                self.intent = "aborted"
+                self.state = "aborting"
+                self.reason = f"campaign {cid}: aborting"
+                self.stop.set()
+                self._changed()
+                return self.state, cid
+            target = campaign_id if campaign_id is not None else self.blocking
+            if target is None:
+                raise ControlError("invalid-state", "no campaign is running or paused")
+            status = status_of(target)
+            if status not in ("paused", "interrupted", "queued", "refused"):
+                raise ControlError("invalid-state", f"campaign {target} is {status}")
+            if self.blocking == target:
+                self.blocking = None
+                self.state, self.reason = "idle", f"campaign {target} aborted"
+                self._lock.notify_all()
+            self._changed()
+            return "aborted", target
+
+    def recovered(self, campaign_id: int) -> None:
+        """A campaign found running or paused at start-up: it holds the queue."""
+        with self._lock:
+            self.blocking = campaign_id
+            self.state = "paused"
+            self.reason = (
+                f"campaign {campaign_id} was interrupted by a restart; "
+                f"cellcal campaign resume {campaign_id} (or abort {campaign_id})"
+            )
+            self._changed()
+
+    def shutdown(self) -> None:
+        """SIGTERM: stop at the next safe point."""
+        with self._lock:
+            self.shutting_down = True
+            self.closing.set()
+            self.intent = "interrupted"
+            self.state = "stopping"
+            self.reason = "stopping (SIGTERM)"
+            self.stop.set()
+            self._changed()
+            self._lock.notify_all()
+
+    def _not_running(self, what: str, campaign_id: int | None) -> str:
+        if campaign_id is not None:
+            return f"cannot {what} campaign {campaign_id}: it is not running"
+        return f"no campaign is running (state {self.state})"
+
+    def _not_ready(self) -> str:
+        bad = [f"{k} {v['state']}" for k, v in self.devices.items() if v["state"] != READY]
+        return "devices not ready: " + ", ".join(bad)
+
+
+def event_data(record: Record) -> dict[str, Any]:
+    """A record as the event stream's JSON."""
+    if isinstance(record, CampaignStarted):
+        verb = "resumed" if record.resumed else "started"
+        return {
+            "campaign_id": record.campaign_id,
+            "kind": verb,
+            "message": f"{verb} with {record.done} of {record.total} poses stored",
+            "pose_idx": None,
+        }
+    if isinstance(record, PoseStored):
+        p = record.pose
+        return {
+            "campaign_id": record.campaign_id,
+            "idx": p.idx,
+            "role": p.role,
+            "region": p.region,
+            "stored": record.done,
+            "planned": record.total,
+            "target_mm": _mm(p.target_mm),
+            "planned_q_deg": _deg(p.q),
+            "reached_q_deg": _deg(record.reached_q),
+            "seconds": round(record.t_end - record.t_start, 3),
+            "retries": record.retries,
+            "sensors": {
+                s.sensor: {"n": s.n, "mean_mm": _mm(s.mean), "std_mm": _mm(s.std)}
+                for s in record.statistics
+            },
+        }
+    if isinstance(record, CampaignEvent):
+        return {
+            "campaign_id": record.campaign_id,
+            "kind": record.kind,
+            "message": record.message,
+            "pose_idx": record.pose_idx,
+        }
+    s = record.summary
+    out: dict[str, Any] = {
+        "campaign_id": record.campaign_id,
+        "status": record.status,
+        "stored": record.stored,
+        "planned": record.total,
+        "message": record.message,
+    }
+    if s is not None:
+        out["validation_mm"] = {
+            "before": {"rms": s.validation_before.rms, "max": s.validation_before.max},
+            "after": {"rms": s.validation_after.rms, "max": s.validation_after.max},
+            "improvement_pct": s.improvement_pct,
+        }
+    return out
+
+
+KINDS: dict[type, str] = {
+    CampaignStarted: "event",
+    PoseStored: "pose",
+    CampaignEvent: "event",
+    CampaignEnded: "campaign-end",
+}

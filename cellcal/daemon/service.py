@@ -1,0 +1,260 @@
+"""``cellcal daemon``: the cell service. One process, never daemonizing itself: the main
+thread runs the asyncio loop (control API on a Unix socket, sd_notify, signals), the
+engine thread (``worker.py``) runs campaigns on the devices the service holds. The
+service holds the database's run lock for its life, so a ``cellcal run`` on the same
+file is refused with a line that names the service and its pid.
+
+Start-up: lock the database, open it, mark a campaign found ``running`` or ``paused``
+``interrupted`` (the previous service died under it) and hold the queue until an
+operator resumes or aborts it, listen, ``READY=1``; the devices connect in the engine
+thread meanwhile (their states in ``STATUS=``). SIGTERM: ``STOPPING=1``, the pose under
+way is abandoned, the robot stopped, the campaign ``interrupted``, exit 0. SIGHUP: the
+configuration is read again when no campaign runs (else when it ends).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import os
+import signal
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+from aiohttp import web
+
+from cellcal.clock import Clock, SimulatedClock, WallClock
+from cellcal.config import CellConfig, load_config
+from cellcal.daemon.api import EventHub, Service, make_app
+from cellcal.daemon.campaign import RunLock
+from cellcal.daemon.control import Control
+from cellcal.daemon.sdnotify import Notifier
+from cellcal.daemon.store import Store
+from cellcal.daemon.worker import Worker, device_names
+from cellcal.errors import CampaignError, CellcalError
+from cellcal.modelfiles import load_model
+
+log = logging.getLogger("cellcal.service")
+
+#: Seconds the engine gets to reach a safe point after SIGTERM (TimeoutStopSec is 90).
+STOP_GRACE_S = 30.0
+#: Unix socket paths are limited to 108 bytes.
+MAX_SOCKET_PATH = 107
+
+
+@dataclass(frozen=True)
+class DaemonOptions:
+    config: CellConfig
+    config_path: str | None
+    mock: bool
+    time_scale: float
+    db_path: str
+    socket_path: str
+
+
+def recover(store: Store, control: Control, previous: str) -> list[int]:
+    """Campaigns the previous service left ``running`` or ``paused`` become
+    ``interrupted``; the latest of them — or one a SIGTERM interrupted — holds the queue."""
+    who = previous or "a previous cellcal process"
+    rows = store.conn.execute(
+        "SELECT id, status FROM campaigns WHERE status IN ('running', 'paused') ORDER BY id"
+    ).fetchall()
+    found = []
+    for cid, status in rows:
+        store.set_status(int(cid), "interrupted")
+        store.add_event(
+            int(cid),
+            "recovered",
+            f"found {status} at start-up: {who} stopped while it ran; nothing moves until "
+            f"an operator resumes it (cellcal campaign resume {cid})",
+        )
+        found.append(int(cid))
+    last = store.conn.execute(
+        """SELECT c.id FROM campaigns c WHERE c.status = 'interrupted' AND (SELECT kind FROM
+        events e WHERE e.campaign_id = c.id ORDER BY e.id DESC LIMIT 1) = 'service-stopped'
+        ORDER BY c.id DESC LIMIT 1"""
+    ).fetchone()
+    hold = found[-1] if found else (int(last[0]) if last else None)
+    if hold is not None:
+        control.recovered(hold)
+    return found
+
+
+def status_line(control: Control) -> str:
+    snap = control.snapshot()
+    devices = ", ".join(f"{k} {v['state']}" for k, v in snap["devices"].items())
+    c = snap["campaign"]
+    progress = ""
+    if c and snap["state"] in ("running", "pausing", "aborting", "analysing"):
+        progress = f" (campaign {c['id']}: pose {c.get('stored', 0)}/{c.get('planned', 0)})"
+    return f"{snap['state']}{progress}: {snap['reason']}; devices: {devices}"
+
+
+async def _listen(runner: web.AppRunner, path: str) -> int:
+    """Listen on the Unix socket: 0660 in a 0750 folder, created under a umask so that
+    no window is open; owned by the folder's group (systemd's RuntimeDirectory)."""
+    if len(os.fsencode(path)) > MAX_SOCKET_PATH:
+        raise CampaignError(f"{path}: a Unix socket path is limited to 107 bytes")
+    folder = Path(path).parent
+    old = os.umask(0o027)
+    try:
+        folder.mkdir(mode=0o750, parents=True, exist_ok=True)
+        os.umask(0o117)
+        with contextlib.suppress(FileNotFoundError):
+            if Path(path).is_socket():
+                Path(path).unlink()  # a stale socket of a dead service (the run lock is ours)
+        await web.UnixSite(runner, path).start()
+    finally:
+        os.umask(old)
+    gid = folder.stat().st_gid
+    with contextlib.suppress(OSError):
+        os.chown(path, -1, gid)
+    os.chmod(path, 0o660)
+    return gid
+
+
+async def _watchdog(notifier: Notifier, control: Control, interval: float, limit: float) -> None:
+    """``WATCHDOG=1`` only while the engine's heartbeat is fresh: a hung engine lets
+    systemd's watchdog fire."""
+    while True:
+        if time.monotonic() - control.heartbeat < limit:
+            notifier.watchdog()
+        else:
+            age = time.monotonic() - control.heartbeat
+            log.warning("engine heartbeat %.0f s old: no watchdog ping", age)
+        await asyncio.sleep(interval)
+
+
+async def _status_updates(notifier: Notifier, control: Control, changed: asyncio.Event) -> None:
+    last = ""
+    while True:
+        await changed.wait()
+        changed.clear()
+        line = status_line(control)
+        if line != last:
+            notifier.status(line)
+            last = line
+        await asyncio.sleep(0.5)  # at most two STATUS= per second
+
+
+async def serve(opts: DaemonOptions) -> int:
+    """Run the service until SIGTERM; the exit code."""
+    loop = asyncio.get_running_loop()
+    notifier = Notifier()
+    hub = EventHub()
+    changed = asyncio.Event()
+
+    def publish_here(kind: str, data: dict[str, object]) -> None:
+        hub.publish(kind, data)
+        if kind == "status":
+            changed.set()
+
+    def publish(kind: str, data: dict[str, object]) -> None:
+        loop.call_soon_threadsafe(publish_here, kind, data)
+
+    control = Control(device_names(opts.config), publish)
+    nominal = load_model(opts.config.robot.model).model
+    clock: Clock = SimulatedClock(opts.time_scale) if opts.mock else WallClock()
+    with RunLock(opts.db_path, "the cellcal service") as lock:
+        store = Store(opts.db_path)
+        try:
+            recovered = recover(store, control, lock.previous)
+            for cid in recovered:
+                log.warning("campaign %d was interrupted by a restart; it waits for resume", cid)
+            app = make_app(_service(opts, control, store, hub))
+            runner = web.AppRunner(app, shutdown_timeout=2.0)
+            await runner.setup()
+            svc: Service = runner.app["svc"]
+            svc.group_id = await _listen(runner, opts.socket_path)
+            worker = Worker(control, opts.config, nominal, opts.db_path, clock, mock=opts.mock)
+            worker.start()
+            stopped = asyncio.Event()
+            loop.add_signal_handler(signal.SIGTERM, _on_term, control, notifier, stopped)
+            loop.add_signal_handler(signal.SIGINT, _on_term, control, notifier, stopped)
+            loop.add_signal_handler(signal.SIGHUP, _on_hup, opts, svc, worker, notifier)
+            tasks = [asyncio.create_task(_status_updates(notifier, control, changed))]
+            interval = notifier.watchdog_interval_s
+            if interval is not None:
+                limit = 2 * interval
+                tasks.append(asyncio.create_task(_watchdog(notifier, control, interval, limit)))
+            where = (opts.socket_path, opts.db_path, os.getpid())
+            log.info("listening on %s (database %s, pid %d)", *where)
+            notifier.ready(status_line(control))
+            ended = asyncio.create_task(stopped.wait())
+            dead = asyncio.create_task(asyncio.to_thread(worker.join))
+            await asyncio.wait({ended, dead}, return_when=asyncio.FIRST_COMPLETED)
+            code = 0
+            if not stopped.is_set():  # the engine thread ended by itself: a bug
+                log.error("the engine thread stopped: %s", worker.failure)
+                control.shutdown()
+                code = 1
+            await asyncio.wait({dead}, timeout=STOP_GRACE_S)
+            if not dead.done():
+                log.error("the engine did not stop within %.0f s", STOP_GRACE_S)
+                code = 1
+            _note_stopped(store, control)
+            for t in tasks:
+                t.cancel()
+            hub.close()
+            await runner.cleanup()
+            with contextlib.suppress(FileNotFoundError):
+                Path(opts.socket_path).unlink()
+            log.info("stopped")
+            return code
+        finally:
+            store.close()
+
+
+def _service(opts: DaemonOptions, control: Control, store: Store, hub: EventHub) -> Service:
+    return Service(
+        control=control,
+        store=store,
+        hub=hub,
+        config=opts.config,
+        config_path=opts.config_path,
+        mock=opts.mock,
+        time_scale=opts.time_scale,
+        socket_path=opts.socket_path,
+        http=None,
+        group_id=os.getgid(),
+    )
+
+
+def _note_stopped(store: Store, control: Control) -> None:
+    """A campaign SIGTERM interrupted says so: the next service holds the queue for it."""
+    c = control.campaign
+    if c is None:
+        return
+    with contextlib.suppress(CellcalError):
+        if store.campaign(int(c["id"])).status == "interrupted":
+            store.add_event(
+                int(c["id"]),
+                "service-stopped",
+                f"the service stopped (pid {os.getpid()}); cellcal campaign resume {c['id']}",
+            )
+
+
+def _on_term(control: Control, notifier: Notifier, stopped: asyncio.Event) -> None:
+    log.info("SIGTERM: stopping at the next safe point")
+    notifier.stopping("stopping: the robot is stopped, the campaign kept resumable")
+    control.shutdown()
+    stopped.set()
+
+
+def _on_hup(opts: DaemonOptions, svc: Service, worker: Worker, notifier: Notifier) -> None:
+    """Read the configuration again; the engine applies it when no campaign runs."""
+    if opts.config_path is None:
+        log.info("SIGHUP: no configuration file to read again (bundled mock cell)")
+        return
+    notifier.reloading()
+    try:
+        config = load_config(opts.config_path)
+    except CellcalError as exc:
+        log.error("SIGHUP: %s; the configuration in use is kept", exc)
+    else:
+        svc.config = config
+        worker.reload(config)
+        log.info("SIGHUP: %s read again; applied when no campaign runs", opts.config_path)
+    notifier.ready(status_line(svc.control))

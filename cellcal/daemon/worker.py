@@ -1,0 +1,185 @@
+"""The service's engine thread: it holds the devices (connected once, reconnected with
+backoff after a fault), takes the next campaign from the control object — a resume
+request, else the oldest queued campaign in the database — and runs it on the held
+devices through the same campaign code as ``cellcal run``, so every pose is stored
+exactly once whatever stops it."""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import threading
+
+from cellcal.calib.robot_model import RobotModel
+from cellcal.clock import Clock
+from cellcal.config import CellConfig
+from cellcal.daemon.campaign import Held, run_stored
+from cellcal.daemon.control import CONNECTING, FAULT, READY, Control, Job
+from cellcal.daemon.devices import Devices, build_devices
+from cellcal.daemon.store import Store
+from cellcal.errors import CellcalError
+from cellcal.modelfiles import load_model
+
+log = logging.getLogger("cellcal.service")
+
+#: Seconds between connection attempts after a failure: doubled up to the last.
+BACKOFF_S = (1.0, 2.0, 4.0, 8.0, 15.0, 30.0)
+
+
+def oldest_queued(store: Store) -> int | None:
+    row = store.conn.execute("SELECT MIN(id) FROM campaigns WHERE status = 'queued'").fetchone()
+    return None if row is None or row[0] is None else int(row[0])
+
+
+def device_names(config: CellConfig) -> list[str]:
+    return ["robot", *(s.name for s in config.sensor)]
+
+
+def faulty_device(config: CellConfig, message: str) -> str | None:
+    """Which device a connection error names, if any."""
+    for name in device_names(config)[1:]:
+        if f"sensor {name}" in message or message.startswith(f"{name}:"):
+            return name
+    if message.startswith("robot") or "robot." in message:
+        return "robot"
+    return None
+
+
+class Worker(threading.Thread):
+    def __init__(
+        self,
+        control: Control,
+        config: CellConfig,
+        nominal: RobotModel,
+        db_path: str,
+        clock: Clock,
+        *,
+        mock: bool,
+    ) -> None:
+        super().__init__(name="engine", daemon=True)
+        self.control = control
+        self.config = config
+        self.nominal = nominal
+        self.db_path = db_path
+        self.clock = clock
+        self.mock = mock
+        self.devices: Devices | None = None
+        self.connections = 0
+        self.failure: BaseException | None = None
+        self._reload: CellConfig | None = None
+
+    def reload(self, config: CellConfig) -> None:
+        """A configuration read again (SIGHUP): applied before the next campaign, with
+        the devices connected afresh if they changed."""
+        self._reload = config
+        self.control.work_queued()
+
+    def _apply_reload(self) -> None:
+        config, self._reload = self._reload, None
+        if config is None:
+            return
+        if (config.robot, config.sensor) != (self.config.robot, self.config.sensor):
+            self._disconnect()
+        self.config = config
+        self.nominal = load_model(config.robot.model).model
+
+    def run(self) -> None:
+        try:
+            store = Store(self.db_path)  # this thread's own connection
+        except BaseException as exc:
+            self.failure = exc
+            return
+        try:
+            while not self.control.shutting_down:
+                self._apply_reload()
+                if self.devices is None and not self._connect():
+                    continue
+                job = self.control.next_job(
+                    lambda: oldest_queued(store), lambda: self._reload is not None
+                )
+                if job is None:
+                    continue
+                self._run(store, job)
+        except BaseException as exc:  # pragma: no cover - logged, the service exits 1
+            log.exception("engine thread failed")
+            self.failure = exc
+        finally:
+            self._disconnect()
+            store.close()
+
+    def _connect(self) -> bool:
+        """Build the devices (twins in mock mode); on failure wait the backoff."""
+        c = self.control
+        for name in device_names(self.config):
+            c.set_device(name, CONNECTING)
+        c.beat()
+        try:
+            self.devices = build_devices(
+                self.config,
+                self.nominal,
+                self.clock,
+                mock=self.mock,
+                seed=self.config.simulation.seed,
+                noise_stream=self.connections,
+            )
+        except CellcalError as exc:
+            message = str(exc)
+            which = faulty_device(self.config, message)
+            for name in device_names(self.config):
+                c.set_device(name, FAULT if which in (None, name) else CONNECTING, message)
+            wait = BACKOFF_S[min(self.connections, len(BACKOFF_S) - 1)]
+            self.connections += 1
+            log.warning("devices: %s; next attempt in %.0f s", message, wait)
+            c.closing.wait(wait)
+            return False
+        self.connections += 1
+        for name in device_names(self.config):
+            c.set_device(name, READY)
+        log.info("devices ready: %s", ", ".join(device_names(self.config)))
+        return True
+
+    def _disconnect(self) -> None:
+        if self.devices is not None:
+            with contextlib.suppress(Exception):
+                self.devices.close()
+            self.devices = None
+
+    def _run(self, store: Store, job: Job) -> None:
+        c = self.control
+        cid = job.campaign_id
+        assert self.devices is not None
+        held = Held(
+            hold=c.hold,
+            phase=c.phase,
+            halted=c.halted,
+            on_fault="paused",
+            hint=f"campaign {cid} is paused: cellcal campaign resume {cid}",
+        )
+        log.info("campaign %d: %s", cid, "resuming" if job.resume else "starting")
+        message = ""
+        fault = False
+        try:
+            out = run_stored(
+                store, cid, self.devices, self.clock, stop=c.stop, held=held, subscribers=[c.record]
+            )
+            message = f"{out.acquisition.stored} of {len(out.plan.poses)} poses stored"
+        except CellcalError as exc:
+            message = str(exc)
+            fault = True
+        except Exception as exc:
+            message = f"{type(exc).__name__}: {exc}"
+            log.exception("campaign %d failed", cid)
+            fault = True
+        status = store.campaign(cid).status
+        if fault and status in ("running", "interrupted") and not c.shutting_down:
+            # Not recorded by the campaign itself (the store failed?): hold it all the same.
+            with contextlib.suppress(CellcalError):
+                store.set_status(cid, "paused")
+            status = "paused"
+        log.info("campaign %d %s: %s", cid, status, message)
+        c.finished(cid, status, message)
+        if fault and status == "paused" and not c.shutting_down:
+            # A device fault: let go of the devices and connect them afresh.
+            self._disconnect()
+            for name in device_names(self.config):
+                c.set_device(name, FAULT, message)
