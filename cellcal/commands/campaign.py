@@ -13,7 +13,7 @@ from cellcal.commands.output import SEED, print_json
 from cellcal.commands.service_client import call, follow, socket_path
 from cellcal.daemon.report import list_campaigns
 from cellcal.daemon.store import Store
-from cellcal.errors import InputError
+from cellcal.errors import InputError, UserError
 
 EXIT_REFUSED = 3
 
@@ -49,7 +49,10 @@ def list_command(db_path: str | None, sock: str | None, as_json: bool) -> None:
         source = db_path
     else:
         path = socket_path(sock)
-        rows = call(path, "GET", "/v1/campaigns?limit=1000")["campaigns"]
+        try:
+            rows = call(path, "GET", "/v1/campaigns?limit=1000")["campaigns"]
+        except UserError as exc:
+            raise UserError(f"{exc}; or read a database file with --db FILE") from None
         source = path
     if as_json:
         print_json({"database" if db_path else "socket": source, "campaigns": rows})

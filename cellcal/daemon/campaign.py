@@ -284,19 +284,7 @@ def start_campaign(
                 devices.close()
             raise
         try:
-            campaign_id = store.create_campaign(
-                config_json=config.model_dump_json(),
-                config_path=config_path,
-                mock=mock,
-                seed=config.simulation.seed if mock else None,
-                time_scale=time_scale if mock else None,
-                model=config.robot.model,
-                sensors=[s.name for s in config.sensor],
-                n_poses=len(plan.poses),
-                samples_per_pose=config.campaign.samples_per_pose,
-                dwell_s=config.campaign.dwell_s,
-                plan_digest=plan.digest,
-            )
+            campaign_id = _create(store, config, plan, config_path, mock, time_scale, "running")
             stream = _stream(store, subscribers)
             for u in plan.unreachable:
                 stream.emit(CampaignEvent(campaign_id, "unreachable", _unreachable(u)))
@@ -338,13 +326,17 @@ def stored_plan(store: Store, campaign_id: int) -> tuple[CellConfig, Plan, Robot
     return config, plan, nominal
 
 
-def queue_campaign(
-    store: Store, config: CellConfig, *, config_path: str | None, mock: bool, time_scale: float
-) -> tuple[int, Plan]:
-    """Plan a campaign and store it as ``queued`` (the service runs it later with
-    :func:`run_stored`); a plan that cannot work is refused before anything is written."""
-    plan, _ = _plan(config)
-    campaign_id = store.create_campaign(
+def _create(
+    store: Store,
+    config: CellConfig,
+    plan: Plan,
+    config_path: str | None,
+    mock: bool,
+    time_scale: float,
+    status: str,
+) -> int:
+    """The campaign's row, with what it runs with."""
+    return store.create_campaign(
         config_json=config.model_dump_json(),
         config_path=config_path,
         mock=mock,
@@ -356,8 +348,17 @@ def queue_campaign(
         samples_per_pose=config.campaign.samples_per_pose,
         dwell_s=config.campaign.dwell_s,
         plan_digest=plan.digest,
-        status="queued",
+        status=status,
     )
+
+
+def queue_campaign(
+    store: Store, config: CellConfig, *, config_path: str | None, mock: bool, time_scale: float
+) -> tuple[int, Plan]:
+    """Plan a campaign and store it as ``queued`` (the service runs it later with
+    :func:`run_stored`); a plan that cannot work is refused before anything is written."""
+    plan, _ = _plan(config)
+    campaign_id = _create(store, config, plan, config_path, mock, time_scale, "queued")
     for u in plan.unreachable:
         store.add_event(campaign_id, "unreachable", _unreachable(u), None)
     return campaign_id, plan
