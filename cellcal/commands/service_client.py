@@ -110,7 +110,7 @@ def follow(sock: str, handle: Callable[[int, str, Any], bool]) -> bool:
                 if handle(event_id, kind, data):
                     return True
         except aiohttp.ClientPayloadError:
-            pass
+            return False  # the service closed the stream mid-event (it stopped)
         except aiohttp.ClientError as exc:
             raise UserError(f"{sock}: the event stream broke ({exc})") from None
         return False

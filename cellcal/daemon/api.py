@@ -7,6 +7,7 @@ campaign's events."""
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import pwd
 import socket
@@ -194,11 +195,15 @@ def _queue(store: Store) -> list[int]:
     return [int(r[0]) for r in rows]
 
 
-async def status(request: web.Request) -> web.Response:
-    svc = _svc(request)
-    snap = svc.control.snapshot()
+def _snapshot(svc: Service) -> dict[str, Any]:
+    """The control object's snapshot with the queue from the database."""
+    snap = svc.control.snapshot(recent=True)
     snap["queue"] = _queue(svc.store)
-    return web.json_response(snap)
+    return snap
+
+
+async def status(request: web.Request) -> web.Response:
+    return web.json_response(_snapshot(_svc(request)))
 
 
 async def events(request: web.Request) -> web.StreamResponse:
@@ -219,20 +224,28 @@ async def events(request: web.Request) -> web.StreamResponse:
     # it missed, as far as the buffer reaches.
     backlog = svc.hub.since(last) if last is not None else []
     svc.hub.listeners.add(q)
+    # A watcher that goes away ends its stream; nothing else is wrong then.
+    with contextlib.suppress(ConnectionResetError):
+        await _stream_events(svc, resp, q, backlog)
+    return resp
+
+
+async def _stream_events(
+    svc: Service,
+    resp: web.StreamResponse,
+    q: asyncio.Queue[tuple[int, str, str] | None],
+    backlog: list[tuple[int, str, str]],
+) -> None:
     try:
         for item in backlog:
             await _send(resp, item)
         if not backlog or backlog[-1][1] != "status":
-            snap = svc.control.snapshot()
-            snap["queue"] = _queue(svc.store)
-            await _send(resp, (svc.hub.next_id - 1, "status", json.dumps(snap)))
+            snap = json.dumps(_snapshot(svc))
+            await _send(resp, (svc.hub.next_id - 1, "status", snap))
         while (pending := await q.get()) is not None:
             await _send(resp, pending)
-    except (ConnectionResetError, asyncio.CancelledError):
-        pass
     finally:
         svc.hub.listeners.discard(q)
-    return resp
 
 
 async def _send(resp: web.StreamResponse, item: tuple[int, str, str]) -> None:

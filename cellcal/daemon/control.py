@@ -226,9 +226,14 @@ class Control:
         """The state changed (lock held): tell the watchers."""
         self._publish("status", self._snapshot())
 
-    def snapshot(self) -> dict[str, Any]:
+    def snapshot(self, *, recent: bool = False) -> dict[str, Any]:
+        """The state as one dict; ``recent``: with the last poses (for a new watcher;
+        the event stream sends each pose once, as it is stored)."""
         with self._lock:
-            return self._snapshot()
+            snap = self._snapshot()
+            if recent:
+                snap["recent_poses"] = list(self.recent)
+            return snap
 
     def _snapshot(self) -> dict[str, Any]:
         return {
@@ -238,7 +243,6 @@ class Control:
             "devices": {k: dict(v) for k, v in self.devices.items()},
             "heartbeat_age_s": round(time.monotonic() - self.heartbeat, 3),
             "paused_campaign": self.blocking,
-            "recent_poses": list(self.recent),
             "last_end": self.last_end,
         }
 
