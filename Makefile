@@ -15,29 +15,25 @@ $(STAMP): pyproject.toml
 # Aravis, for the `aravis` camera backend and the GigE Vision camera twin: Debian's
 # packages (gcc, libc6-dev, python3-dev: PyGObject is built from source; not aravis-tools,
 # which pulls in GTK), then PyGObject from the `cameras` extra. Without root or
-# password-less sudo it prints one line saying what to run, and carries on: the Aravis
-# tests then skip with that reason. The stamp is only made once it all works.
+# password-less sudo scripts/debs.sh prints one line saying what to run, and make carries
+# on: the Aravis tests then skip with that reason. The stamp is only made once it all works.
 ARAVIS_DEBS := libaravis-0.8-0 gir1.2-aravis-0.8 libgirepository1.0-dev libcairo2-dev \
 	pkg-config gcc libc6-dev python3-dev
 ARAVIS := $(VENV)/.aravis
 ARAVIS_OK := $(BIN)/python -c 'import gi; gi.require_version("Aravis", "0.8")' 2>/dev/null
 $(ARAVIS): $(STAMP)
 	@if $(ARAVIS_OK); then touch $@; exit 0; fi; \
-	missing=$$(for p in $(ARAVIS_DEBS); do dpkg-query -W -f='$${Status}\n' $$p 2>/dev/null \
-	  | grep -q 'ok installed' || echo $$p; done | tr '\n' ' '); \
-	if [ -n "$$missing" ]; then \
-	  if [ "$$(id -u)" = 0 ]; then sudo=; \
-	  elif sudo -n true 2>/dev/null; then sudo="sudo -n"; else sudo=no; fi; \
-	  if [ "$$sudo" = no ] || ! command -v apt-get >/dev/null; then \
-	    echo "cameras: Aravis is not installed (missing: $$(echo $$missing)); to install: sudo apt-get install $(ARAVIS_DEBS) && $(BIN)/pip install -e '.[cameras]' (until then the aravis tests skip)"; \
-	    exit 0; fi; \
-	  { $$sudo apt-get update -qq && DEBIAN_FRONTEND=noninteractive $$sudo apt-get install \
-	    -y -qq --no-install-recommends $(ARAVIS_DEBS) >/dev/null; } || { \
-	    echo "cameras: apt-get install $(ARAVIS_DEBS) failed (until fixed the aravis tests skip)"; \
-	    exit 0; }; \
-	fi; \
+	scripts/debs.sh cameras "the aravis tests skip" $(ARAVIS_DEBS) || exit 0; \
 	if $(BIN)/python -m pip install --quiet -e '.[cameras]' && $(ARAVIS_OK); then touch $@; \
 	else echo "cameras: PyGObject<3.51 does not build or import here (see above; until fixed the aravis tests skip)"; fi
+
+# Debian's chromium and chromium-driver, for the status page's test in a headless browser
+# (selenium, in the dev extra, drives it). Same rules as above: one line when it cannot.
+BROWSER_DEBS := chromium chromium-driver
+BROWSER := $(VENV)/.browser
+$(BROWSER): $(STAMP)
+	@scripts/debs.sh browser "the status page's browser test skips" $(BROWSER_DEBS) \
+	  && touch $@ || true
 
 T4 := --src cellcal/data/paper_table4_station1.csv --dst cellcal/data/paper_table4_station2.csv
 
@@ -66,7 +62,7 @@ UR_CLIENT := $(VENV)/ur-rtde-client/rtde/rtde.py
 $(UR_CLIENT): | $(STAMP)
 	@$(BIN)/python tests/mocks/ur_official_client.py $(VENV)/ur-rtde-client
 
-unit: $(STAMP) $(UR_CLIENT) $(ARAVIS)
+unit: $(STAMP) $(UR_CLIENT) $(ARAVIS) $(BROWSER)
 	$(BIN)/pytest -q
 
 test: lint types unit

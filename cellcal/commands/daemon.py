@@ -14,6 +14,7 @@ from cellcal.commands.output import TIME_SCALE
 from cellcal.commands.run import bundled_mock_cell
 from cellcal.commands.service_client import socket_path
 from cellcal.config import load_config
+from cellcal.daemon.page import parse_http
 from cellcal.daemon.service import DaemonOptions, serve
 from cellcal.errors import InputError
 
@@ -75,12 +76,25 @@ def _logging() -> None:
     "sock",
     help="Control socket (default: $CELLCAL_SOCKET, else /run/cellcal/control.sock).",
 )
+@click.option(
+    "--http",
+    "http",
+    metavar="HOST:PORT",
+    help="Serve the read-only status page here (e.g. 127.0.0.1:8765; port 0: any free).",
+)
+@click.option(
+    "--http-allow-remote",
+    is_flag=True,
+    help="Let --http name a non-loopback address (the page is read-only, without login).",
+)
 def daemon(
     config_path: str | None,
     mock: bool,
     time_scale: float,
     db_path: str | None,
     sock: str | None,
+    http: str | None,
+    http_allow_remote: bool,
 ) -> int:
     """The cell service: holds the devices, runs queued campaigns, answers the
     ``cellcal campaign`` commands on its control socket. Run by systemd (Type=notify)."""
@@ -92,6 +106,9 @@ def daemon(
         config = load_config(config_path)
     if time_scale and not mock:
         raise InputError("--time-scale is for mock mode")
+    if http_allow_remote and http is None:
+        raise InputError("--http-allow-remote goes with --http HOST:PORT")
+    address = parse_http(http, http_allow_remote) if http is not None else None
     db = db_path or config.storage.database
     Path(db).parent.mkdir(parents=True, exist_ok=True)
     _logging()
@@ -102,5 +119,6 @@ def daemon(
         time_scale=time_scale,
         db_path=str(Path(db).resolve()),
         socket_path=socket_path(sock),
+        http=address,
     )
     return asyncio.run(serve(opts))

@@ -16,6 +16,7 @@ running after a crash — holds the queue until an operator resumes or aborts it
 
 from __future__ import annotations
 
+import copy
 import threading
 import time
 from collections import deque
@@ -74,6 +75,8 @@ class Control:
 
     def __init__(self, device_names: list[str], publish: Publish) -> None:
         self._lock = threading.Condition()
+        self._done: set[int] = set()  # the poses stored before the campaign (re)started
+        self._dwell_wall_s = 0.0
         self._publish = publish
         self.state = "idle"
         self.reason = "starting: connecting the devices"
@@ -134,6 +137,13 @@ class Control:
         self._changed()
         return job
 
+    def prepare(self, done: set[int], dwell_wall_s: float) -> None:
+        """Before a campaign (re)starts: the poses already stored (progress per role) and
+        the dwell in wall seconds (the status page's countdown)."""
+        with self._lock:
+            self._done = set(done)
+            self._dwell_wall_s = dwell_wall_s
+
     def halted(self) -> str:
         """The status a stopped acquisition ends in (asked by the campaign)."""
         with self._lock:
@@ -189,16 +199,26 @@ class Control:
             if isinstance(record, CampaignStarted) and c is not None:
                 if self.state == "running":
                     self.reason = f"campaign {record.campaign_id}: acquiring"
+                roles: dict[str, dict[str, int]] = {}
+                for p in record.plan.poses:
+                    r = roles.setdefault(p.role, {"stored": 0, "planned": 0})
+                    r["planned"] += 1
+                    r["stored"] += p.idx in self._done
                 c.update(
                     stored=record.done,
                     planned=record.total,
-                    dwell_s=None,
+                    roles=roles,
+                    dwell_wall_s=round(self._dwell_wall_s, 3),
                     started=time.time(),
                     stored_at_start=record.done,
                 )
             elif isinstance(record, PoseStored) and c is not None:
                 c["stored"] = record.done
                 c["reached_q_deg"] = _deg(record.reached_q)
+                c["reached_idx"] = record.pose.idx
+                role = c.get("roles", {}).get(record.pose.role)
+                if role is not None:
+                    role["stored"] += 1
                 c["eta_s"] = self._eta(c)
                 if record.done == record.total and self.state == "running":
                     self.state = "analysing"
@@ -239,7 +259,7 @@ class Control:
         return {
             "state": self.state,
             "reason": self.reason,
-            "campaign": dict(self.campaign) if self.campaign else None,
+            "campaign": copy.deepcopy(self.campaign) if self.campaign else None,
             "devices": {k: dict(v) for k, v in self.devices.items()},
             "heartbeat_age_s": round(time.monotonic() - self.heartbeat, 3),
             "paused_campaign": self.blocking,

@@ -30,6 +30,7 @@ from cellcal.config import CellConfig, load_config
 from cellcal.daemon.api import EventHub, Service, make_app
 from cellcal.daemon.campaign import RunLock
 from cellcal.daemon.control import Control
+from cellcal.daemon.page import HttpAddress, make_page_app
 from cellcal.daemon.sdnotify import Notifier
 from cellcal.daemon.store import Store
 from cellcal.daemon.worker import Worker, device_names
@@ -52,6 +53,7 @@ class DaemonOptions:
     time_scale: float
     db_path: str
     socket_path: str
+    http: HttpAddress | None = None
 
 
 def recover(store: Store, control: Control, previous: str) -> list[int]:
@@ -167,6 +169,7 @@ async def serve(opts: DaemonOptions) -> int:
             runner = web.AppRunner(app, shutdown_timeout=2.0)
             await runner.setup()
             svc: Service = runner.app["svc"]
+            page = await _page(svc, opts.http) if opts.http is not None else None
             svc.group_id = await _listen(runner, opts.socket_path)
             worker = Worker(control, opts.config, nominal, opts.db_path, clock, mock=opts.mock)
             worker.start()
@@ -181,6 +184,8 @@ async def serve(opts: DaemonOptions) -> int:
                 tasks.append(asyncio.create_task(_watchdog(notifier, control, interval, limit)))
             where = (opts.socket_path, opts.db_path, os.getpid())
             log.info("listening on %s (database %s, pid %d)", *where)
+            if svc.http:
+                log.info("status page: %s", svc.http)
             notifier.ready(status_line(control))
             ended = asyncio.create_task(stopped.wait())
             dead = asyncio.create_task(asyncio.to_thread(worker.join))
@@ -198,6 +203,8 @@ async def serve(opts: DaemonOptions) -> int:
             for t in tasks:
                 t.cancel()
             hub.close()
+            if page is not None:
+                await page.cleanup()
             await runner.cleanup()
             with contextlib.suppress(FileNotFoundError):
                 Path(opts.socket_path).unlink()
@@ -205,6 +212,24 @@ async def serve(opts: DaemonOptions) -> int:
             return code
         finally:
             store.close()
+
+
+async def _page(svc: Service, http: HttpAddress) -> web.AppRunner:
+    """The status page's site (GET only); ``svc.http`` becomes its address."""
+    runner = web.AppRunner(make_page_app(svc, http.host), shutdown_timeout=2.0)
+    await runner.setup()
+    try:
+        await web.TCPSite(runner, http.host, http.port).start()
+    except OSError as exc:
+        await runner.cleanup()
+        raise CampaignError(
+            f"status page: cannot listen on {http.url()} ({exc.strerror or exc})"
+        ) from None
+    port = int(runner.addresses[0][1])
+    svc.http = http.url(port)
+    if not http.loopback:
+        log.warning("the status page is served on the network: %s (read-only)", svc.http)
+    return runner
 
 
 def _service(opts: DaemonOptions, control: Control, store: Store, hub: EventHub) -> Service:

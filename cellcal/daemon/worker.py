@@ -7,11 +7,12 @@ exactly once whatever stops it."""
 from __future__ import annotations
 
 import contextlib
+import json
 import logging
 import threading
 
 from cellcal.calib.robot_model import RobotModel
-from cellcal.clock import Clock
+from cellcal.clock import Clock, SimulatedClock
 from cellcal.config import CellConfig
 from cellcal.daemon.campaign import Held, run_stored
 from cellcal.daemon.control import CONNECTING, FAULT, READY, Control, Job
@@ -138,6 +139,14 @@ class Worker(threading.Thread):
         log.info("devices ready: %s", ", ".join(device_names(self.config)))
         return True
 
+    def _dwell_wall_s(self, store: Store, cid: int) -> float:
+        """The campaign's dwell in wall seconds (a simulated clock scales it)."""
+        campaign = json.loads(store.campaign(cid).config_json).get("campaign", {})
+        dwell = float(campaign.get("dwell_s", 0.0))
+        if isinstance(self.clock, SimulatedClock):
+            return dwell * self.clock.time_scale
+        return dwell
+
     def _disconnect(self) -> None:
         if self.devices is not None:
             with contextlib.suppress(Exception):
@@ -156,6 +165,7 @@ class Worker(threading.Thread):
             hint=f"campaign {cid} is paused: cellcal campaign resume {cid}",
         )
         log.info("campaign %d: %s", cid, "resuming" if job.resume else "starting")
+        c.prepare(store.completed_indices(cid), self._dwell_wall_s(store, cid))
         message = ""
         fault = False
         try:

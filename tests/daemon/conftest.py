@@ -1,16 +1,28 @@
 """Fixtures of the service's tests: a fake systemd (a datagram socket that receives what
-the service sends, with the sender's pid from SO_PASSCRED)."""
+the service sends, with the sender's pid from SO_PASSCRED); the service as a subprocess
+in mock mode (the bundled cell's tracker alone), in a short folder under /tmp."""
 
 from __future__ import annotations
 
 import os
+import signal
 import socket
+import sqlite3
 import struct
+import subprocess
+import sys
 import tempfile
-from collections.abc import Iterator
+import time
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
+from typing import Any
 
 import pytest
+
+from cellcal.commands.service_client import call
+
+ROOT = Path(__file__).resolve().parents[2]
+TRACKER_CELL = ROOT / "config" / "mock-cell-tracker.toml"
 
 
 class FakeSystemd:
@@ -57,3 +69,86 @@ def fake() -> Iterator[tuple[FakeSystemd, str]]:
     f.sock.close()
     os.unlink(path)
     os.rmdir(folder)
+
+
+class Daemon:
+    def __init__(
+        self, folder: Path, notify: str | None, time_scale: float, extra: Sequence[str] = ()
+    ) -> None:
+        self.folder = folder
+        self.extra = list(extra)
+        self.db = folder / "c.db"
+        self.sock = str(folder / "run" / "control.sock")
+        self.notify = notify
+        self.time_scale = time_scale
+        self.proc: subprocess.Popen[str] | None = None
+
+    def start(self) -> None:
+        env = dict(os.environ)
+        if self.notify:
+            env.update(NOTIFY_SOCKET=self.notify, WATCHDOG_USEC="1000000")
+        cmd = [sys.executable, "-m", "cellcal", "daemon", "--mock", "--config", str(TRACKER_CELL)]
+        cmd += ["--db", str(self.db), "--socket", self.sock, "--time-scale", str(self.time_scale)]
+        cmd += self.extra
+        self.log = open(self.folder / "daemon.log", "a")  # noqa: SIM115
+        self.proc = subprocess.Popen(cmd, stdout=self.log, stderr=self.log, text=True, env=env)
+        self.until(lambda s: all(d["state"] == "ready" for d in s["devices"].values()), 90)
+
+    def status(self) -> dict[str, Any]:
+        return call(self.sock, "GET", "/v1/status")  # type: ignore[no-any-return]
+
+    def until(self, ok: Callable[[dict[str, Any]], bool], timeout: float = 60) -> dict[str, Any]:
+        """Poll the status until ``ok``; the listening socket is waited for the same way."""
+        deadline = time.monotonic() + timeout
+        last: dict[str, Any] = {}
+        while time.monotonic() < deadline:
+            assert self.proc is not None and self.proc.poll() is None, self.tail()
+            if Path(self.sock).exists():
+                try:
+                    last = self.status()
+                except Exception as exc:
+                    last = {"error": repr(exc)}
+                if "error" not in last and ok(last):
+                    return last
+            time.sleep(0.05)
+        raise AssertionError(f"status never as expected: {last}\n{self.tail()}")
+
+    def rows(self, sql: str) -> list[tuple[Any, ...]]:
+        with sqlite3.connect(self.db) as conn:
+            return conn.execute(sql).fetchall()
+
+    def tail(self) -> str:
+        return (self.folder / "daemon.log").read_text()[-3000:]
+
+    def stop(self, sig: int = signal.SIGTERM, timeout: float = 30) -> int:
+        assert self.proc is not None
+        self.proc.send_signal(sig)
+        code = self.proc.wait(timeout)
+        self.log.close()
+        return code
+
+
+@pytest.fixture
+def folder() -> Iterator[Path]:
+    # Unix socket paths are limited to 108 bytes: pytest's temp paths may be longer
+    path = Path(tempfile.mkdtemp(prefix="cc-svc-", dir="/tmp"))
+    yield path
+    subprocess.run(["rm", "-rf", str(path)], check=False)
+
+
+@pytest.fixture
+def daemon() -> Iterator[Callable[..., Daemon]]:
+    """Makes services (``Daemon(folder, notify, time_scale, extra)``); any still running
+    at the end of the test is killed."""
+    made: list[Daemon] = []
+
+    def make(*args: Any, **kwargs: Any) -> Daemon:
+        d = Daemon(*args, **kwargs)
+        made.append(d)
+        return d
+
+    yield make
+    for d in made:
+        if d.proc is not None and d.proc.poll() is None:
+            d.proc.kill()
+            d.proc.wait(10)

@@ -8,13 +8,9 @@ from __future__ import annotations
 import asyncio
 import os
 import signal
-import sqlite3
-import subprocess
-import sys
-import tempfile
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -29,55 +25,6 @@ ROOT = Path(__file__).resolve().parents[2]
 TRACKER_CELL = ROOT / "config" / "mock-cell-tracker.toml"
 
 pytestmark = pytest.mark.timeout(240)
-
-
-class Daemon:
-    def __init__(self, folder: Path, notify: str | None, time_scale: float) -> None:
-        self.folder = folder
-        self.db = folder / "c.db"
-        self.sock = str(folder / "run" / "control.sock")
-        self.notify = notify
-        self.time_scale = time_scale
-        self.proc: subprocess.Popen[str] | None = None
-
-    def start(self) -> None:
-        env = dict(os.environ)
-        if self.notify:
-            env.update(NOTIFY_SOCKET=self.notify, WATCHDOG_USEC="1000000")
-        cmd = [sys.executable, "-m", "cellcal", "daemon", "--mock", "--config", str(TRACKER_CELL)]
-        cmd += ["--db", str(self.db), "--socket", self.sock, "--time-scale", str(self.time_scale)]
-        self.log = open(self.folder / "daemon.log", "a")  # noqa: SIM115
-        self.proc = subprocess.Popen(cmd, stdout=self.log, stderr=self.log, text=True, env=env)
-        self.until(lambda s: all(d["state"] == "ready" for d in s["devices"].values()), 90)
-
-    def status(self) -> dict[str, Any]:
-        return call(self.sock, "GET", "/v1/status")  # type: ignore[no-any-return]
-
-    def until(self, ok: Callable[[dict[str, Any]], bool], timeout: float = 60) -> dict[str, Any]:
-        """Poll the status until ``ok``; the listening socket is waited for the same way."""
-        deadline = time.monotonic() + timeout
-        last: dict[str, Any] = {}
-        while time.monotonic() < deadline:
-            assert self.proc is not None and self.proc.poll() is None, self.tail()
-            if Path(self.sock).exists():
-                try:
-                    last = self.status()
-                except Exception as exc:
-                    last = {"error": repr(exc)}
-                if "error" not in last and ok(last):
-                    return last
-            time.sleep(0.05)
-        raise AssertionError(f"status never as expected: {last}\n{self.tail()}")
-
-    def tail(self) -> str:
-        return (self.folder / "daemon.log").read_text()[-3000:]
-
-    def stop(self, sig: int = signal.SIGTERM, timeout: float = 30) -> int:
-        assert self.proc is not None
-        self.proc.send_signal(sig)
-        code = self.proc.wait(timeout)
-        self.log.close()
-        return code
 
 
 class Collector(threading.Thread):
@@ -105,19 +52,6 @@ class Collector(threading.Thread):
         return out
 
 
-def rows(db: Path, sql: str) -> list[tuple[Any, ...]]:
-    with sqlite3.connect(db) as conn:
-        return conn.execute(sql).fetchall()
-
-
-@pytest.fixture
-def folder() -> Iterator[Path]:
-    # Unix socket paths are limited to 108 bytes: pytest's temp paths may be longer
-    path = Path(tempfile.mkdtemp(prefix="cc-svc-", dir="/tmp"))
-    yield path
-    subprocess.run(["rm", "-rf", str(path)], check=False)
-
-
 def running(n: int) -> Callable[[dict[str, Any]], bool]:
     def ok(s: dict[str, Any]) -> bool:
         c = s.get("campaign") or {}
@@ -126,10 +60,12 @@ def running(n: int) -> Callable[[dict[str, Any]], bool]:
     return ok
 
 
-def test_start_pause_resume_abort_queue_sigkill_resume(folder: Path, fake: Any) -> None:
+def test_start_pause_resume_abort_queue_sigkill_resume(
+    folder: Path, fake: Any, daemon: Any
+) -> None:
     systemd, notify_path = fake
     collector = Collector(systemd)
-    d = Daemon(folder, notify_path, time_scale=0.02)
+    d = daemon(folder, notify_path, time_scale=0.02)
     d.start()
     seen: dict[str, str] = {}
     for fields in collector.take():
@@ -150,10 +86,10 @@ def test_start_pause_resume_abort_queue_sigkill_resume(folder: Path, fake: Any) 
     assert call(d.sock, "POST", "/v1/campaigns/current/pause", {})["state"] == "pausing"
     s = d.until(lambda s: s["state"] == "paused")
     stored = s["campaign"]["stored"]
-    assert rows(d.db, f"SELECT COUNT(*) FROM poses WHERE campaign_id = {first}")[0][0] == stored
-    assert rows(d.db, f"SELECT status FROM campaigns WHERE id = {first}")[0][0] == "paused"
+    assert d.rows(f"SELECT COUNT(*) FROM poses WHERE campaign_id = {first}")[0][0] == stored
+    assert d.rows(f"SELECT status FROM campaigns WHERE id = {first}")[0][0] == "paused"
     time.sleep(0.5)  # nothing moves while paused, and the queue waits
-    assert rows(d.db, f"SELECT COUNT(*) FROM poses WHERE campaign_id = {first}")[0][0] == stored
+    assert d.rows(f"SELECT COUNT(*) FROM poses WHERE campaign_id = {first}")[0][0] == stored
     assert d.status()["queue"] == [second]
 
     # Resume, then pause at once: nothing half-measured is stored.
@@ -161,14 +97,14 @@ def test_start_pause_resume_abort_queue_sigkill_resume(folder: Path, fake: Any) 
     d.until(running(stored + 3))
     call(d.sock, "POST", "/v1/campaigns/current/pause", {"mode": "immediate"})
     s = d.until(lambda s: s["state"] == "paused")
-    n = rows(d.db, f"SELECT COUNT(*) FROM poses WHERE campaign_id = {first}")[0][0]
+    n = d.rows(f"SELECT COUNT(*) FROM poses WHERE campaign_id = {first}")[0][0]
     assert n == s["campaign"]["stored"] > stored
 
     # Abort the paused campaign: the queued one starts.
     assert call(d.sock, "POST", "/v1/campaigns/current/abort", {})["state"] == "aborted"
     d.until(lambda s: s["state"] == "running" and s["campaign"]["id"] == second)
-    assert rows(d.db, f"SELECT status FROM campaigns WHERE id = {first}")[0][0] == "aborted"
-    events = rows(d.db, f"SELECT kind, message FROM events WHERE campaign_id = {first}")
+    assert d.rows(f"SELECT status FROM campaigns WHERE id = {first}")[0][0] == "aborted"
+    events = d.rows(f"SELECT kind, message FROM events WHERE campaign_id = {first}")
     operator = [m for k, m in events if k == "operator"]
     assert any(m.startswith(f"pause (deferred) by uid {os.getuid()}") for m in operator)
     assert any(m.startswith("abort by uid") for m in operator)
@@ -179,33 +115,33 @@ def test_start_pause_resume_abort_queue_sigkill_resume(folder: Path, fake: Any) 
     d.start()
     s = d.status()
     assert s["state"] == "paused" and s["paused_campaign"] == second
-    assert rows(d.db, f"SELECT status FROM campaigns WHERE id = {second}")[0][0] == "interrupted"
-    kinds = [k for (k,) in rows(d.db, f"SELECT kind FROM events WHERE campaign_id = {second}")]
+    assert d.rows(f"SELECT status FROM campaigns WHERE id = {second}")[0][0] == "interrupted"
+    kinds = [k for (k,) in d.rows(f"SELECT kind FROM events WHERE campaign_id = {second}")]
     assert "recovered" in kinds
-    before = rows(d.db, f"SELECT COUNT(*) FROM poses WHERE campaign_id = {second}")[0][0]
+    before = d.rows(f"SELECT COUNT(*) FROM poses WHERE campaign_id = {second}")[0][0]
     time.sleep(0.5)
-    assert rows(d.db, f"SELECT COUNT(*) FROM poses WHERE campaign_id = {second}")[0][0] == before
+    assert d.rows(f"SELECT COUNT(*) FROM poses WHERE campaign_id = {second}")[0][0] == before
     call(d.sock, "POST", "/v1/campaigns/current/resume", {})
     d.until(lambda s: s["state"] == "idle" and "complete" in s["reason"], 180)
-    planned, status = rows(d.db, f"SELECT n_poses, status FROM campaigns WHERE id = {second}")[0]
+    planned, status = d.rows(f"SELECT n_poses, status FROM campaigns WHERE id = {second}")[0]
     assert status == "complete"
-    idx = [i for (i,) in rows(d.db, f"SELECT idx FROM poses WHERE campaign_id = {second}")]
+    idx = [i for (i,) in d.rows(f"SELECT idx FROM poses WHERE campaign_id = {second}")]
     assert sorted(idx) == list(range(planned))  # every pose exactly once
     assert d.stop() == 0
 
 
-def test_sigterm_mid_dwell_stops_within_seconds(folder: Path, fake: Any) -> None:
+def test_sigterm_mid_dwell_stops_within_seconds(folder: Path, fake: Any, daemon: Any) -> None:
     systemd, notify_path = fake
     collector = Collector(systemd)
-    d = Daemon(folder, notify_path, time_scale=1.0)  # a 7 s dwell in real time
+    d = daemon(folder, notify_path, time_scale=1.0)  # a 7 s dwell in real time
     d.start()
     cid = call(d.sock, "POST", "/v1/campaigns", {})["campaign_id"]
     d.until(lambda s: (s.get("campaign") or {}).get("phase") == "dwell", 60)
     t0 = time.monotonic()
     assert d.stop(signal.SIGTERM) == 0
     assert time.monotonic() - t0 < 5.0
-    assert rows(d.db, f"SELECT status FROM campaigns WHERE id = {cid}")[0][0] == "interrupted"
-    kinds = [k for (k,) in rows(d.db, f"SELECT kind FROM events WHERE campaign_id = {cid}")]
+    assert d.rows(f"SELECT status FROM campaigns WHERE id = {cid}")[0][0] == "interrupted"
+    kinds = [k for (k,) in d.rows(f"SELECT kind FROM events WHERE campaign_id = {cid}")]
     assert kinds[-1] == "service-stopped"
     seen = collector.take()
     assert any(f.get("STOPPING") == "1" for f in seen)

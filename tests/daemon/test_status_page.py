@@ -1,0 +1,207 @@
+"""The status page: ``--http`` refusals, the read-only site's defences (GET only, Host
+header, no CORS, nothing from outside) against the service as a subprocess, and the
+page itself in headless Chromium (Debian's chromium + chromium-driver) following a mock
+campaign to its validation errors, with screenshots."""
+
+from __future__ import annotations
+
+import http.client
+import random
+import re
+import shutil
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from cellcal.commands.service_client import call
+from cellcal.daemon.page import FILES, host_allowed, parse_http
+from cellcal.errors import InputError
+
+ROOT = Path(__file__).resolve().parents[2]
+STATIC = ROOT / "cellcal" / "data" / "status"
+TRACKER_CELL = ROOT / "config" / "mock-cell-tracker.toml"
+CHROMIUM = shutil.which("chromium")
+CHROMEDRIVER = shutil.which("chromedriver")
+
+pytestmark = pytest.mark.timeout(240)
+
+
+def test_http_address_is_loopback_unless_allowed() -> None:
+    assert parse_http("127.0.0.1:8765").host == "127.0.0.1"
+    assert parse_http("localhost:0").host == "127.0.0.1"
+    assert parse_http("[::1]:80").url() == "http://[::1]:80/"
+    for bad, words in [
+        ("8765", "HOST:PORT"),
+        ("cell-pc:8765", "not an IP address"),
+        ("127.0.0.1:http", "0 to 65535"),
+        ("127.0.0.1:70000", "0 to 65535"),
+        ("0.0.0.0:8765", "--http-allow-remote"),
+        ("192.168.0.10:8765", "not a loopback address"),
+    ]:
+        with pytest.raises(InputError, match=words):
+            parse_http(bad)
+    assert not parse_http("192.168.0.10:8765", allow_remote=True).loopback
+
+
+def test_host_header_must_name_this_pc() -> None:
+    for ok in ["127.0.0.1:8765", "localhost:8765", "LOCALHOST", "cell.localhost:1", "[::1]:80"]:
+        assert host_allowed(ok, "127.0.0.1"), ok
+    assert host_allowed("127.9.9.9:1", "127.0.0.1")  # all of 127/8 is loopback
+    assert host_allowed("192.168.0.10:8765", "192.168.0.10")  # the address bound
+    for bad in [None, "", "evil.example:8765", "192.168.0.10:8765", "localhost.evil.example"]:
+        assert not host_allowed(bad, "127.0.0.1"), bad
+
+
+def test_the_page_loads_nothing_from_outside() -> None:
+    """Cell PCs are offline: no URL but the SVG namespace's name, no import, no inline
+    script (the Content-Security-Policy forbids it)."""
+    for _, (name, _) in FILES.items():
+        text = (STATIC / name).read_text()
+        urls = set(re.findall(r"https?://[^\s\"')]+", text)) - {"http://www.w3.org/2000/svg"}
+        assert not urls, (name, urls)
+        assert "@import" not in text and "url(" not in text, name
+    html = (STATIC / "index.html").read_text()
+    assert re.findall(r"<script[^>]*>", html) == ['<script src="page.js" defer>']
+    assert "style=" not in html
+
+
+def _address() -> str:
+    return f"127.{random.randint(1, 254)}.{random.randint(1, 254)}.{random.randint(2, 254)}"
+
+
+def _get(url: str, path: str, method: str = "GET", **headers: str) -> http.client.HTTPResponse:
+    host, port = url.removeprefix("http://").rstrip("/").rsplit(":", 1)
+    conn = http.client.HTTPConnection(host, int(port), timeout=10)
+    conn.request(method, path, headers=headers)
+    resp = conn.getresponse()
+    resp.read()
+    conn.close()
+    return resp
+
+
+def _page_url(d: Any) -> str:
+    url = call(d.sock, "GET", "/v1/info")["http"]
+    assert isinstance(url, str) and url.startswith("http://127.")
+    return url
+
+
+def test_the_page_site_is_read_only(folder: Path, daemon: Callable[..., Any]) -> None:
+    d = daemon(folder, None, 0.02, ["--http", f"{_address()}:0"])
+    d.start()
+    url = _page_url(d)
+    host = url.removeprefix("http://").rstrip("/")
+    ok = _get(url, "/", Host=host, Origin="http://evil.example")
+    assert ok.status == 200
+    assert "default-src 'none'" in ok.headers["Content-Security-Policy"]
+    assert not [h for h in ok.headers if h.lower().startswith("access-control-")]
+    assert _get(url, "/page.js", Host="localhost").status == 200
+    assert _get(url, "/v1/status", Host=host).status == 200
+    rebound = _get(url, "/v1/status", Host="evil.example:8765")
+    assert rebound.status == 403
+    for method, path in [("POST", "/v1/campaigns"), ("POST", "/v1/campaigns/current/abort")]:
+        refused = _get(url, path, method, Host=host)
+        assert refused.status == 405 and refused.headers["Allow"] == "GET, HEAD"
+    for path in ["/v1/campaigns", "/v1/info", "/../../etc/passwd"]:
+        assert _get(url, path, Host=host).status == 404, path
+    assert d.rows("SELECT COUNT(*) FROM campaigns")[0][0] == 0
+    assert d.stop() == 0
+
+
+def _short_campaign() -> str:
+    """The tracker cell's configuration with a smaller plan (the service's [robot] and
+    [sensor] unchanged): 36 calibration poses and 8 + 5×2 validation poses."""
+    text = TRACKER_CELL.read_text()
+    text = text.replace("grid = [4, 4, 5]", "grid = [3, 3, 4]")
+    text = text.replace("validation_inside = 20", "validation_inside = 8")
+    return text.replace("validation_per_region = 6", "validation_per_region = 2")
+
+
+@pytest.mark.skipif(
+    CHROMIUM is None or CHROMEDRIVER is None,
+    reason="Debian's chromium and chromium-driver are not installed (make test installs them)",
+)
+def test_the_page_in_chromium_follows_a_campaign_to_its_errors(
+    folder: Path, daemon: Callable[..., Any], capsys: pytest.CaptureFixture[str]
+) -> None:
+    webdriver = pytest.importorskip("selenium.webdriver")
+    from selenium.webdriver.chrome.service import Service as DriverService
+    from selenium.webdriver.common.by import By
+    from selenium.webdriver.support.ui import WebDriverWait
+
+    d = daemon(folder, None, 0.03, ["--http", f"{_address()}:0"])
+    d.start()
+    url = _page_url(d)
+    options = webdriver.ChromeOptions()
+    options.binary_location = str(CHROMIUM)
+    for flag in ["--headless", "--no-sandbox", "--disable-gpu", "--no-first-run"]:
+        options.add_argument(flag)
+    options.add_argument("--disable-background-networking")
+    options.add_argument("--window-size=1280,1500")
+    browser = webdriver.Chrome(options=options, service=DriverService(str(CHROMEDRIVER)))
+    shots = []
+    try:
+        browser.set_page_load_timeout(30)
+        browser.get(url)
+        wait = WebDriverWait(browser, 90, poll_frequency=0.1)
+        text = lambda i: browser.find_element(By.ID, i).text  # noqa: E731
+        wait.until(lambda _: text("link") == "live" and text("state") == "IDLE")
+        assert "cellcal campaign start" in text("command")
+        started = call(
+            d.sock,
+            "POST",
+            "/v1/campaigns",
+            {"config_toml": _short_campaign(), "config_name": str(TRACKER_CELL), "mock": True},
+        )
+        cid, planned = started["campaign_id"], started["n_poses"]
+        progress = re.compile(rf"pose (\d+) of {planned}$")
+
+        def stored(_: Any) -> bool:
+            m = progress.match(text("progress"))
+            return text("state") == "RUNNING" and m is not None and int(m.group(1)) >= 3
+
+        wait.until(stored)
+        assert "cellcal campaign pause" in text("command")
+        assert text("phase").startswith("phase: pose ")
+        assert "calibration" in text("roles") and "validation" in text("roles")
+        assert text("campaign-id") == str(cid)
+        shots.append(folder / "status-page-running.png")
+        browser.save_screenshot(str(shots[-1]))
+        rows = browser.find_elements(By.CSS_SELECTOR, "#poses tbody tr")
+        assert rows and rows[0].find_elements(By.TAG_NAME, "td")[0].text.isdigit()
+        assert browser.find_elements(By.CSS_SELECTOR, "#plot polyline")
+        sensors = browser.find_elements(By.CSS_SELECTOR, "#sensors tbody tr")
+        assert [r.find_elements(By.TAG_NAME, "td")[0].text for r in sensors] == ["tracker"]
+
+        wait.until(lambda _: browser.find_element(By.ID, "end-box").is_displayed())
+        wait.until(lambda _: text("state") == "IDLE")
+        shots.append(folder / "status-page-complete.png")
+        browser.save_screenshot(str(shots[-1]))
+        assert text("progress") == f"pose {planned} of {planned}"
+        cells = [
+            [c.text for c in r.find_elements(By.CSS_SELECTOR, "th, td")]
+            for r in browser.find_elements(By.CSS_SELECTOR, "#end tbody tr")
+        ]
+        summary = call(d.sock, "GET", f"/v1/campaigns/{cid}")
+        assert summary["status"] == "complete"
+        assert cells[0][:2] == ["before calibration", f"{summary['rms_before_mm']:.4f}"]
+        assert cells[1][:2] == ["after calibration", f"{summary['rms_after_mm']:.4f}"]
+        assert text("end-message").startswith("complete: RMS ")
+        errors = [e for e in browser.get_log("browser") if e["level"] == "SEVERE"]
+        assert not errors, errors
+        assert d.stop() == 0
+        deadline = time.monotonic() + 30
+        while text("link") == "live" and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert text("link").startswith("unreachable")
+        assert text("command") == "systemctl status cellcal"
+    finally:
+        browser.quit()
+    kept = Path(ROOT / ".pytest_cache" / "status-page")
+    kept.mkdir(parents=True, exist_ok=True)
+    with capsys.disabled():
+        for shot in shots:
+            shutil.copy(shot, kept / shot.name)
+            print(f"\n  status page screenshot: {kept / shot.name}")
