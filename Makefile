@@ -27,13 +27,14 @@ $(ARAVIS): $(STAMP)
 	if $(BIN)/python -m pip install --quiet -e '.[cameras]' && $(ARAVIS_OK); then touch $@; \
 	else echo "cameras: PyGObject<3.51 does not build or import here (see above; until fixed the aravis tests skip)"; fi
 
-# Debian's chromium and chromium-driver, for the status page's test in a headless browser
-# (selenium, in the dev extra, drives it). Same rules as above: one line when it cannot.
-BROWSER_DEBS := chromium chromium-driver
-BROWSER := $(VENV)/.browser
-$(BROWSER): $(STAMP)
-	@scripts/debs.sh browser "the status page's browser test skips" $(BROWSER_DEBS) \
-	  && touch $@ || true
+# The service's test tools from Debian: chromium and chromium-driver for the status page
+# in a headless browser (selenium, in the dev extra, drives it), systemd's
+# systemd-analyze for the unit file. Same rules as above: one line when it cannot.
+TOOLS_DEBS := chromium chromium-driver systemd
+TOOLS := $(VENV)/.service-tools
+$(TOOLS): $(STAMP)
+	@scripts/debs.sh "service test tools" "the browser and unit-file tests skip" \
+	  $(TOOLS_DEBS) && touch $@ || true
 
 T4 := --src cellcal/data/paper_table4_station1.csv --dst cellcal/data/paper_table4_station2.csv
 
@@ -62,7 +63,7 @@ UR_CLIENT := $(VENV)/ur-rtde-client/rtde/rtde.py
 $(UR_CLIENT): | $(STAMP)
 	@$(BIN)/python tests/mocks/ur_official_client.py $(VENV)/ur-rtde-client
 
-unit: $(STAMP) $(UR_CLIENT) $(ARAVIS) $(BROWSER)
+unit: $(STAMP) $(UR_CLIENT) $(ARAVIS) $(TOOLS)
 	$(BIN)/pytest -q
 
 test: lint types unit
@@ -73,6 +74,7 @@ bench: $(STAMP)
 	$(BIN)/python benchmarks/calibration.py
 	$(BIN)/python benchmarks/campaign.py
 	$(BIN)/python benchmarks/photogrammetry.py
+	$(BIN)/python benchmarks/service.py
 
 clean:
 	rm -rf $(VENV) .pytest_cache .mypy_cache .ruff_cache .hypothesis

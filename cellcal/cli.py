@@ -26,6 +26,7 @@ from cellcal.commands.report import report
 from cellcal.commands.rig import rig
 from cellcal.commands.rig_capture import mock_cameras, rig_capture
 from cellcal.commands.run import run
+from cellcal.commands.service import service
 from cellcal.commands.tracker import tracker
 from cellcal.errors import AcceptanceError, UserError
 
@@ -61,6 +62,7 @@ for command in (
     campaign,
     rig,
     daemon,
+    service,
 ):
     cli.add_command(command)
 rig.add_command(rig_capture)

@@ -117,6 +117,18 @@ class StorageConfig(Strict):
     database: str = "cellcal.db"
 
 
+class SimulatedFaults(Strict):
+    """Faults the twins inject, for soaks (mock mode only; 0: off)."""
+
+    #: every N-th tracker series loses the beam half-way (restored after beam_restore_s)
+    tracker_beam_break_every: Annotated[int, Field(ge=0)] = 0
+    tracker_beam_restore_s: Annotated[float, Field(ge=0, le=60)] = 0.2
+    #: the tracker drops its link after N lines on each connection
+    tracker_drop_after_lines: Annotated[int, Field(ge=0)] = 0
+    #: every N-th move command of the robot ends in a protective stop
+    robot_protective_stop_every: Annotated[int, Field(ge=0)] = 0
+
+
 class SimulationConfig(Strict):
     """The simulated cell's ground truth (mock mode only). Same seed, same campaign."""
 
@@ -132,6 +144,7 @@ class SimulationConfig(Strict):
     rig_blur_px: Annotated[float, Field(ge=0, le=10)] = 0.8
     rig_noise_grey: Annotated[float, Field(ge=0, le=50)] = 2.0
     joint_speed_deg_s: Annotated[float, Field(gt=0, le=3600)] = 60.0
+    faults: SimulatedFaults = Field(default_factory=SimulatedFaults)
 
 
 class CellConfig(Strict):

@@ -6,12 +6,11 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import json
-import os
 import threading
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import IO, Any
+from typing import Any
 
 import numpy as np
 
@@ -23,6 +22,7 @@ from cellcal.config import CellConfig, config_from_dict, upgrade_stored
 from cellcal.daemon.analysis import CampaignSummary, analyse
 from cellcal.daemon.devices import Devices, build_devices
 from cellcal.daemon.engine import Acquisition, PhaseWatcher, acquire
+from cellcal.daemon.locks import RunLock, robot_claim
 from cellcal.daemon.plan import CALIBRATION, VALIDATION, Plan, make_plan
 from cellcal.daemon.records import (
     CampaignEnded,
@@ -83,44 +83,6 @@ def _plan(config: CellConfig) -> tuple[Plan, RobotModel]:
             f"parameters; plan at least {needed // 3 + 1} (campaign.grid)"
         )
     return plan, nominal
-
-
-class RunLock:
-    """One process per database file at a time (a ``cellcal run`` or the service): an
-    advisory lock on ``<db>.lock``, released by the OS if the process dies (SIGKILL
-    included). The holder writes who it is into the file, so a refusal names it."""
-
-    def __init__(self, db_path: str, holder: str = "cellcal run") -> None:
-        self.path = f"{db_path}.lock"
-        self.holder = holder
-        self.fh: IO[str] | None = None
-        self.previous = ""  # what the last holder wrote (after a crash: who crashed)
-
-    def __enter__(self) -> RunLock:
-        import fcntl
-
-        try:
-            self.fh = open(self.path, "a+")  # held for the whole run
-        except OSError as exc:
-            raise CampaignError(f"{self.path}: cannot create ({exc.strerror})") from None
-        try:
-            fcntl.flock(self.fh.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError:
-            self.fh.seek(0)
-            who = self.fh.read().strip() or "another cellcal process"
-            self.fh.close()
-            raise CampaignError(f"{self.path}: this database is in use by {who}") from None
-        self.fh.seek(0)
-        self.previous = self.fh.read().strip()
-        self.fh.seek(0)
-        self.fh.truncate()
-        self.fh.write(f"{self.holder} (pid {os.getpid()})\n")
-        self.fh.flush()
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        if self.fh is not None:
-            self.fh.close()
 
 
 def config_digest(config: CellConfig) -> str:
@@ -273,7 +235,8 @@ def start_campaign(
     plan, nominal = _plan(config)
     if clock is None:
         clock = SimulatedClock(time_scale) if mock else WallClock()
-    with RunLock(db_path):
+    holder = f"cellcal run on {Path(db_path).resolve()}"
+    with RunLock(db_path), robot_claim(config, mock or devices is not None, holder):
         own = devices is None
         if devices is None:
             devices = build_devices(config, nominal, clock, mock=mock, seed=config.simulation.seed)
@@ -421,13 +384,15 @@ def resume_campaign(
     configuration; the plan must come out the same."""
     if not Path(db_path).is_file():
         raise CampaignError(f"{db_path}: no such database")
-    with RunLock(db_path):
+    with RunLock(db_path), contextlib.ExitStack() as claims:
         store = Store(db_path)
         try:
             row = store.campaign(campaign_id)
             if row.status in ("complete", "aborted"):
                 raise CampaignError(f"campaign {campaign_id} is already {row.status}")
             config, plan, nominal = stored_plan(store, campaign_id)
+            holder = f"cellcal run on {Path(db_path).resolve()}"
+            claims.enter_context(robot_claim(config, row.mock, holder))
             stored = len(store.completed_indices(campaign_id))
             scale = time_scale if time_scale is not None else (row.time_scale or 0.0)
             # The simulated clock goes on from the last stored pose; the noise is fresh.

@@ -16,7 +16,6 @@ running after a crash — holds the queue until an operator resumes or aborts it
 
 from __future__ import annotations
 
-import copy
 import threading
 import time
 from collections import deque
@@ -259,12 +258,22 @@ class Control:
         return {
             "state": self.state,
             "reason": self.reason,
-            "campaign": copy.deepcopy(self.campaign) if self.campaign else None,
+            "campaign": self._campaign_copy(),
             "devices": {k: dict(v) for k, v in self.devices.items()},
             "heartbeat_age_s": round(time.monotonic() - self.heartbeat, 3),
             "paused_campaign": self.blocking,
             "last_end": self.last_end,
         }
+
+    def _campaign_copy(self) -> dict[str, Any] | None:
+        """The campaign's progress, for another thread: its lists are replaced, never
+        changed in place; only the counts per role change in place."""
+        if self.campaign is None:
+            return None
+        c = dict(self.campaign)
+        if "roles" in c:
+            c["roles"] = {k: dict(v) for k, v in c["roles"].items()}
+        return c
 
     def work_queued(self) -> None:
         """A campaign was added to the queue, or the engine has something to do."""

@@ -28,8 +28,8 @@ from aiohttp import web
 from cellcal.clock import Clock, SimulatedClock, WallClock
 from cellcal.config import CellConfig, load_config
 from cellcal.daemon.api import EventHub, Service, make_app
-from cellcal.daemon.campaign import RunLock
 from cellcal.daemon.control import Control
+from cellcal.daemon.locks import RunLock, robot_claim
 from cellcal.daemon.page import HttpAddress, make_page_app
 from cellcal.daemon.sdnotify import Notifier
 from cellcal.daemon.store import Store
@@ -159,7 +159,11 @@ async def serve(opts: DaemonOptions) -> int:
     control = Control(device_names(opts.config), publish)
     nominal = load_model(opts.config.robot.model).model
     clock: Clock = SimulatedClock(opts.time_scale) if opts.mock else WallClock()
-    with RunLock(opts.db_path, "the cellcal service") as lock:
+    holder = f"the cellcal service on {opts.db_path}"
+    with (
+        RunLock(opts.db_path, "the cellcal service") as lock,
+        robot_claim(opts.config, opts.mock, holder),
+    ):
         store = Store(opts.db_path)
         try:
             recovered = recover(store, control, lock.previous)
@@ -279,6 +283,17 @@ def _on_hup(opts: DaemonOptions, svc: Service, worker: Worker, notifier: Notifie
     except CellcalError as exc:
         log.error("SIGHUP: %s; the configuration in use is kept", exc)
     else:
+        if not opts.mock and (config.robot.driver, config.robot.address) != (
+            svc.config.robot.driver,
+            svc.config.robot.address,
+        ):
+            log.error(
+                "SIGHUP: the robot's driver or address changed; the service claims the "
+                "robot it started with: systemctl restart cellcal (the configuration in "
+                "use is kept)"
+            )
+            notifier.ready(status_line(svc.control))
+            return
         svc.config = config
         worker.reload(config)
         log.info("SIGHUP: %s read again; applied when no campaign runs", opts.config_path)

@@ -165,6 +165,7 @@ def serve(options: ModbusRobotOptions, cell: SimulatedCell, time_scale: float) -
         map=options.map,
         on_move=cell.set_q,
         pose_fn=lambda q: xyzabc(cell.flange_pose(q)),
+        faults=ModbusRobotFaults(estop_every=cell.faults.robot_protective_stop_every),
     )
     host, port = sim.start(MODBUS_HOST, 0)
     # On loopback the status can be polled faster than a PLC cycle.

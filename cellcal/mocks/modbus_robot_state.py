@@ -109,6 +109,7 @@ class ModbusRobotFaults:
     stale_heartbeat: bool = False  # heartbeat stops incrementing
     start_delay_reads: int = 0  # reads during which a move is accepted but not started
     local: bool = False  # remote bit clear (local mode): moves acknowledged, not executed
+    estop_every: int = 0  # every N-th move command ends in a protective stop (0: never)
 
     def __post_init__(self) -> None:
         if self.error_code is not None and not 1 <= self.error_code <= 0xFFFF:
@@ -187,6 +188,7 @@ class ModbusRobotController:
         self.pose_fn = pose_fn
 
         self._registers = [0] * _N_REGISTERS
+        self._moves_commanded = 0
         self._access = bytearray(_N_REGISTERS)
         for name, size in BLOCKS.items():
             lo, hi = self.map.span(name)
@@ -308,7 +310,8 @@ class ModbusRobotController:
             self._fail(ERR_COMMAND)
             return
         faults = self.faults
-        if faults.estop:
+        self._moves_commanded += 1
+        if faults.estop or (faults.estop_every and self._moves_commanded % faults.estop_every == 0):
             self._estop = True
             self._halt()
             return

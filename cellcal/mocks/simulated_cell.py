@@ -61,6 +61,7 @@ class SimulatedCell:
         noise_stream: int = 0,
     ) -> None:
         sim = config.simulation
+        self.faults = sim.faults  # what the twins inject (soaks)
         self.seed = sim.seed if seed is None else seed
         self.noise_stream = noise_stream
         rng = np.random.default_rng(self.seed)

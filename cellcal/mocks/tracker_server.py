@@ -100,6 +100,7 @@ class TrackerFaults:
     event_every: int = 0
     reply_delay_s: float = 0.0
     drop_after_lines: int | None = None
+    beam_break_every: int = 0  # every N-th series loses the beam half-way (0: never)
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -107,7 +108,7 @@ class TrackerFaults:
             value = getattr(self, name)
             if value is not None and value < 0:
                 raise ValueError(f"TrackerFaults.{name} must be >= 0 or None, got {value}")
-        for name in ("beam_breaks", "garbage_every", "event_every"):
+        for name in ("beam_breaks", "garbage_every", "event_every", "beam_break_every"):
             if getattr(self, name) < 0:
                 raise ValueError(f"TrackerFaults.{name} must be >= 0, got {getattr(self, name)}")
         for name in ("beam_restore_s", "reply_delay_s"):
@@ -149,6 +150,7 @@ class MockTracker:
         self._beam = True
         self._restore_at: float | None = None
         self._breaks_left = faults.beam_breaks if faults.beam_break_after is not None else 0
+        self._series = 0
         self._env = (20.0, 1013.25, 45.0)
         self._smr = REFLECTORS[0]
         self._clock = float(clock_start)
@@ -301,6 +303,11 @@ class MockTracker:
         with self._lock:
             k = self.faults.beam_break_after
             break_at = k if k is not None and self._breaks_left > 0 and k < n else None
+            every = self.faults.beam_break_every
+            self._series += 1
+            if every and self._series % every == 0 and n > 1:
+                self._breaks_left += 1  # _break_beam counts it
+                break_at = n // 2
             return self._clock, break_at
 
     def _set_clock(self, t: float) -> None:
@@ -360,7 +367,13 @@ class MockTracker:
 def serve(options: LineTrackerOptions, cell: SimulatedCell, time_scale: float) -> RunningTwin:
     """The twin of a configured line-protocol tracker: a MockTracker serving the
     simulated cell's target of this sensor, over TCP on a loopback address."""
-    server = MockTracker(cell.target(options.name), time_scale=time_scale)
+    f = cell.faults
+    faults = TrackerFaults(
+        beam_break_every=f.tracker_beam_break_every,
+        beam_restore_s=f.tracker_beam_restore_s,
+        drop_after_lines=f.tracker_drop_after_lines or None,
+    )
+    server = MockTracker(cell.target(options.name), faults=faults, time_scale=time_scale)
     host, port = server.start_tcp(TRACKER_HOST, 0)
     twin_options = options.model_copy(
         update={"address": f"socket://{host}:{port}", "timeout_s": max(options.timeout_s, 10.0)}

@@ -73,10 +73,16 @@ def fake() -> Iterator[tuple[FakeSystemd, str]]:
 
 class Daemon:
     def __init__(
-        self, folder: Path, notify: str | None, time_scale: float, extra: Sequence[str] = ()
+        self,
+        folder: Path,
+        notify: str | None,
+        time_scale: float,
+        extra: Sequence[str] = (),
+        config: Path = TRACKER_CELL,
     ) -> None:
         self.folder = folder
         self.extra = list(extra)
+        self.config = config
         self.db = folder / "c.db"
         self.sock = str(folder / "run" / "control.sock")
         self.notify = notify
@@ -87,7 +93,7 @@ class Daemon:
         env = dict(os.environ)
         if self.notify:
             env.update(NOTIFY_SOCKET=self.notify, WATCHDOG_USEC="1000000")
-        cmd = [sys.executable, "-m", "cellcal", "daemon", "--mock", "--config", str(TRACKER_CELL)]
+        cmd = [sys.executable, "-m", "cellcal", "daemon", "--mock", "--config", str(self.config)]
         cmd += ["--db", str(self.db), "--socket", self.sock, "--time-scale", str(self.time_scale)]
         cmd += self.extra
         self.log = open(self.folder / "daemon.log", "a")  # noqa: SIM115

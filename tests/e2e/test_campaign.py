@@ -259,7 +259,7 @@ def test_refusals_before_anything_is_written(tmp_path):
 def test_one_run_per_database(tmp_path):
     import os
 
-    from cellcal.daemon.campaign import RunLock
+    from cellcal.daemon.locks import RunLock
 
     db = str(tmp_path / "c.db")
     config = tracker_cell()

@@ -291,6 +291,25 @@ def test_estop_ends_the_wait_and_refuses_connect(bench):
     robot.move_joints(np.radians(TARGET_DEG), 1.0)
 
 
+def test_a_protective_stop_every_nth_move(bench):
+    """The soak's fault: every 3rd move command ends in a protective stop (e-stop bit);
+    a reset clears it and the count goes on."""
+    sim = bench.sim(faults=ModbusRobotFaults(estop_every=3))
+    robot = bench.robot(sim)
+    robot.connect()
+    outcomes = []
+    for k in range(7):
+        target = np.radians(TARGET_DEG) * (1.0 if k % 2 == 0 else 0.5)
+        try:
+            robot.move_joints(target, 1.0)
+            outcomes.append("moved")
+        except DeviceError as exc:
+            assert "e-stop" in str(exc)
+            outcomes.append("stopped")
+            robot.reset_error()
+    assert outcomes == ["moved", "moved", "stopped", "moved", "moved", "stopped", "moved"]
+
+
 def test_stale_heartbeat_is_a_comms_fault(bench):
     # a 60 deg move at 60 deg/s lasts 1 s of wall time; the heartbeat gives up at 0.4 s
     sim = bench.sim(

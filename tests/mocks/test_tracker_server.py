@@ -568,6 +568,22 @@ def test_beam_breaks_after_k_points_for_the_configured_series(serve) -> None:
     converse(client, [("STAT?", ["OK ready=1 beam=1 meteo=1 init=1"])])
 
 
+def test_beam_breaks_half_way_through_every_nth_series(serve) -> None:
+    """The soak's fault: every 3rd series loses the beam after half its points."""
+    _, addr = serve(faults=TrackerFaults(beam_break_every=3))
+    client = TcpClient(addr)
+    assert client.ask("INIT") == ["OK"]
+    ends = []
+    for _ in range(6):
+        assert client.ask("MEAS 6") == ["OK 6"]
+        lines = client.lines(4)
+        # a whole series: 6 points and END; a broken one: 3 points and the beam's lines
+        lines += client.lines(3 if lines[-1].startswith("PT") else 2)
+        ends.append(" | ".join(lines[3:]) if lines[-1] == "EVT BEAM OK" else lines[-1])
+    broken = "EVT BEAM LOST | ERR 40 BEAM_BROKEN | EVT BEAM OK"
+    assert ends == ["END 6", "END 6", broken, "END 6", "END 6", broken]
+
+
 def test_beam_break_at_zero_points_and_a_pending_break(serve) -> None:
     _, addr = serve(faults=TrackerFaults(beam_break_after=0))
     converse(

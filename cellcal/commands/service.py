@@ -1,0 +1,91 @@
+"""``cellcal service install``: the systemd unit for this installation, checked, written
+(or only shown with ``--dry-run``), and the commands that enable and start it. It
+creates nothing silently: no user, no group, no folder; what is missing is named with
+the command that makes it."""
+
+from __future__ import annotations
+
+import grp
+import pwd
+import sys
+from pathlib import Path
+
+import click
+
+from cellcal.config import load_config
+from cellcal.daemon.unitfile import UNIT_NAME, render, verify
+from cellcal.errors import CampaignError, InputError
+
+DEFAULT_CONFIG = "/etc/cellcal/cell.toml"
+UNIT_DIR = "/etc/systemd/system"
+
+
+@click.group()
+def service() -> None:
+    """The systemd service of this installation."""
+
+
+@service.command()
+@click.option(
+    "--config",
+    "config_path",
+    default=DEFAULT_CONFIG,
+    show_default=True,
+    help="The cell configuration the service runs.",
+)
+@click.option("--venv", help="The virtual environment of cellcal (default: this one).")
+@click.option("--user", default="cellcal", show_default=True, help="The service's user.")
+@click.option("--dry-run", is_flag=True, help="Print the unit and check it; write nothing.")
+@click.option("--unit-dir", default=UNIT_DIR, show_default=True, help="Where the unit goes.")
+@click.option("--force", is_flag=True, help="Replace a cellcal.service that differs.")
+def install(
+    config_path: str, venv: str | None, user: str, dry_run: bool, unit_dir: str, force: bool
+) -> int:
+    """Render the unit for this installation, check it with systemd-analyze verify,
+    write it, and say the two commands that enable and start the service."""
+    config = Path(config_path).resolve()
+    if not config.is_file():
+        raise InputError(f"--config {config}: no such file (write the cell's configuration first)")
+    load_config(str(config))  # a configuration the service would refuse is refused now
+    prefix = Path(venv).resolve() if venv else Path(sys.prefix)
+    if not (prefix / "bin" / "cellcal").is_file():
+        raise InputError(f"--venv {prefix}: no bin/cellcal there (give cellcal's venv)")
+    text = render(prefix, config, user)
+    checked = verify(text)
+    if not checked.ok:
+        raise CampaignError(f"the rendered unit does not pass: {checked.message}")
+    if dry_run:
+        click.echo(text, nl=False)
+        click.echo(f"# {checked.message}; --dry-run: nothing written", err=True)
+        return 0
+    _user_exists(user)
+    target = Path(unit_dir) / UNIT_NAME
+    if target.exists() and target.read_text() != text and not force:
+        raise CampaignError(f"{target} exists and differs (see --dry-run); --force replaces it")
+    unchanged = target.exists() and target.read_text() == text
+    if not unchanged:
+        try:
+            target.write_text(text)
+        except PermissionError:
+            raise InputError(f"{target}: permission denied (run it with sudo)") from None
+        except FileNotFoundError:
+            raise InputError(f"{unit_dir}: no such folder (is systemd installed?)") from None
+    click.echo(f"{target}: {'unchanged' if unchanged else 'written'} ({checked.message})")
+    click.echo(f"operators join group {user}: sudo usermod -aG {user} NAME (then log in again)")
+    click.echo("to enable and start the service:")
+    click.echo(f"  sudo systemctl daemon-reload && sudo systemctl enable {UNIT_NAME}")
+    click.echo(f"  sudo systemctl start {UNIT_NAME}")
+    return 0
+
+
+def _user_exists(user: str) -> None:
+    """The service's user and its group: named with the command that makes them."""
+    make = (
+        f"sudo useradd --system --user-group --home-dir /var/lib/cellcal "
+        f"--shell /usr/sbin/nologin {user}"
+    )
+    try:
+        pwd.getpwnam(user)
+        grp.getgrnam(user)
+    except KeyError:
+        raise InputError(f"no user and group {user!r} on this PC; make them: {make}") from None
