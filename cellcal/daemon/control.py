@@ -72,8 +72,20 @@ def _deg(q: Any) -> list[float]:
 class Control:
     """The thread-safe control object; see the module docstring."""
 
-    def __init__(self, device_names: list[str], publish: Publish) -> None:
+    def __init__(
+        self,
+        device_names: list[str],
+        publish: Publish,
+        wake: Callable[[], None] | None = None,
+    ) -> None:
         self._lock = threading.Condition()
+        # What goes out waits in one outbox, and ``wake`` asks the loop to drain it once
+        # for everything added since it last did (None: each item published at once).
+        # A status in it is a mark: the loop takes one snapshot for all the changes.
+        self._wake = wake
+        self._out_lock = threading.Lock()
+        self._outbox: deque[tuple[str, dict[str, Any] | None]] = deque()
+        self._status_pending = False
         self._done: set[int] = set()  # the poses stored before the campaign (re)started
         self._dwell_wall_s = 0.0
         self._publish = publish
@@ -179,16 +191,17 @@ class Control:
         with self._lock:
             if self.campaign is None:
                 return
-            self.campaign.update(
-                phase=name,
-                phase_started=time.time(),
-                pose_idx=pose.idx,
-                role=pose.role,
-                region=pose.region,
-                target_mm=_mm(pose.target_mm),
-                planned_q_deg=_deg(pose.q),
-            )
-        self._publish("status", self.snapshot())
+            c = self.campaign
+            c.update(phase=name, phase_started=time.time())
+            if c.get("pose_idx") != pose.idx:  # a new pose (its numbers once)
+                c.update(
+                    pose_idx=pose.idx,
+                    role=pose.role,
+                    region=pose.region,
+                    target_mm=_mm(pose.target_mm),
+                    planned_q_deg=_deg(pose.q),
+                )
+        self._status_later()
 
     def record(self, record: Record) -> None:
         """A subscriber of the campaign's record stream: progress in, events out."""
@@ -227,9 +240,36 @@ class Control:
             self.recent.append(data)
         if isinstance(record, CampaignEnded):
             self.last_end = data
-        self._publish(KINDS[type(record)], data)
+        self._send(KINDS[type(record)], data)
         if isinstance(record, (CampaignStarted, PoseStored, CampaignEnded)):
-            self._publish("status", self.snapshot())
+            self._status_later()
+
+    def _send(self, kind: str, data: dict[str, Any] | None) -> None:
+        """Out to the watchers, in order; ``data`` None: a snapshot when it goes."""
+        if self._wake is None:
+            self._publish(kind, data if data is not None else self.snapshot())
+            return
+        with self._out_lock:
+            if data is None:
+                if self._status_pending:
+                    return  # the snapshot already asked for will show this change too
+                self._status_pending = True
+            first = not self._outbox
+            self._outbox.append((kind, data))
+        if first:
+            self._wake()
+
+    def _status_later(self) -> None:
+        """The progress changed: a fast engine's changes fold into one snapshot."""
+        self._send("status", None)
+
+    def drain(self) -> list[tuple[str, dict[str, Any]]]:
+        """The loop's side: what went out since it last drained, snapshots taken now."""
+        with self._out_lock:
+            items = list(self._outbox)
+            self._outbox.clear()
+            self._status_pending = False
+        return [(k, d if d is not None else self.snapshot()) for k, d in items]
 
     @staticmethod
     def _eta(c: dict[str, Any]) -> float | None:
@@ -243,7 +283,7 @@ class Control:
 
     def _changed(self) -> None:
         """The state changed (lock held): tell the watchers."""
-        self._publish("status", self._snapshot())
+        self._send("status", self._snapshot())
 
     def snapshot(self, *, recent: bool = False) -> dict[str, Any]:
         """The state as one dict; ``recent``: with the last poses (for a new watcher;

@@ -156,7 +156,14 @@ async def serve(opts: DaemonOptions) -> int:
     def publish(kind: str, data: dict[str, object]) -> None:
         loop.call_soon_threadsafe(publish_here, kind, data)
 
-    control = Control(device_names(opts.config), publish)
+    def flush() -> None:
+        for kind, data in control.drain():
+            publish_here(kind, data)
+
+    def wake() -> None:
+        loop.call_soon_threadsafe(flush)
+
+    control = Control(device_names(opts.config), publish, wake)
     nominal = load_model(opts.config.robot.model).model
     clock: Clock = SimulatedClock(opts.time_scale) if opts.mock else WallClock()
     holder = f"the cellcal service on {opts.db_path}"

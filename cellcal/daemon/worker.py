@@ -39,9 +39,12 @@ def device_names(config: CellConfig) -> list[str]:
 def faulty_device(config: CellConfig, message: str) -> str | None:
     """Which device a connection error names, if any."""
     for name in device_names(config)[1:]:
-        if f"sensor {name}" in message or message.startswith(f"{name}:"):
+        if f"sensor {name}" in message or message.startswith((f"{name}:", f"{name} at ")):
             return name
+    head = message.split(":", 1)[0]
     if message.startswith("robot") or "robot." in message:
+        return "robot"
+    if "robot" in head or config.robot.driver in head:
         return "robot"
     return None
 
@@ -125,9 +128,7 @@ class Worker(threading.Thread):
             )
         except CellcalError as exc:
             message = str(exc)
-            which = faulty_device(self.config, message)
-            for name in device_names(self.config):
-                c.set_device(name, FAULT if which in (None, name) else CONNECTING, message)
+            self._mark_fault(message)
             wait = BACKOFF_S[min(self.connections, len(BACKOFF_S) - 1)]
             self.connections += 1
             log.warning("devices: %s; next attempt in %.0f s", message, wait)
@@ -138,6 +139,14 @@ class Worker(threading.Thread):
             c.set_device(name, READY)
         log.info("devices ready: %s", ", ".join(device_names(self.config)))
         return True
+
+    def _mark_fault(self, message: str) -> None:
+        """The device the message names is at fault; the others wait to reconnect (all
+        at fault when none is named)."""
+        which = faulty_device(self.config, message)
+        for name in device_names(self.config):
+            state = FAULT if which in (None, name) else CONNECTING
+            self.control.set_device(name, state, message if state == FAULT else "")
 
     def _dwell_wall_s(self, store: Store, cid: int) -> float:
         """The campaign's dwell in wall seconds (a simulated clock scales it)."""
@@ -191,5 +200,4 @@ class Worker(threading.Thread):
         if fault and status == "paused" and not c.shutting_down:
             # A device fault: let go of the devices and connect them afresh.
             self._disconnect()
-            for name in device_names(self.config):
-                c.set_device(name, FAULT, message)
+            self._mark_fault(message)

@@ -23,13 +23,7 @@ from tests.e2e import test_standalone_twins as standalone
 
 TRACKER = ("127.0.0.75", 5555)
 ROBOT = ("127.0.0.76", 1502)
-# The standalone twins' cell (tests/e2e), on addresses of this test's own.
-CONFIG = (
-    standalone.CONFIG.replace(f"{standalone.TRACKER[0]}:", f"{TRACKER[0]}:")
-    .replace(f"{standalone.ROBOT[0]}:", f"{ROBOT[0]}:")
-    .replace(f":{standalone.TRACKER[1]}", f":{TRACKER[1]}")
-    .replace(f":{standalone.ROBOT[1]}", f":{ROBOT[1]}")
-)
+CONFIG = standalone.config_on(TRACKER, ROBOT)
 
 pytestmark = pytest.mark.timeout(180)
 

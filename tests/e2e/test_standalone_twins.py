@@ -41,6 +41,12 @@ validation_per_region = 2
 """
 
 
+def config_on(tracker: tuple[str, int], robot: tuple[str, int]) -> str:
+    """This cell on other addresses (for other tests' own twins)."""
+    text = CONFIG.replace(f"{TRACKER[0]}:{TRACKER[1]}", f"{tracker[0]}:{tracker[1]}")
+    return text.replace(f"{ROBOT[0]}:{ROBOT[1]}", f"{robot[0]}:{robot[1]}")
+
+
 def _wait_listening(address: tuple[str, int], proc: subprocess.Popen[str], timeout: float) -> None:
     deadline = time.monotonic() + timeout
     while True:
