@@ -23,7 +23,7 @@ from aiohttp import web
 
 from cellcal import __version__
 from cellcal.config import CellConfig, config_from_dict, relative_to
-from cellcal.daemon.campaign import queue_campaign
+from cellcal.daemon.campaign import plan_campaign, queue_campaign
 from cellcal.daemon.control import Control, ControlError
 from cellcal.daemon.report import list_campaigns
 from cellcal.daemon.store import Store
@@ -355,9 +355,12 @@ async def start(request: web.Request) -> web.Response:
             "start with --queue to run this one after it",
         )
     try:
-        cid, plan = queue_campaign(
+        # Planning takes a moment (inverse kinematics): off the loop, which keeps serving.
+        plan = await asyncio.to_thread(plan_campaign, config)
+        cid = queue_campaign(
             svc.store,
             config,
+            plan,
             config_path=body.get("config_name"),
             mock=svc.mock,
             time_scale=svc.time_scale,

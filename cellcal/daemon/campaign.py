@@ -315,16 +315,26 @@ def _create(
     )
 
 
+def plan_campaign(config: CellConfig) -> Plan:
+    """A campaign's plan (pure; refused when it cannot work), for :func:`queue_campaign`."""
+    return _plan(config)[0]
+
+
 def queue_campaign(
-    store: Store, config: CellConfig, *, config_path: str | None, mock: bool, time_scale: float
-) -> tuple[int, Plan]:
-    """Plan a campaign and store it as ``queued`` (the service runs it later with
-    :func:`run_stored`); a plan that cannot work is refused before anything is written."""
-    plan, _ = _plan(config)
+    store: Store,
+    config: CellConfig,
+    plan: Plan,
+    *,
+    config_path: str | None,
+    mock: bool,
+    time_scale: float,
+) -> int:
+    """Store a planned campaign as ``queued`` (the service runs it later with
+    :func:`run_stored`)."""
     campaign_id = _create(store, config, plan, config_path, mock, time_scale, "queued")
     for u in plan.unreachable:
         store.add_event(campaign_id, "unreachable", _unreachable(u), None)
-    return campaign_id, plan
+    return campaign_id
 
 
 def _unreachable(u: Any) -> str:
