@@ -85,6 +85,11 @@ def _plan(config: CellConfig) -> tuple[Plan, RobotModel]:
     return plan, nominal
 
 
+def _holder(db_path: str) -> str:
+    """Who holds a robot's claim during a ``cellcal run``."""
+    return f"cellcal run on {Path(db_path).resolve()}"
+
+
 def config_digest(config: CellConfig) -> str:
     """A short fingerprint of the configuration a campaign runs with."""
     return hashlib.sha256(config.model_dump_json().encode()).hexdigest()[:16]
@@ -235,8 +240,8 @@ def start_campaign(
     plan, nominal = _plan(config)
     if clock is None:
         clock = SimulatedClock(time_scale) if mock else WallClock()
-    holder = f"cellcal run on {Path(db_path).resolve()}"
-    with RunLock(db_path), robot_claim(config, mock or devices is not None, holder):
+    claim = robot_claim(config, _holder(db_path), needed=not mock and devices is None)
+    with RunLock(db_path), claim:
         own = devices is None
         if devices is None:
             devices = build_devices(config, nominal, clock, mock=mock, seed=config.simulation.seed)
@@ -401,8 +406,7 @@ def resume_campaign(
             if row.status in ("complete", "aborted"):
                 raise CampaignError(f"campaign {campaign_id} is already {row.status}")
             config, plan, nominal = stored_plan(store, campaign_id)
-            holder = f"cellcal run on {Path(db_path).resolve()}"
-            claims.enter_context(robot_claim(config, row.mock, holder))
+            claims.enter_context(robot_claim(config, _holder(db_path), needed=not row.mock))
             stored = len(store.completed_indices(campaign_id))
             scale = time_scale if time_scale is not None else (row.time_scale or 0.0)
             # The simulated clock goes on from the last stored pose; the noise is fresh.

@@ -94,9 +94,10 @@ class RobotClaim(_Lock):
 
 
 def robot_claim(
-    config: CellConfig, mock: bool, holder: str
+    config: CellConfig, holder: str, *, needed: bool
 ) -> contextlib.AbstractContextManager[object]:
-    """The claim on the configuration's robot; none in mock mode (the twin is ours)."""
-    if mock:
+    """The claim on the configuration's robot when ``needed``: not in mock mode (the
+    twin is the process's own), nor on devices a caller holds (and has claimed)."""
+    if not needed:
         return contextlib.nullcontext()
     return RobotClaim(config.robot.driver, config.robot.address, holder)

@@ -169,7 +169,7 @@ async def serve(opts: DaemonOptions) -> int:
     holder = f"the cellcal service on {opts.db_path}"
     with (
         RunLock(opts.db_path, "the cellcal service") as lock,
-        robot_claim(opts.config, opts.mock, holder),
+        robot_claim(opts.config, holder, needed=not opts.mock),
     ):
         store = Store(opts.db_path)
         try:
