@@ -17,6 +17,7 @@ import click
 from cellcal import __version__
 from cellcal.commands.calibrate import calibrate
 from cellcal.commands.campaign import campaign
+from cellcal.commands.compensate import compensate_command
 from cellcal.commands.daemon import daemon
 from cellcal.commands.mock import mock
 from cellcal.commands.models import models
@@ -63,6 +64,7 @@ for command in (
     rig,
     daemon,
     service,
+    compensate_command,
 ):
     cli.add_command(command)
 rig.add_command(rig_capture)

@@ -47,12 +47,12 @@ class Measurements:
         return Groups.of(len(self.q), self.targets, self.sessions)
 
 
-def _joint_columns(dof: int) -> tuple[str, ...]:
+def joint_columns(dof: int) -> tuple[str, ...]:
     return tuple(f"q{i}" for i in range(1, dof + 1))
 
 
-def _joints(t: Table, dof: int) -> Array:
-    cols = _joint_columns(dof)
+def read_joint_columns(t: Table, dof: int) -> Array:
+    cols = joint_columns(dof)
     extra = [h for h in t.header if h.startswith("q") and h[1:].isdigit() and h not in cols]
     if extra:
         raise FileFormatError(
@@ -65,7 +65,7 @@ def _joints(t: Table, dof: int) -> Array:
 
 def read_measurements(path: str | Path, dof: int = 6) -> Measurements:
     """Read a measurement CSV for a robot with ``dof`` joints."""
-    cols = _joint_columns(dof)
+    cols = joint_columns(dof)
     expected = ",".join(cols) + ",x,y,z"
     t = read_table(path, (*cols, "x", "y", "z"), expected)
     if len(t.rows) > MAX_ROWS:
@@ -73,7 +73,7 @@ def read_measurements(path: str | Path, dof: int = 6) -> Measurements:
             f"{t.path}: {len(t.rows)} rows; a calibration takes at most {MAX_ROWS} "
             "(a campaign measures hundreds to a few thousand poses)"
         )
-    q = _joints(t, dof)
+    q = read_joint_columns(t, dof)
     xyz = np.array([[t.number(k, c) for c in ("x", "y", "z")] for k in range(len(t.rows))])
     sigma = None
     if t.has("sx", "sy", "sz"):
@@ -88,7 +88,14 @@ def read_measurements(path: str | Path, dof: int = 6) -> Measurements:
     else:
         names = tuple(str(k + 1) for k in range(len(t.rows)))
     return Measurements(
-        t.path, names, q, xyz, sigma, _labels(t, "target"), _labels(t, "session"), _quaternions(t)
+        t.path,
+        names,
+        q,
+        xyz,
+        sigma,
+        _labels(t, "target"),
+        _labels(t, "session"),
+        read_orientations(t),
     )
 
 
@@ -107,7 +114,7 @@ def _labels(t: Table, column: str) -> tuple[str, ...] | None:
 UNIT_QUATERNION_TOL = 1e-3
 
 
-def _quaternions(t: Table) -> Array | None:
+def read_orientations(t: Table) -> Array | None:
     """``ori_w,ori_x,ori_y,ori_z`` as rotation matrices (N×3×3), or None when absent."""
     cols = ("ori_w", "ori_x", "ori_y", "ori_z")
     if not any(t.has(c) for c in cols):
@@ -135,15 +142,15 @@ def read_joints_labelled(
     path: str | Path, dof: int = 6
 ) -> tuple[Array, tuple[str, ...] | None, tuple[str, ...] | None]:
     """Joint readings (N×n, rad) and the optional ``target`` and ``session`` labels."""
-    cols = _joint_columns(dof)
+    cols = joint_columns(dof)
     t = read_table(path, cols, ",".join(cols))
-    return _joints(t, dof), _labels(t, "target"), _labels(t, "session")
+    return read_joint_columns(t, dof), _labels(t, "target"), _labels(t, "session")
 
 
 def format_positions(q: Array, xyz: Array) -> str:
     """CSV text ``q1..qn,x,y,z``: joints in degrees, positions in mm (6 decimals)."""
     dof = q.shape[1]
-    lines = [",".join([*_joint_columns(dof), "x", "y", "z"])]
+    lines = [",".join([*joint_columns(dof), "x", "y", "z"])]
     for qi, p in zip(q, xyz, strict=True):
         lines.append(
             ",".join(f"{round(math.degrees(v), 6) + 0.0:.6f}" for v in qi)
