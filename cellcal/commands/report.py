@@ -17,13 +17,22 @@ def _fmt(v: float | None) -> str:
 @click.option("--db", "db_path", required=True, help="Campaign database (read only).")
 @click.option("--campaign", "campaign_id", type=int, help="Campaign id (default: the latest).")
 @click.option("--out", "out_dir", required=True, help="Folder to write the report into.")
+@click.option(
+    "--compare-registration",
+    "methods",
+    is_flag=True,
+    help="Also compare the registration methods on this campaign (the paper's Fig. 9).",
+)
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout.")
-def report(db_path: str, campaign_id: int | None, out_dir: str, as_json: bool) -> None:
-    """Write a campaign's report folder: summary.json, model.toml, poses.csv,
-    measurements-<sensor>.csv (the calibrate format), validation-<sensor>.csv, index.html."""
+def report(
+    db_path: str, campaign_id: int | None, out_dir: str, methods: bool, as_json: bool
+) -> None:
+    """Write a campaign's report folder: index.html (the report: self-contained, figures
+    inline), summary.json, model.toml, poses.csv, measurements-<sensor>.csv (the
+    calibrate format), validation-<sensor>.csv."""
     store = Store(db_path, readonly=True)
     try:
-        folder = write_report(store, campaign_id, out_dir)
+        folder = write_report(store, campaign_id, out_dir, methods=methods)
     finally:
         store.close()
     if as_json:

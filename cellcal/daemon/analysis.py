@@ -12,6 +12,7 @@ left out of the calibration and the validation, and the summary says how many.""
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -267,7 +268,15 @@ def analyse(
     regions = tuple(
         r for r in (errors(reg_val == name, name) for name in sorted(set(reg_val))) if r is not None
     )
-    estimates = _estimates(data, result, registrations, reference)
+    estimates = sensor_estimates(
+        data,
+        result.calibrated,
+        [
+            (r.sensor, r.T_sensor_base_calibrated, r.target_offset_calibrated_mm)
+            for r in registrations
+        ],
+        reference,
+    )
     fused = [fuse(list(e.values())) if e else None for e in estimates]
     summary = CampaignSummary(
         campaign_id=campaign_id,
@@ -353,22 +362,23 @@ def _register(
     return reg, rows
 
 
-def _estimates(
+def sensor_estimates(
     data: PoseData,
-    result: CalibrationResult,
-    registrations: list[SensorRegistration],
+    calibrated: RobotModel,
+    frames: Sequence[tuple[str, Array, Array]],
     reference: str,
 ) -> list[dict[str, Estimate]]:
     """At each pose, each registered sensor's estimate of the reference point (base frame
-    of the calibrated model), from the poses it measured."""
-    ref_offset = next(r for r in registrations if r.sensor == reference).target_offset_calibrated_mm
-    R = target_kinematics(result.calibrated, data.q, np.zeros(3), jacobian=False).R_flange
+    of the calibrated model), from the poses it measured; ``frames``: per sensor its
+    name, ``T_sensor_base`` and target offset with the calibrated geometry."""
+    ref_offset = next(offset for sensor, _, offset in frames if sensor == reference)
+    R = target_kinematics(calibrated, data.q, np.zeros(3), jacobian=False).R_flange
     out: list[dict[str, Estimate]] = [{} for _ in data.idx]
-    for r in registrations:
-        cov = mean_covariance(data, r.sensor)
-        for k in np.flatnonzero(data.measured(r.sensor)):
-            e = in_base(r.sensor, data.mean[r.sensor][k], cov[k], r.T_sensor_base_calibrated)
-            out[k][r.sensor] = carried(e, R[k], r.target_offset_calibrated_mm, ref_offset)
+    for sensor, T_sensor_base, offset in frames:
+        cov = mean_covariance(data, sensor)
+        for k in np.flatnonzero(data.measured(sensor)):
+            e = in_base(sensor, data.mean[sensor][k], cov[k], T_sensor_base)
+            out[k][sensor] = carried(e, R[k], offset, ref_offset)
     return out
 
 

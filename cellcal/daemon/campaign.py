@@ -85,6 +85,15 @@ def _plan(config: CellConfig) -> tuple[Plan, RobotModel]:
     return plan, nominal
 
 
+def note_devices(stream: RecordStream, campaign_id: int, devices: Devices) -> None:
+    """Record which sensors the campaign measures with, for the report: each driver that
+    can describe its device (a tracker: identity and air readings) says so."""
+    for setting in devices.sensors:
+        describe = getattr(setting.sensor, "describe", None)
+        if callable(describe):
+            stream.emit(CampaignEvent(campaign_id, "device", str(describe())))
+
+
 def _holder(db_path: str) -> str:
     """Who holds a robot's claim during a ``cellcal run``."""
     return f"cellcal run on {Path(db_path).resolve()}"
@@ -256,6 +265,7 @@ def start_campaign(
             stream = _stream(store, subscribers)
             for u in plan.unreachable:
                 stream.emit(CampaignEvent(campaign_id, "unreachable", _unreachable(u)))
+            note_devices(stream, campaign_id, devices)
             return _run(
                 store,
                 stream,
@@ -369,6 +379,7 @@ def run_stored(
     if resumed:
         stored = len(store.completed_indices(campaign_id))
         stream.emit(CampaignEvent(campaign_id, "resumed", f"{stored} poses stored"))
+    note_devices(stream, campaign_id, devices)
     return _run(
         store,
         stream,
@@ -426,6 +437,7 @@ def resume_campaign(
             stream = _stream(store, subscribers)
             try:
                 stream.emit(CampaignEvent(campaign_id, "resumed", f"{stored} poses stored"))
+                note_devices(stream, campaign_id, devices)
             except BaseException:
                 devices.close()
                 raise

@@ -6,13 +6,13 @@ facts), ``model.toml`` (the calibrated model, as ``calibrate --out`` writes it),
 sensor's mean and sample count), one ``measurements-<sensor>.csv`` per sensor (the
 calibration poses in the ``calibrate`` format, with the σ of each mean as the analysis
 weighted it, so that ``cellcal calibrate`` reads it back to the same result), one
-``validation-<sensor>.csv`` (the validation poses, for ``--validate``), and a plain
-``index.html``. Files are written atomically; the database is only read.
+``validation-<sensor>.csv`` (the validation poses, for ``--validate``), and
+``index.html``: the report page, self-contained, figures inline (``report_html``).
+Files are written atomically; the database is only read.
 """
 
 from __future__ import annotations
 
-import html
 import json
 import math
 from dataclasses import dataclass
@@ -23,6 +23,8 @@ import numpy as np
 
 from cellcal.daemon.analysis import mean_sigma
 from cellcal.daemon.plan import CALIBRATION, VALIDATION
+from cellcal.daemon.report_data import report_data
+from cellcal.daemon.report_html import report_html
 from cellcal.daemon.store import PoseData, Store
 from cellcal.errors import CampaignError, InputError
 from cellcal.modelfiles import write_atomically
@@ -124,64 +126,23 @@ def poses_csv(data: PoseData) -> str:
     return "\n".join(lines) + "\n"
 
 
-def _html(title: str, facts: dict[str, Any], summary: dict[str, Any] | None) -> str:
-    def table(rows: list[tuple[str, str]]) -> str:
-        body = "".join(
-            f"<tr><th>{html.escape(k)}</th><td>{html.escape(v)}</td></tr>" for k, v in rows
-        )
-        return f"<table>{body}</table>"
-
-    parts = [f"<h1>{html.escape(title)}</h1>", table([(k, str(v)) for k, v in facts.items()])]
-    if summary is None:
-        parts.append("<p>No analysis is stored for this campaign (interrupted or refused).</p>")
-    else:
-        parts.append("<h2>Position error at the validation poses (mm)</h2>")
-        rows = []
-        for key in ("inside", "outside"):
-            r = summary.get(key)
-            if r:
-                for stage in ("before", "after"):
-                    st = r[stage]
-                    rows.append(
-                        (
-                            f"{key} the cube, {stage}",
-                            f"mean {st['mean_mm']:.4f}  RMS {st['rms_mm']:.4f}  "
-                            f"max {st['max_mm']:.4f}  p95 {st['p95_mm']:.4f}",
-                        )
-                    )
-        rows.append(("improvement", f"{summary['improvement_pct']:.1f} % (RMS, all poses)"))
-        parts.append(table(rows))
-        c = summary["calibration"]
-        parts.append("<h2>Calibration</h2>")
-        parts.append(
-            table(
-                [
-                    ("reference sensor", str(c["sensor"])),
-                    ("identified", ", ".join(c["identified"])),
-                    ("left at nominal", ", ".join(c["unidentifiable"]) or "none"),
-                    ("condition number", f"{c['condition_number']:.3g}"),
-                    ("warnings", "; ".join(c["warnings"]) or "none"),
-                ]
-            )
-        )
-        parts.append("<h2>Registrations (RMS with nominal / calibrated geometry, mm)</h2>")
-        parts.append(
-            table(
-                [
-                    (r["sensor"], f"{r['rms_nominal_mm']:.4f} / {r['rms_calibrated_mm']:.4f}")
-                    for r in summary["registrations"]
-                ]
-            )
-        )
-        outliers = summary.get("outliers") or []
-        parts.append(f"<p>Outlier poses: {html.escape(', '.join(outliers) or 'none')}</p>")
-    style = "body{font-family:sans-serif;margin:2em}th{text-align:left;padding-right:1em}"
-    return (
-        f'<!doctype html><html lang="en"><head><meta charset="utf-8"><title>'
-        f"{html.escape(title)}</title><style>{style}</style></head><body>"
-        + "".join(parts)
-        + "</body></html>\n"
-    )
+def _timeline(store: Store, campaign_id: int) -> dict[str, str]:
+    """When the campaign was created and its poses stored (UTC), and its acquisition time
+    on the campaign's clock (simulated seconds in mock mode)."""
+    created, dwell = store.conn.execute(
+        "SELECT created, dwell_s FROM campaigns WHERE id = ?", (campaign_id,)
+    ).fetchone()
+    first, last, t0, t1 = store.conn.execute(
+        """SELECT MIN(stored), MAX(stored), MIN(t_start), MAX(t_end) FROM poses
+        WHERE campaign_id = ?""",
+        (campaign_id,),
+    ).fetchone()
+    out = {"created": str(created), "dwell_s": f"{float(dwell):g}"}
+    if first is not None:
+        out["first pose stored"] = str(first)
+        out["last pose stored"] = str(last)
+        out["acquisition (campaign clock)"] = f"{(t1 - t0) / 60:.1f} min"
+    return out
 
 
 @dataclass(frozen=True)
@@ -192,8 +153,17 @@ class ReportFolder:
     analysed: bool
 
 
-def write_report(store: Store, campaign_id: int | None, out: str | Path) -> ReportFolder:
-    """Write the report folder of a campaign (default: the latest) into ``out``."""
+def report_folder(db_path: str | Path, campaign_id: int) -> Path:
+    """Where the service writes a campaign's report: ``reports/campaign-N`` beside the
+    database."""
+    return Path(db_path).resolve().parent / "reports" / f"campaign-{campaign_id}"
+
+
+def write_report(
+    store: Store, campaign_id: int | None, out: str | Path, *, methods: bool = False
+) -> ReportFolder:
+    """Write the report folder of a campaign (default: the latest) into ``out``;
+    ``methods``: compare the registration methods too (the paper's Fig. 9)."""
     folder = Path(out)
     if folder.exists() and not folder.is_dir():
         raise InputError(f"--out {folder}: exists and is not a folder")
@@ -229,7 +199,11 @@ def write_report(store: Store, campaign_id: int | None, out: str | Path) -> Repo
         files[f"validation-{sensor}.csv"] = measurements_csv(data, sensor, VALIDATION)
     if model is not None:
         files["model.toml"] = str(model[0])
-    files["index.html"] = _html(f"cellcal campaign {cid}", facts, summary)
+    timeline = _timeline(store, cid)
+    data_for_page = report_data(
+        store, cid, {**facts, "dwell_s": float(timeline.pop("dwell_s"))}, methods=methods
+    )
+    files["index.html"] = report_html(data_for_page, timeline)
     for name, text in files.items():
         write_atomically(folder / name, text)
     return ReportFolder(cid, str(folder), tuple(files), summary is not None)

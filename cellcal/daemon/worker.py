@@ -17,6 +17,7 @@ from cellcal.config import CellConfig
 from cellcal.daemon.campaign import Held, run_stored
 from cellcal.daemon.control import CONNECTING, FAULT, READY, Control, Job
 from cellcal.daemon.devices import Devices, build_devices
+from cellcal.daemon.report import report_folder, write_report
 from cellcal.daemon.store import Store
 from cellcal.errors import CellcalError
 from cellcal.modelfiles import load_model
@@ -162,6 +163,17 @@ class Worker(threading.Thread):
                 self.devices.close()
             self.devices = None
 
+    def _report(self, store: Store, cid: int) -> str:
+        """Write the campaign's report folder beside the database (``reports/campaign-N``);
+        a report that cannot be written is said, and costs the campaign nothing."""
+        folder = report_folder(store.path, cid)
+        try:
+            write_report(store, cid, folder)
+        except (CellcalError, OSError) as exc:
+            log.warning("campaign %d: no report written (%s)", cid, exc)
+            return f"; no report written ({exc})"
+        return f"; report in {folder}"
+
     def _run(self, store: Store, job: Job) -> None:
         c = self.control
         cid = job.campaign_id
@@ -195,6 +207,8 @@ class Worker(threading.Thread):
             with contextlib.suppress(CellcalError):
                 store.set_status(cid, "paused")
             status = "paused"
+        if status in ("complete", "refused"):
+            message += self._report(store, cid)
         log.info("campaign %d %s: %s", cid, status, message)
         c.finished(cid, status, message)
         if fault and status == "paused" and not c.shutting_down:

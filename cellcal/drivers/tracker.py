@@ -49,6 +49,7 @@ from cellcal.drivers.tracker_protocol import (
     parse_line,
 )
 from cellcal.drivers.transport import SerialUrlTransport, Transport, TransportError
+from cellcal.errors import DeviceError
 
 log = logging.getLogger("cellcal.tracker")
 
@@ -270,6 +271,25 @@ class LineTracker:
         if len(parts) != 4:
             raise TrackerError(f"{self.label}: malformed *IDN? answer {','.join(parts)!r}")
         return TrackerIdentity(*(p.strip() for p in parts))
+
+    def describe(self) -> str:
+        """One line for the campaign's record: the tracker's identity and, when it
+        reports them, the air readings it compensates with."""
+        who = self.identity
+        text = f"{self.where}: " + (
+            f"{who.maker} {who.model}, serial {who.serial}, firmware {who.firmware}"
+            if who is not None
+            else "not identified"
+        )
+        try:
+            env = self.environment()
+        except DeviceError as exc:
+            log.info("%s: no environment readings (%s)", self.label, exc)
+            return text
+        return (
+            f"{text}; air {env.temperature_c:.2f} °C, {env.pressure_hpa:.2f} hPa, "
+            f"{env.humidity_pct:.1f} % RH"
+        )
 
     def initialise(self) -> None:
         self._request("INIT", timeout=max(self.timeout, 60.0))

@@ -127,6 +127,11 @@ def test_start_pause_resume_abort_queue_sigkill_resume(
     assert status == "complete"
     idx = [i for (i,) in d.rows(f"SELECT idx FROM poses WHERE campaign_id = {second}")]
     assert sorted(idx) == list(range(planned))  # every pose exactly once
+    # The service wrote the complete campaign's report beside the database, and said so.
+    report = folder / "reports" / f"campaign-{second}"
+    assert f"report in {report}" in d.status()["reason"]
+    assert "<svg" in (report / "index.html").read_text()
+    assert not (folder / "reports" / f"campaign-{first}").exists()  # aborted: no report
     assert d.stop() == 0
 
 

@@ -1,0 +1,156 @@
+"""The campaign report: a short mock campaign with the tracker and the camera rig, its
+report folder written, the numbers the page shows recomputed from the database equal to
+the analysis' stored summary, and the page opened in headless Chromium (Debian's
+chromium + chromium-driver): no errors, every figure there, nothing loaded from
+elsewhere; a full-page screenshot is kept and its path printed."""
+
+from __future__ import annotations
+
+import re
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from cellcal.config import load_config
+from cellcal.daemon.campaign import start_campaign
+from cellcal.daemon.report import write_report
+from cellcal.daemon.report_data import METHODS, report_data
+from cellcal.daemon.store import Store
+
+ROOT = Path(__file__).parents[2]
+CHROMIUM = shutil.which("chromium")
+CHROMEDRIVER = shutil.which("chromedriver")
+
+pytestmark = pytest.mark.timeout(600)
+
+
+@pytest.fixture(scope="module")
+def campaign(tmp_path_factory):
+    """The bundled cell (tracker and rig) on a 3×3×3 cube with few validation poses."""
+    folder = tmp_path_factory.mktemp("report")
+    config = load_config(ROOT / "config" / "mock-cell.toml", relative_paths=False)
+    config = config.model_copy(
+        update={
+            "campaign": config.campaign.model_copy(
+                update={"grid": [3, 3, 3], "validation_inside": 6, "validation_per_region": 2}
+            )
+        }
+    )
+    db = str(folder / "c.db")
+    outcome = start_campaign(config, db, config_path=None, mock=True)
+    assert outcome.summary is not None
+    return folder, db, outcome.campaign_id
+
+
+def _rms(e: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(np.sum(e * e, axis=1))))
+
+
+def test_the_reports_numbers_are_the_analysis_numbers(campaign):
+    _, db, cid = campaign
+    store = Store(db, readonly=True)
+    try:
+        facts = {"model": store.campaign(cid).model, "mock": True}
+        d = report_data(store, cid, facts, methods=True)
+    finally:
+        store.close()
+    s = d.summary
+    assert s is not None and d.validation is not None
+    assert _rms(d.validation.before) == pytest.approx(s["rms_before_mm"], rel=1e-9)
+    assert _rms(d.validation.after) == pytest.approx(s["rms_after_mm"], rel=1e-6)
+    regs = {r["sensor"]: r for r in s["registrations"]}
+    assert sorted(regs) == ["rig", "tracker"]
+    for r in d.residuals:
+        assert _rms(r.nominal) == pytest.approx(regs[r.sensor]["rms_nominal_mm"], rel=1e-9)
+        assert _rms(r.calibrated) == pytest.approx(regs[r.sensor]["rms_calibrated_mm"], rel=1e-6)
+    (rig,) = d.agreements
+    assert rig.sensor == "rig"
+    stored = {a["sensor"]: a for a in s["agreements"]}["rig"]
+    assert len(rig.idx) == stored["n"]
+    assert float(np.sqrt(np.mean(rig.distance_mm**2))) == pytest.approx(stored["rms_mm"], rel=1e-6)
+    cond = d.singular_values[0] / d.singular_values[-1]
+    assert cond == pytest.approx(s["calibration"]["condition_number"], rel=1e-3)
+    by = {m.method: m for m in d.methods}
+    assert tuple(by) == METHODS
+    # Least squares methods agree; three points and the paper's lines do worse.
+    assert by["quaternion"].validation_rms_mm == pytest.approx(
+        by["svd"].validation_rms_mm, rel=1e-6
+    )
+    assert by["three-point"].validation_rms_mm > by["svd"].validation_rms_mm
+    kinds = [k for _, k, _, _ in d.events]
+    assert "device" in kinds  # the tracker said who it is
+
+
+@pytest.mark.skipif(
+    CHROMIUM is None or CHROMEDRIVER is None,
+    reason="Debian's chromium and chromium-driver are not installed (make test installs them)",
+)
+def test_the_report_page_renders_in_chromium(campaign, capsys):
+    webdriver = pytest.importorskip("selenium.webdriver")
+    from selenium.webdriver.chrome.service import Service as DriverService
+    from selenium.webdriver.common.by import By
+
+    folder, db, cid = campaign
+    store = Store(db, readonly=True)
+    try:
+        out = write_report(store, cid, folder / "out", methods=True)
+        summary = store.latest_report(cid)
+    finally:
+        store.close()
+    assert out.analysed and summary is not None
+    page = Path(out.folder) / "index.html"
+    text = page.read_text()
+    # Self-contained: no script, nothing fetched.
+    assert "<script" not in text
+    assert not re.search(r'(src|href)="(?!#|data:)', text)
+
+    options = webdriver.ChromeOptions()
+    options.binary_location = str(CHROMIUM)
+    for flag in ["--headless", "--no-sandbox", "--disable-gpu", "--no-first-run"]:
+        options.add_argument(flag)
+    options.add_argument("--disable-background-networking")
+    options.add_argument("--window-size=1280,1200")
+    browser = webdriver.Chrome(options=options, service=DriverService(str(CHROMEDRIVER)))
+    shot = folder / "report-page.png"
+    try:
+        browser.set_page_load_timeout(60)
+        browser.get(page.as_uri())
+        figures = {
+            f.get_attribute("id"): f for f in browser.find_elements(By.CSS_SELECTOR, "figure")
+        }
+        expected = {
+            "fig-validation",
+            "fig-regions",
+            "fig-registration-tracker",
+            "fig-registration-rig",
+            "fig-agreement-rig",
+            "fig-singular-values",
+            "fig-residuals-3d",
+            "fig-methods",
+        }
+        assert set(figures) == expected
+        for ident, fig in figures.items():
+            svg = fig.find_element(By.TAG_NAME, "svg")
+            assert svg.size["width"] > 200 and svg.size["height"] > 100, ident
+            assert fig.find_element(By.TAG_NAME, "figcaption").text
+        headline = browser.find_element(By.ID, "headline").text
+        assert f"RMS {summary['rms_before_mm']:.4f} mm before" in headline
+        assert f"{summary['rms_after_mm']:.4f} mm after" in headline
+        body = browser.find_element(By.TAG_NAME, "body").text
+        assert "0.200" in body and "Table 3" in body  # beside the paper's figures
+        assert "mock mode" in body  # and says what a simulated campaign's numbers mean
+        assert "cellcal mock-tracker, serial SIM-0001" in body
+        errors = [e for e in browser.get_log("browser") if e["level"] == "SEVERE"]
+        assert not errors, errors
+        height = browser.execute_script("return document.body.scrollHeight")
+        browser.set_window_size(1280, min(int(height) + 100, 16000))
+        browser.save_screenshot(str(shot))
+    finally:
+        browser.quit()
+    kept = ROOT / ".pytest_cache" / "report-page"
+    kept.mkdir(parents=True, exist_ok=True)
+    shutil.copy(shot, kept / shot.name)
+    with capsys.disabled():
+        print(f"\n  report page screenshot: {kept / shot.name}")
