@@ -345,6 +345,26 @@ def _campaign(d: ReportData, timeline: dict[str, Any]) -> str:
     return "".join(parts)
 
 
+def _iso9283(iso: dict[str, Any]) -> str:
+    """An ISO 9283 test: AP and RP of each point, before and after calibration."""
+    stages = list(iso)
+    points = [p["point"] for p in iso[stages[0]]["points"]]
+    rows = []
+    for k, name in enumerate(points):
+        row: list[object] = [name]
+        row += [_mm(iso[s]["points"][k]["ap_mm"]) for s in stages]
+        row += [_mm(iso[s]["points"][k]["rp_mm"]) for s in stages]
+        rows.append(row)
+    head = ["point", *(f"AP {s}" for s in stages), *(f"RP {s}" for s in stages)]
+    sources = "; ".join(f"{s}: joints from the {iso[s]['joints_from']}" for s in stages)
+    n = iso[stages[0]]["points"][0]["n"]
+    return (
+        "<h2>ISO 9283 pose accuracy (AP) and repeatability (RP), mm</h2>"
+        f"<p>{n} cycles through the standard's five points of the cube's diagonal plane; "
+        f"{_e(sources)}. Positions in the calibrated model's base frame.</p>" + _table(head, rows)
+    )
+
+
 def report_html(d: ReportData, timeline: dict[str, Any]) -> str:
     """The whole page."""
     salt = f"c{d.campaign_id}"
@@ -354,7 +374,9 @@ def report_html(d: ReportData, timeline: dict[str, Any]) -> str:
         f"<p>{_e(d.facts['model'])}, {_e(', '.join(d.facts['sensors']))}; "
         f"database {_e(d.facts['database'])}.</p>",
     ]
-    if d.summary is None or d.model is None:
+    if d.summary is not None and "iso9283" in d.summary:
+        parts.append(_iso9283(d.summary["iso9283"]))
+    elif d.summary is None or d.model is None:
         parts.append(
             '<p class="verdict bad">No analysis is stored for this campaign '
             f"(status {_e(d.facts['status'])}: interrupted, refused or still "

@@ -1,0 +1,66 @@
+"""``cellcal iso9283``: the ISO 9283 pose accuracy and repeatability test, before and
+after calibration."""
+
+from __future__ import annotations
+
+import click
+
+from cellcal.calib.iso9283 import CYCLES
+from cellcal.commands.output import TIME_SCALE, print_json
+from cellcal.commands.run import bundled_mock_cell
+from cellcal.config import load_config
+from cellcal.daemon.iso_campaign import AFTER, BEFORE, STAGES, run_iso9283
+from cellcal.errors import InputError
+
+
+@click.command("iso9283")
+@click.option("--config", "config_path", help="Cell configuration (TOML).")
+@click.option("--mock", is_flag=True, help="Run against the twins of the simulated cell.")
+@click.option(
+    "--model", "model_spec", required=True, help="The calibrated model (a campaign's model.toml)."
+)
+@click.option("--db", "db_path", help="Database (default: storage.database of the config).")
+@click.option(
+    "--cycles",
+    type=click.IntRange(2, 1000),
+    default=CYCLES,
+    show_default=True,
+    help="Cycles through the five points (the standard: 30).",
+)
+@click.option("--time-scale", type=TIME_SCALE, default=0.0, help="Mock mode: wall s per s.")
+@click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout.")
+def iso9283(
+    config_path: str | None,
+    mock: bool,
+    model_spec: str,
+    db_path: str | None,
+    cycles: int,
+    time_scale: float,
+    as_json: bool,
+) -> None:
+    """ISO 9283 pose accuracy (AP) and repeatability (RP) at the standard's five points
+    of the campaign's cube: with the nominal model's joints, then the calibrated model's.
+    Every sample is stored in the database like a campaign's."""
+    if config_path is not None:
+        config, source = load_config(config_path), config_path
+    elif mock:
+        config, source = bundled_mock_cell()
+    else:
+        raise InputError("give --config FILE, or --mock for the bundled simulated cell")
+    out = run_iso9283(
+        config,
+        db_path or config.storage.database,
+        model_spec,
+        mock=mock,
+        cycles=cycles,
+        config_path=source,
+        time_scale=time_scale,
+    )
+    if as_json:
+        print_json(out.to_dict())
+        return
+    click.echo(f"ISO 9283 test (campaign {out.campaign_id} in {out.db_path}), {cycles} cycles, mm:")
+    click.echo(f"  {'point':<6}{'AP before':>11}{'AP after':>11}{'RP before':>11}{'RP after':>11}")
+    for b, a in zip(out.results[BEFORE], out.results[AFTER], strict=True):
+        click.echo(f"  {b.name:<6}{b.ap:11.4f}{a.ap:11.4f}{b.rp:11.4f}{a.rp:11.4f}")
+    click.echo(f"  before: joints from the {STAGES[BEFORE]}; after: from the {STAGES[AFTER]}")
