@@ -15,14 +15,13 @@ effect, the orientation.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
 
 from cellcal.calib.geometry import Array
-from cellcal.calib.inverse_kinematics import solve
+from cellcal.calib.inverse_kinematics import solve, within_limits
 from cellcal.calib.kinematics import flange_transforms, target_kinematics
 from cellcal.calib.robot_model import RobotModel
 
@@ -80,19 +79,6 @@ def _position_only(
     return q, done, err
 
 
-def _within_limits(model: RobotModel, q: Array) -> tuple[Array, NDArray[np.bool_]]:
-    """Each joint brought within one turn of its limits' centre where that helps, and
-    whether every joint is within its limits."""
-    lo, hi = model.limits
-    q = q.copy()
-    for j in range(model.dof):
-        if math.isfinite(lo[j]) and math.isfinite(hi[j]):
-            centre = (lo[j] + hi[j]) / 2
-            q[:, j] = centre + (q[:, j] - centre + math.pi) % (2 * math.pi) - math.pi
-    inside: NDArray[np.bool_] = np.asarray(((q >= lo - 1e-12) & (q <= hi + 1e-12)).all(axis=1))
-    return q, inside
-
-
 def compensate(
     calibrated: RobotModel,
     tool: Array,
@@ -113,7 +99,7 @@ def compensate(
     else:
         sol = solve(calibrated, tool, p_base, R_base, seed, tol_mm=1e-8)
         q, converged = sol.q, sol.converged
-    q, inside = _within_limits(calibrated, q)
+    q, inside = within_limits(calibrated, q)
     reached = target_kinematics(calibrated, q, tool, jacobian=False).p
     residual = np.linalg.norm(reached - p_base, axis=1)
     ok = converged & inside & (residual <= REACHED_MM)

@@ -58,7 +58,6 @@ def solve(
     N = len(p_target)
     R_target = np.broadcast_to(np.asarray(R_target, dtype=np.float64), (N, 3, 3))
     q = np.array(np.broadcast_to(np.asarray(q_seed, dtype=np.float64), (N, model.dof)))
-    n = model.dof
     lam = 1e-3
     done = np.zeros(N, dtype=bool)
     ep = np.full(N, np.inf)
@@ -80,11 +79,18 @@ def solve(
         # Limit a step to 0.3 rad per joint: far from the answer the model is not linear.
         scale = np.minimum(1.0, 0.3 / np.maximum(np.abs(step).max(axis=1), 1e-300))
         q = q + np.where(done[:, None], 0.0, step * scale[:, None])
+    q, within = within_limits(model, q)
+    return IKSolution(q, done, within, ep, er)
+
+
+def within_limits(model: RobotModel, q: Array) -> tuple[Array, NDArray[np.bool_]]:
+    """Each joint brought within one turn of its limits' centre where that helps, and
+    whether every joint of each pose is within its limits."""
     lo, hi = model.limits
-    # Bring each joint within one turn of its limits' centre where that helps.
-    for j in range(n):
+    q = np.array(q, dtype=np.float64)
+    for j in range(model.dof):
         if math.isfinite(lo[j]) and math.isfinite(hi[j]):
             centre = (lo[j] + hi[j]) / 2
             q[:, j] = centre + (q[:, j] - centre + math.pi) % (2 * math.pi) - math.pi
-    within: NDArray[np.bool_] = np.asarray(((q >= lo - 1e-12) & (q <= hi + 1e-12)).all(axis=1))
-    return IKSolution(q, done, within, ep, er)
+    inside: NDArray[np.bool_] = np.asarray(((q >= lo - 1e-12) & (q <= hi + 1e-12)).all(axis=1))
+    return q, inside
