@@ -42,7 +42,8 @@ demo: $(STAMP) $(ARAVIS)
 	@echo "== cellcal demo: a whole campaign on the bundled simulated cell (config/mock-cell.toml):"
 	@echo "   KR 5 arc with seeded kinematic errors, laser tracker + photogrammetry rig, the paper's"
 	@echo "   80-pose cube with 7 s dwell and 20 samples per pose, on a simulated clock."
-	$(BIN)/cellcal run --mock --db demo.db
+	$(BIN)/cellcal run --mock --db demo.db --report demo-report
+	@echo "== the report: open demo-report/index.html in a browser (offline, self-contained)"
 
 demo-registration: $(STAMP)
 	@echo "== the paper's Table 4 (one laser tracker at two stations, 5 common points)"

@@ -13,6 +13,7 @@ Files are written atomically; the database is only read.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 from dataclasses import dataclass
@@ -129,15 +130,28 @@ def poses_csv(data: PoseData) -> str:
 def _timeline(store: Store, campaign_id: int) -> dict[str, str]:
     """When the campaign was created and its poses stored (UTC), and its acquisition time
     on the campaign's clock (simulated seconds in mock mode)."""
-    created, dwell = store.conn.execute(
-        "SELECT created, dwell_s FROM campaigns WHERE id = ?", (campaign_id,)
+    created, dwell, config_json = store.conn.execute(
+        "SELECT created, dwell_s, config_json FROM campaigns WHERE id = ?", (campaign_id,)
     ).fetchone()
+    roles = store.conn.execute(
+        "SELECT role, COUNT(*) FROM poses WHERE campaign_id = ? GROUP BY role ORDER BY role",
+        (campaign_id,),
+    ).fetchall()
     first, last, t0, t1 = store.conn.execute(
         """SELECT MIN(stored), MAX(stored), MIN(t_start), MAX(t_end) FROM poses
         WHERE campaign_id = ?""",
         (campaign_id,),
     ).fetchone()
     out = {"created": str(created), "dwell_s": f"{float(dwell):g}"}
+    c = json.loads(config_json).get("campaign", {})
+    with contextlib.suppress(KeyError, TypeError, ValueError):
+        grid = "×".join(str(int(k)) for k in c["grid"])
+        centre = ", ".join(f"{float(v):g}" for v in c["cube_centre_mm"])
+        out["plan"] = (
+            f"{grid} cube of {float(c['cube_edge_mm']):g} mm at ({centre}) mm, wrist turned "
+            f"up to {float(c['orientation_variation_deg']):g}° per pose"
+        )
+    out["poses stored per role"] = ", ".join(f"{r}: {n}" for r, n in roles) or "none"
     if first is not None:
         out["first pose stored"] = str(first)
         out["last pose stored"] = str(last)
