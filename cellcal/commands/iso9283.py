@@ -7,10 +7,8 @@ import click
 
 from cellcal.calib.iso9283 import CYCLES
 from cellcal.commands.output import TIME_SCALE, print_json
-from cellcal.commands.run import bundled_mock_cell
-from cellcal.config import load_config
+from cellcal.commands.run import cell_config
 from cellcal.daemon.iso_campaign import AFTER, BEFORE, STAGES, run_iso9283
-from cellcal.errors import InputError
 
 
 @click.command("iso9283")
@@ -41,12 +39,7 @@ def iso9283(
     """ISO 9283 pose accuracy (AP) and repeatability (RP) at the standard's five points
     of the campaign's cube: with the nominal model's joints, then the calibrated model's.
     Every sample is stored in the database like a campaign's."""
-    if config_path is not None:
-        config, source = load_config(config_path), config_path
-    elif mock:
-        config, source = bundled_mock_cell()
-    else:
-        raise InputError("give --config FILE, or --mock for the bundled simulated cell")
+    config, source = cell_config(config_path, mock)
     out = run_iso9283(
         config,
         db_path or config.storage.database,

@@ -83,6 +83,16 @@ def bundled_mock_cell() -> tuple[CellConfig, str]:
         return load_config(p, relative_paths=False), "bundled config/mock-cell.toml"
 
 
+def cell_config(config_path: str | None, mock: bool) -> tuple[CellConfig, str]:
+    """The configuration a command runs with, and where it came from: ``--config``, or
+    with ``--mock`` alone the bundled simulated cell."""
+    if config_path is not None:
+        return load_config(config_path), config_path
+    if mock:
+        return bundled_mock_cell()
+    raise InputError("give --config FILE, or --mock for the bundled simulated cell")
+
+
 def _print_summary(out: CampaignOutcome) -> None:
     s: CampaignSummary | None = out.summary
     plan = out.plan
@@ -205,12 +215,7 @@ def run(
                 accept=accept,
             )
         else:
-            if config_path is not None:
-                config, source = load_config(config_path), config_path
-            elif mock:
-                config, source = bundled_mock_cell()
-            else:
-                raise InputError("give --config FILE, or --mock for the bundled simulated cell")
+            config, source = cell_config(config_path, mock)
             if not mock and (seed is not None or time_scale is not None):
                 raise InputError("--seed and --time-scale apply to mock mode (--mock)")
             outcome = start_campaign(

@@ -8,8 +8,7 @@ from __future__ import annotations
 
 import csv
 import json
-import subprocess
-import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -19,38 +18,32 @@ from cellcal.calib.geometry import apply, invert
 from cellcal.calib.kinematics import flange_transforms, target_kinematics
 from cellcal.calib.registration import fit_rigid
 from cellcal.clock import SimulatedClock
-from cellcal.daemon.campaign import start_campaign
 from cellcal.daemon.devices import build_devices
 from cellcal.daemon.plan import CALIBRATION
-from cellcal.daemon.report import write_report
 from cellcal.daemon.store import Store
 from cellcal.modelfiles import load_model
-from tests.conftest import tracker_cell
+from tests.e2e.calibrated import calibrated_campaign, cli
 
 pytestmark = pytest.mark.timeout(300)
-
-
-def _cli(*args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, "-m", "cellcal", *args], capture_output=True, text=True, timeout=120
-    )
 
 
 @pytest.fixture(scope="module")
 def campaign(tmp_path_factory):
     """One mock campaign, its report folder (model.toml) and its validation RMS."""
     folder = tmp_path_factory.mktemp("compensate")
-    config = tracker_cell()
-    db = str(folder / "c.db")
-    outcome = start_campaign(config, db, config_path=None, mock=True)
-    assert outcome.summary is not None
+    config, db, outcome, _ = calibrated_campaign(folder)
     store = Store(db, readonly=True)
     try:
-        write_report(store, outcome.campaign_id, folder / "report")
         data = store.pose_data(outcome.campaign_id)
     finally:
         store.close()
     return config, folder, data, outcome.summary.validation_after.rms
+
+
+def _compensate(folder: Path, targets: Path, out: Path, *extra: str):
+    """``cellcal compensate`` with the campaign's calibrated model."""
+    model = str(folder / "report" / "model.toml")
+    return cli("compensate", "--model", model, "--targets", str(targets), "--out", str(out), *extra)
 
 
 def _measure(config, joints: np.ndarray) -> np.ndarray:
@@ -89,20 +82,7 @@ def test_compensated_targets_bring_the_real_robot_to_the_points(campaign):
     )
     out = folder / "joints.csv"
     seed = ",".join(repr(v) for v in config.robot.home_deg)
-    run = _cli(
-        "compensate",
-        "--model",
-        str(folder / "report" / "model.toml"),
-        "--targets",
-        str(targets),
-        "--out",
-        str(out),
-        "--frame",
-        "sensor",
-        "--seed-deg",
-        seed,
-        "--json",
-    )
+    run = _compensate(folder, targets, out, "--frame", "sensor", "--seed-deg", seed, "--json")
     assert run.returncode == 0, run.stderr
     summary = json.loads(run.stdout)
     rows = list(csv.DictReader(out.open()))
@@ -142,34 +122,18 @@ def test_compensate_refuses_a_nominal_model_and_unreachable_targets(campaign, tm
     targets = tmp_path / "t.csv"
     targets.write_text("name,x,y,z\nfar,9000,0,0\nnear,750,0,1000\n")
     out = tmp_path / "j.csv"
-    run = _cli(
+    run = cli(
         "compensate", "--model", config.robot.model, "--targets", str(targets), "--out", str(out)
     )
     assert run.returncode == 2
     assert run.stderr.count("\n") == 1 and "nominal model" in run.stderr
-    run = _cli(
-        "compensate",
-        "--model",
-        str(folder / "report" / "model.toml"),
-        "--targets",
-        str(targets),
-        "--out",
-        str(out),
-    )
+    run = _compensate(folder, targets, out)
     assert run.returncode == 2, run.stderr
     assert run.stderr.count("\n") == 1
     assert "1 of 2 targets" in run.stderr and "far:" in run.stderr
     assert "nothing written" in run.stderr and not out.exists()
     targets.write_text("name,x,y,z,q1,q2\nP,750,0,1000,0,0\n")
-    run = _cli(
-        "compensate",
-        "--model",
-        str(folder / "report" / "model.toml"),
-        "--targets",
-        str(targets),
-        "--out",
-        str(out),
-    )
+    run = _compensate(folder, targets, out)
     assert run.returncode == 2 and "give all of q1" in run.stderr
 
 
@@ -187,16 +151,7 @@ def test_the_programs_joints_choose_the_configuration_and_keep_the_orientation(c
     targets = tmp_path / "t.csv"
     targets.write_text(head + "\n" + "\n".join(rows) + "\n")
     out = tmp_path / "j.csv"
-    run = _cli(
-        "compensate",
-        "--model",
-        str(folder / "report" / "model.toml"),
-        "--targets",
-        str(targets),
-        "--out",
-        str(out),
-        "--json",
-    )
+    run = _compensate(folder, targets, out, "--json")
     assert run.returncode == 0, run.stderr
     assert json.loads(run.stdout)["orientation"] == "kept from the q columns"
     got = list(csv.DictReader(out.open()))

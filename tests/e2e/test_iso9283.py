@@ -6,41 +6,23 @@ from __future__ import annotations
 
 import json
 import sqlite3
-import subprocess
-import sys
 
 import numpy as np
 import pytest
 
 from cellcal.calib.iso9283 import iso_points
-from cellcal.daemon.campaign import start_campaign
-from cellcal.daemon.report import write_report
-from cellcal.daemon.store import Store
-from tests.conftest import TRACKER_CELL, tracker_cell
+from tests.conftest import TRACKER_CELL
+from tests.e2e.calibrated import calibrated_campaign, cli
 
 pytestmark = pytest.mark.timeout(300)
 
 
-def _cli(*args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, "-m", "cellcal", *args], capture_output=True, text=True, timeout=200
-    )
-
-
 def test_accuracy_improves_repeatability_stays_and_every_sample_is_stored(tmp_path):
-    config = tracker_cell()
-    db = str(tmp_path / "c.db")
-    outcome = start_campaign(config, db, config_path=None, mock=True)
-    assert outcome.summary is not None
-    store = Store(db, readonly=True)
-    try:
-        write_report(store, outcome.campaign_id, tmp_path / "report")
-    finally:
-        store.close()
-    model = str(tmp_path / "report" / "model.toml")
+    config, _, outcome, model_path = calibrated_campaign(tmp_path)
+    model = str(model_path)
     iso_db = str(tmp_path / "iso.db")
     cycles = 6
-    run = _cli(
+    run = cli(
         "iso9283",
         "--mock",
         "--config",
@@ -83,14 +65,14 @@ def test_accuracy_improves_repeatability_stays_and_every_sample_is_stored(tmp_pa
     finally:
         conn.close()
     # The report shows the test.
-    run = _cli("report", "--db", iso_db, "--out", str(tmp_path / "iso-report"))
+    run = cli("report", "--db", iso_db, "--out", str(tmp_path / "iso-report"))
     assert run.returncode == 0, run.stderr
     assert "ISO 9283 pose accuracy" in (tmp_path / "iso-report" / "index.html").read_text()
 
 
 def test_a_nominal_model_and_too_few_cycles_are_refused(tmp_path):
-    run = _cli("iso9283", "--mock", "--model", "kuka-kr5-arc", "--db", str(tmp_path / "x.db"))
+    run = cli("iso9283", "--mock", "--model", "kuka-kr5-arc", "--db", str(tmp_path / "x.db"))
     assert run.returncode == 2 and run.stderr.count("\n") == 1
     assert "calibrated model" in run.stderr
-    run = _cli("iso9283", "--mock", "--model", "kuka-kr5-arc", "--cycles", "1")
+    run = cli("iso9283", "--mock", "--model", "kuka-kr5-arc", "--cycles", "1")
     assert run.returncode == 2

@@ -1,0 +1,35 @@
+"""A calibrated simulated cell for the tests that use a campaign's results: one mock
+campaign with the tracker, its report folder and the calibrated model in it."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+from cellcal.config import CellConfig
+from cellcal.daemon.campaign import CampaignOutcome, start_campaign
+from cellcal.daemon.report import write_report
+from cellcal.daemon.store import Store
+from tests.conftest import tracker_cell
+
+
+def cli(*args: str, timeout: float = 200) -> subprocess.CompletedProcess[str]:
+    """``cellcal ARGS`` in a child process."""
+    return subprocess.run(
+        [sys.executable, "-m", "cellcal", *args], capture_output=True, text=True, timeout=timeout
+    )
+
+
+def calibrated_campaign(folder: Path) -> tuple[CellConfig, str, CampaignOutcome, Path]:
+    """The campaign's configuration, database, outcome, and its model.toml."""
+    config = tracker_cell()
+    db = str(folder / "c.db")
+    outcome = start_campaign(config, db, config_path=None, mock=True)
+    assert outcome.summary is not None
+    store = Store(db, readonly=True)
+    try:
+        write_report(store, outcome.campaign_id, folder / "report")
+    finally:
+        store.close()
+    return config, db, outcome, folder / "report" / "model.toml"
