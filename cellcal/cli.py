@@ -19,6 +19,7 @@ from cellcal.commands.calibrate import calibrate
 from cellcal.commands.campaign import campaign
 from cellcal.commands.compensate import compensate_command
 from cellcal.commands.daemon import daemon
+from cellcal.commands.export import export
 from cellcal.commands.iso9283 import iso9283
 from cellcal.commands.mock import mock
 from cellcal.commands.models import models
@@ -67,6 +68,7 @@ for command in (
     service,
     compensate_command,
     iso9283,
+    export,
 ):
     cli.add_command(command)
 rig.add_command(rig_capture)

@@ -69,13 +69,19 @@ def _read_toml(path: Path, label: str) -> dict[str, Any]:
 
 
 def load_model(spec: str) -> LoadedModel:
-    """A built-in model by name, or a model / calibrated-model TOML file."""
+    """A built-in model by name, a model / calibrated-model TOML file, or a URDF file
+    (``*.urdf``: the chain to ``tool0``, see ``urdffiles``)."""
     if spec in builtin_names():
         ref = resources.files("cellcal") / "data" / "models" / f"{spec}.toml"
         with resources.as_file(ref) as p:
             data = _read_toml(p, spec)
         model = model_from_dict(data, spec)
         return LoadedModel(spec, model, model.tool, None, False)
+    if spec.lower().endswith(".urdf"):
+        from cellcal.urdffiles import model_from_urdf  # Pinocchio, only when asked
+
+        urdf = model_from_urdf(spec)
+        return LoadedModel(spec, urdf, urdf.tool, None, False)
     data = _read_toml(Path(spec), spec)
     if data.get("format") == CALIBRATED_FORMAT:
         version = data.get("format_version")
