@@ -73,6 +73,7 @@ bench: $(STAMP)
 	$(BIN)/python -m pip install --quiet -e '.[bench]'
 	$(BIN)/python benchmarks/registration.py
 	$(BIN)/python benchmarks/calibration.py
+	$(BIN)/python benchmarks/pose_selection.py
 	$(BIN)/python benchmarks/campaign.py
 	$(BIN)/python benchmarks/photogrammetry.py
 	$(BIN)/python benchmarks/service.py

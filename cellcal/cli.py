@@ -23,6 +23,7 @@ from cellcal.commands.export import export
 from cellcal.commands.iso9283 import iso9283
 from cellcal.commands.mock import mock
 from cellcal.commands.models import models
+from cellcal.commands.plan import plan
 from cellcal.commands.predict import predict
 from cellcal.commands.register import register
 from cellcal.commands.report import report
@@ -69,6 +70,7 @@ for command in (
     compensate_command,
     iso9283,
     export,
+    plan,
 ):
     cli.add_command(command)
 rig.add_command(rig_capture)

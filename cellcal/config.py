@@ -80,6 +80,8 @@ class CampaignConfig(Strict):
         Field(default_factory=lambda: [4, 4, 5])
     )
     orientation_variation_deg: Annotated[float, Field(ge=0, le=90)] = 30.0
+    # 0: every grid point; N: the N candidate poses that identify the model best
+    optimal_poses: Annotated[int, Field(ge=0, le=10000)] = 0
     dwell_s: Annotated[float, Field(ge=0, le=3600)] = 7.0
     samples_per_pose: Annotated[int, Field(ge=1, le=10000)] = 20
     validation_inside: Annotated[int, Field(ge=0, le=10000)] = 20

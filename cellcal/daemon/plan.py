@@ -17,14 +17,23 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from cellcal.calib.error_model import State, jacobian, parameter_specs
 from cellcal.calib.geometry import Array, so3_exp
+from cellcal.calib.identifiability import analyse as analyse_identifiability
 from cellcal.calib.inverse_kinematics import solve
 from cellcal.calib.kinematics import target_kinematics
+from cellcal.calib.pose_selection import PoseSelection, d_optimal, nearest_neighbour_order
 from cellcal.calib.robot_model import RobotModel
 from cellcal.config import CampaignConfig
+from cellcal.errors import InputError
 
 CALIBRATION = "calibration"
 VALIDATION = "validation"
+#: Wrist orientations tried at each grid point when ``campaign.optimal_poses`` is set.
+CANDIDATE_ORIENTATIONS = 4
+#: and their wrist turned up to this much about each axis (deg), or the campaign's own
+#: orientation_variation_deg where that is more.
+CANDIDATE_VARIATION_DEG = 60.0
 
 
 @dataclass(frozen=True)
@@ -50,8 +59,14 @@ class UnreachablePose:
 
 @dataclass(frozen=True)
 class Plan:
+    """The poses in order, the poses that cannot be reached, and with
+    ``campaign.optimal_poses`` the selection: how many reachable candidates it chose
+    from, and its D-optimality."""
+
     poses: tuple[PlannedPose, ...]
     unreachable: tuple[UnreachablePose, ...]
+    candidates: int = 0
+    selection: PoseSelection | None = None
 
     @property
     def digest(self) -> str:
@@ -96,23 +111,32 @@ def _orientations(rng: np.random.Generator, R0: Array, n: int, deg: float) -> Ar
     return np.array([so3_exp(w) @ R0 for w in v])
 
 
-def make_plan(cfg: CampaignConfig, model: RobotModel, home_q: Array, target_offset: Array) -> Plan:
+def make_plan(
+    cfg: CampaignConfig,
+    model: RobotModel,
+    home_q: Array,
+    target_offset: Array,
+    *,
+    select: bool = True,
+) -> Plan:
     """The campaign's poses for ``model`` starting from ``home_q`` (rad), with the target
-    at ``target_offset`` (mm, flange frame)."""
+    at ``target_offset`` (mm, flange frame). With ``campaign.optimal_poses`` and
+    ``select=False``: every reachable candidate as a calibration pose (for comparisons)."""
     rng = np.random.default_rng(cfg.seed)
     R0 = target_kinematics(model, home_q[None], target_offset, jacobian=False).R_flange[0]
     lo_box = np.asarray(cfg.workspace_min_mm)
     hi_box = np.asarray(cfg.workspace_max_mm)
     groups: list[tuple[str, str, Array, Array]] = []
     cube = cube_points(cfg)
-    groups.append(
-        (
-            CALIBRATION,
-            "cube",
-            cube,
-            _orientations(rng, R0, len(cube), cfg.orientation_variation_deg),
-        )
-    )
+    cube_R = _orientations(rng, R0, len(cube), cfg.orientation_variation_deg)
+    if cfg.optimal_poses:
+        # Candidates: each grid point at its plan orientation and at more seeded ones.
+        more = np.random.default_rng([cfg.seed, 1])
+        extra = CANDIDATE_ORIENTATIONS - 1
+        turn = max(cfg.orientation_variation_deg, CANDIDATE_VARIATION_DEG)
+        cube_R = np.concatenate([cube_R, _orientations(more, R0, extra * len(cube), turn)])
+        cube = np.concatenate([cube, np.tile(cube, (extra, 1))])
+    groups.append((CALIBRATION, "cube", cube, cube_R))
     c = np.asarray(cfg.cube_centre_mm)
     h = cfg.cube_edge_mm / 2.0
     inside = c + rng.uniform(-h, h, (cfg.validation_inside, 3))
@@ -165,4 +189,48 @@ def make_plan(cfg: CampaignConfig, model: RobotModel, home_q: Array, target_offs
                 )
             else:
                 poses.append(PlannedPose(len(poses), role, region, p, qi))
+    if cfg.optimal_poses and select:
+        return _optimal(cfg.optimal_poses, poses, unreachable, model, home_q, target_offset)
     return Plan(tuple(poses), tuple(unreachable))
+
+
+def identification_blocks(
+    model: RobotModel, q: Array, target_offset: Array
+) -> tuple[Array, tuple[str, ...]]:
+    """Per pose, the identification Jacobian's 3×P block of the parameters these poses
+    identify (sensor frame and target offset included), columns scaled to unit length
+    over all poses; and those parameters' names."""
+    state = State(model, target_offset, np.eye(3), np.zeros(3), np.zeros(3))
+    specs = parameter_specs(model)
+    _, J = jacobian(state, q, specs)
+    keep = list(analyse_identifiability(J.reshape(-1, len(specs)), specs).identified)
+    G = J[:, :, keep]
+    norms = np.linalg.norm(G.reshape(-1, len(keep)), axis=0)
+    out: Array = G / np.where(norms > 0, norms, 1.0)
+    return out, tuple(specs[k].name for k in keep)
+
+
+def _optimal(
+    n: int,
+    poses: list[PlannedPose],
+    unreachable: list[UnreachablePose],
+    model: RobotModel,
+    home_q: Array,
+    target_offset: Array,
+) -> Plan:
+    """The plan with the n D-optimal calibration poses of the candidates, in a short
+    tour from home, then the validation poses; unreachable candidates are not poses."""
+    candidates = [p for p in poses if p.role == CALIBRATION]
+    if not candidates:
+        raise InputError("no calibration candidate of the cube is reachable; check the cube")
+    q = np.array([p.q for p in candidates])
+    G, _ = identification_blocks(model, q, target_offset)
+    selection = d_optimal(G, n)
+    chosen = [candidates[k] for k in selection.chosen]
+    order = nearest_neighbour_order(np.array([p.q for p in chosen]), home_q)
+    kept = [chosen[k] for k in order] + [p for p in poses if p.role != CALIBRATION]
+    renumbered = tuple(
+        PlannedPose(i, p.role, p.region, p.target_mm, p.q) for i, p in enumerate(kept)
+    )
+    left = tuple(u for u in unreachable if u.role != CALIBRATION)
+    return Plan(renumbered, left, len(candidates), selection)

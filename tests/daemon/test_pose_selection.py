@@ -1,0 +1,127 @@
+"""D-optimal poses: more information than random picks of the same candidates, the
+campaign's config key, refusals, and a calibration from 24 chosen poses about as good
+as the paper's 80-pose cube on a simulated robot."""
+
+from __future__ import annotations
+
+import importlib.util
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from cellcal.calib.pose_selection import d_optimal, information, nearest_neighbour_order
+from cellcal.config import load_config
+from cellcal.daemon.plan import CALIBRATION, VALIDATION, identification_blocks, make_plan
+from cellcal.errors import InputError
+from cellcal.modelfiles import load_model
+from tests.conftest import TRACKER_CELL
+
+
+@pytest.fixture(scope="module")
+def cell():
+    config = load_config(TRACKER_CELL, relative_paths=False)
+    nominal = load_model(config.robot.model).model
+    home = np.radians(config.robot.home_deg)
+    offset = np.asarray(config.reference_sensor.target_offset_mm, dtype=float)
+    return config, nominal, home, offset
+
+
+def _benchmark():
+    """benchmarks/pose_selection.py, whose comparison the last test runs small."""
+    path = Path(__file__).parents[2] / "benchmarks" / "pose_selection.py"
+    spec = importlib.util.spec_from_file_location("pose_selection_benchmark", path)
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # its dataclasses look their module up
+    spec.loader.exec_module(module)
+    return module
+
+
+def _logdet(M):
+    return np.linalg.slogdet(M)[1]
+
+
+def test_d_optimal_beats_random_picks_of_the_same_candidates(cell):
+    config, nominal, home, offset = cell
+    pool = make_plan(
+        config.campaign.model_copy(update={"optimal_poses": 24}),
+        nominal,
+        home,
+        offset,
+        select=False,
+    )
+    q = np.array([p.q for p in pool.poses if p.role == CALIBRATION])
+    G, names = identification_blocks(nominal, q, offset)
+    assert len(names) == G.shape[2] == 27  # the KR 5 arc's identifiable set, frame included
+    chosen = d_optimal(G, 24)
+    assert len(set(chosen.chosen)) == 24
+    assert chosen.log_det == pytest.approx(_logdet(information(G, list(chosen.chosen))))
+    rng = np.random.default_rng(0)
+    randoms = [_logdet(information(G, rng.choice(len(q), 24, replace=False))) for _ in range(50)]
+    assert chosen.log_det > max(randoms)
+    assert d_optimal(G, 24) == chosen  # deterministic
+    with pytest.raises(InputError, match="at least 9"):
+        d_optimal(G, 8)
+    with pytest.raises(InputError, match="reachable candidates"):
+        d_optimal(G, len(q) + 1)
+
+
+def test_the_campaign_key_picks_n_poses_in_a_short_tour(cell):
+    config, nominal, home, offset = cell
+    full = make_plan(config.campaign, nominal, home, offset)
+    plan = make_plan(
+        config.campaign.model_copy(update={"optimal_poses": 20}), nominal, home, offset
+    )
+    assert plan.count(CALIBRATION) == 20 and plan.selection is not None
+    assert plan.candidates == 320
+    # The validation poses are the full plan's, and every pose is in the box and limits.
+    val = [p for p in plan.poses if p.role == VALIDATION]
+    np.testing.assert_allclose(
+        [p.q for p in val], [p.q for p in full.poses if p.role == VALIDATION]
+    )
+    assert [p.idx for p in plan.poses] == list(range(len(plan.poses)))
+    lo, hi = nominal.limits
+    assert all(((p.q >= lo) & (p.q <= hi)).all() for p in plan.poses)
+    # The same configuration gives the same plan (a resumed campaign checks its digest).
+    again = make_plan(
+        config.campaign.model_copy(update={"optimal_poses": 20}), nominal, home, offset
+    )
+    assert again.digest == plan.digest
+    q = np.array([p.q for p in plan.poses if p.role == CALIBRATION])
+    tour = np.abs(np.diff(np.vstack([home, q]), axis=0)).max(axis=1).sum()
+    rng = np.random.default_rng(1)
+    shuffled = np.vstack([home, q[rng.permutation(len(q))]])
+    assert tour < np.abs(np.diff(shuffled, axis=0)).max(axis=1).sum()
+    assert nearest_neighbour_order(q, home)[0] == int(np.argmin(np.abs(q - home).max(axis=1)))
+
+
+def test_24_chosen_poses_calibrate_about_as_well_as_the_80_pose_cube():
+    (row,) = _benchmark().held_out("kuka-kr5-arc", (24,), (21, 22, 23))
+    print(
+        f"held-out RMS: 24 D-optimal {row.optimal_mm:.4f} mm, 24 random {row.random_mm:.4f} mm, "
+        f"80-pose cube {row.cube_mm:.4f} mm"
+    )
+    assert row.optimal_mm < 1.5 * row.cube_mm
+    assert row.optimal_mm < row.random_mm
+
+
+def test_a_campaign_with_chosen_poses_runs_and_finds_its_plan_again(cell, tmp_path):
+    from cellcal.daemon.campaign import start_campaign, stored_plan
+    from cellcal.daemon.store import Store
+
+    config, _, _, _ = cell
+    config = config.model_copy(
+        update={"campaign": config.campaign.model_copy(update={"optimal_poses": 16})}
+    )
+    db = str(tmp_path / "c.db")
+    out = start_campaign(config, db, config_path=None, mock=True)
+    assert out.plan.count(CALIBRATION) == 16 and out.summary is not None
+    assert out.summary.n_calibration == 16
+    store = Store(db, readonly=True)
+    try:
+        _, again, _ = stored_plan(store, out.campaign_id)
+    finally:
+        store.close()
+    assert again.digest == out.plan.digest  # what --resume checks
