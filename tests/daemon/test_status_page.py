@@ -19,12 +19,11 @@ import pytest
 from cellcal.commands.service_client import call
 from cellcal.daemon.page import FILES, host_allowed, parse_http
 from cellcal.errors import InputError
+from tests.browser import chromium, needs_chromium
 
 ROOT = Path(__file__).resolve().parents[2]
 STATIC = ROOT / "cellcal" / "data" / "status"
 TRACKER_CELL = ROOT / "config" / "mock-cell-tracker.toml"
-CHROMIUM = shutil.which("chromium")
-CHROMEDRIVER = shutil.which("chromedriver")
 
 pytestmark = pytest.mark.timeout(240)
 
@@ -119,28 +118,17 @@ def _short_campaign() -> str:
     return text.replace("validation_per_region = 6", "validation_per_region = 2")
 
 
-@pytest.mark.skipif(
-    CHROMIUM is None or CHROMEDRIVER is None,
-    reason="Debian's chromium and chromium-driver are not installed (make test installs them)",
-)
+@needs_chromium
 def test_the_page_in_chromium_follows_a_campaign_to_its_errors(
     folder: Path, daemon: Callable[..., Any], capsys: pytest.CaptureFixture[str]
 ) -> None:
-    webdriver = pytest.importorskip("selenium.webdriver")
-    from selenium.webdriver.chrome.service import Service as DriverService
-    from selenium.webdriver.common.by import By
-    from selenium.webdriver.support.ui import WebDriverWait
-
     d = daemon(folder, None, 0.03, ["--http", f"{_address()}:0"])
     d.start()
     url = _page_url(d)
-    options = webdriver.ChromeOptions()
-    options.binary_location = str(CHROMIUM)
-    for flag in ["--headless", "--no-sandbox", "--disable-gpu", "--no-first-run"]:
-        options.add_argument(flag)
-    options.add_argument("--disable-background-networking")
-    options.add_argument("--window-size=1280,1500")
-    browser = webdriver.Chrome(options=options, service=DriverService(str(CHROMEDRIVER)))
+    browser = chromium(1280, 1500)
+    from selenium.webdriver.common.by import By
+    from selenium.webdriver.support.ui import WebDriverWait
+
     shots = []
     try:
         browser.set_page_load_timeout(30)

@@ -18,10 +18,9 @@ from cellcal.daemon.campaign import start_campaign
 from cellcal.daemon.report import write_report
 from cellcal.daemon.report_data import METHODS, report_data
 from cellcal.daemon.store import Store
+from tests.browser import chromium, needs_chromium
 
 ROOT = Path(__file__).parents[2]
-CHROMIUM = shutil.which("chromium")
-CHROMEDRIVER = shutil.which("chromedriver")
 
 pytestmark = pytest.mark.timeout(600)
 
@@ -83,14 +82,8 @@ def test_the_reports_numbers_are_the_analysis_numbers(campaign):
     assert "device" in kinds  # the tracker said who it is
 
 
-@pytest.mark.skipif(
-    CHROMIUM is None or CHROMEDRIVER is None,
-    reason="Debian's chromium and chromium-driver are not installed (make test installs them)",
-)
+@needs_chromium
 def test_the_report_page_renders_in_chromium(campaign, capsys):
-    webdriver = pytest.importorskip("selenium.webdriver")
-    from selenium.webdriver.chrome.service import Service as DriverService
-    from selenium.webdriver.common.by import By
 
     folder, db, cid = campaign
     store = Store(db, readonly=True)
@@ -106,13 +99,9 @@ def test_the_report_page_renders_in_chromium(campaign, capsys):
     assert "<script" not in text
     assert not re.search(r'(src|href)="(?!#|data:)', text)
 
-    options = webdriver.ChromeOptions()
-    options.binary_location = str(CHROMIUM)
-    for flag in ["--headless", "--no-sandbox", "--disable-gpu", "--no-first-run"]:
-        options.add_argument(flag)
-    options.add_argument("--disable-background-networking")
-    options.add_argument("--window-size=1280,1200")
-    browser = webdriver.Chrome(options=options, service=DriverService(str(CHROMEDRIVER)))
+    browser = chromium(1280, 1200)
+    from selenium.webdriver.common.by import By
+
     shot = folder / "report-page.png"
     try:
         browser.set_page_load_timeout(60)
