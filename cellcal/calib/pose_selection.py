@@ -10,7 +10,9 @@ parameters' confidence ellipsoid.
 The selection is greedy (add the candidate that raises log det most: by the matrix
 determinant lemma, log det(I₃ + G_k M⁻¹ G_kᵀ) for every candidate at once), then
 Fedorov exchange: swap a chosen pose for a candidate while that raises log det.
-Deterministic; numpy only.
+Deterministic; numpy only. At least ⌊P/3⌋ + 1 poses: 3N equations must outnumber the P
+parameters, or nothing is left to estimate the noise from (the campaign refuses such a
+plan too).
 """
 
 from __future__ import annotations
@@ -33,12 +35,15 @@ MIN_GAIN = 1e-9
 class PoseSelection:
     """The chosen candidates (indices, in the order chosen), the log-determinant of their
     information matrix, its condition number (√ of the information matrix's, i.e. that
-    of the stacked Jacobian), and the exchanges made after the greedy pass."""
+    of the stacked Jacobian), the exchanges made after the greedy pass, and ``history``:
+    log det after the greedy pass and after each exchange pass that changed the set
+    (non-decreasing)."""
 
     chosen: tuple[int, ...]
     log_det: float
     condition_number: float
     exchanges: int
+    history: tuple[float, ...] = ()
 
 
 def information(G: Array, rows: Array | list[int]) -> Array:
@@ -64,13 +69,15 @@ def _logdet(M: Array) -> float:
 def d_optimal(G: Array, n: int, *, max_passes: int = 20) -> PoseSelection:
     """``n`` of the K candidates (G: K×3×P, scaled) that maximise log det Σ G_kᵀ G_k."""
     G = np.asarray(G, dtype=np.float64)
+    if G.ndim != 3 or G.shape[1] != 3 or not np.isfinite(G).all():
+        raise InputError("the candidates' Jacobian must be finite, K × 3 × P")
     K, _, P = G.shape
     if n > K:
         raise InputError(f"{n} poses asked for, {K} reachable candidates")
-    if 3 * n < P:
+    if 3 * n <= P:
         raise InputError(
             f"{n} poses give {3 * n} equations for {P} identifiable parameters; "
-            f"choose at least {-(-P // 3)}"
+            f"choose at least {P // 3 + 1}"
         )
     scale = float(np.mean(np.einsum("kip,kip->p", G, G))) / K
     ridge = RIDGE * scale * np.eye(P)
@@ -84,6 +91,7 @@ def d_optimal(G: Array, n: int, *, max_passes: int = 20) -> PoseSelection:
         free[k] = False
         M = M + G[k].T @ G[k]
     exchanges = 0
+    history = [_logdet(information(G, chosen))]
     for _ in range(max_passes):
         improved = False
         for slot in range(n):
@@ -100,10 +108,11 @@ def d_optimal(G: Array, n: int, *, max_passes: int = 20) -> PoseSelection:
                 improved = True
         if not improved:
             break
+        history.append(_logdet(information(G, chosen)))
     info = information(G, chosen)
     eig = np.linalg.eigvalsh(info)
     cond = float(np.sqrt(eig[-1] / eig[0])) if eig[0] > 0 else float("inf")
-    return PoseSelection(tuple(chosen), _logdet(info), cond, exchanges)
+    return PoseSelection(tuple(chosen), _logdet(info), cond, exchanges, tuple(history))
 
 
 def nearest_neighbour_order(q: Array, start: Array) -> tuple[int, ...]:

@@ -2,35 +2,72 @@
 
 from __future__ import annotations
 
+import csv
+import io
 import math
 from typing import Any
 
 import click
 import numpy as np
 
-from cellcal.calib.error_model import State, jacobian, parameter_specs
-from cellcal.calib.identifiability import analyse as analyse_identifiability
 from cellcal.commands.output import print_json
 from cellcal.commands.run import cell_config
-from cellcal.daemon.plan import CALIBRATION, Plan, make_plan
+from cellcal.config import CellConfig
+from cellcal.daemon.plan import (
+    CALIBRATION,
+    Plan,
+    cell_seconds,
+    make_plan,
+    plan_identifiability,
+)
+from cellcal.errors import InputError
 from cellcal.modelfiles import load_model, write_atomically
 
 WHY = {"rank": "not identifiable from these poses", "weak": "hidden by noise", "fixed": "fixed"}
 
 
 def plan_csv(plan: Plan, dof: int) -> str:
-    """``idx,role,region,reachable,q1..qN,x,y,z`` (joints deg; target mm, base frame):
-    every pose, then the unreachable ones with empty joints and the reason."""
-    head = ["idx", "role", "region", "reachable", *(f"q{i}" for i in range(1, dof + 1))]
-    lines = [",".join([*head, "x", "y", "z", "reason"])]
+    """``idx,role,region,reachable,q1..qN,x,y,z`` (joints deg; target mm, base frame) and
+    an added ``reason`` column: every pose, then the unreachable ones (no idx, empty
+    joints, ``reachable`` = ``no`` and the reason)."""
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    joints = [f"q{i}" for i in range(1, dof + 1)]
+    w.writerow(["idx", "role", "region", "reachable", *joints, "x", "y", "z", "reason"])
     for p in plan.poses:
         values = [*np.degrees(p.q), *p.target_mm]
-        row = [str(p.idx), p.role, p.region, "yes", *(f"{v:.6f}" for v in values), ""]
-        lines.append(",".join(row))
+        w.writerow([p.idx, p.role, p.region, "yes", *(f"{v:.6f}" for v in values), ""])
     for u in plan.unreachable:
-        row = ["", u.role, u.region, "no", *([""] * dof), *(f"{v:.6f}" for v in u.target_mm)]
-        lines.append(",".join([*row, f'"{u.reason}"']))
-    return "\n".join(lines) + "\n"
+        xyz = [f"{v:.6f}" for v in u.target_mm]
+        w.writerow(["", u.role, u.region, "no", *([""] * dof), *xyz, u.reason])
+    return buf.getvalue()
+
+
+def _poses(plan: Plan) -> list[dict[str, Any]]:
+    """The plan's poses for ``--json`` (joints deg, target mm), unreachable ones last."""
+    out: list[dict[str, Any]] = [
+        {
+            "idx": p.idx,
+            "role": p.role,
+            "region": p.region,
+            "reachable": True,
+            "q_deg": [round(float(v), 6) for v in np.degrees(p.q)],
+            "target_mm": [round(float(v), 6) for v in p.target_mm],
+        }
+        for p in plan.poses
+    ]
+    out += [
+        {
+            "idx": None,
+            "role": u.role,
+            "region": u.region,
+            "reachable": False,
+            "reason": u.reason,
+            "target_mm": [round(float(v), 6) for v in u.target_mm],
+        }
+        for u in plan.unreachable
+    ]
+    return out
 
 
 @click.command("plan")
@@ -49,17 +86,20 @@ def plan(
 ) -> None:
     """Every pose of the campaign's plan, reachable or not and why, the condition number
     of the calibration poses and the parameters they identify, and the cell time it
-    takes; nothing connects or moves. The robot's home joints come from the
-    configuration (robot.home_deg)."""
+    takes; nothing connects or moves. The robot's start is the configuration's
+    robot.home_deg (the campaign starts there too), never the robot's reading.
+    --optimal 0: the whole cube."""
     config, source = cell_config(config_path, mock)
     campaign = config.campaign
     if optimal is not None:
         campaign = campaign.model_copy(update={"optimal_poses": optimal})
     nominal = load_model(config.robot.model).model
     home = np.radians(np.asarray(config.robot.home_deg, dtype=np.float64))
+    if len(home) != nominal.dof:
+        raise InputError(f"robot.home_deg has {len(home)} joints, the model {nominal.dof}")
     offset = np.asarray(config.reference_sensor.target_offset_mm, dtype=np.float64)
     planned = make_plan(campaign, nominal, home, offset)
-    q_cal = np.array([p.q for p in planned.poses if p.role == CALIBRATION])
+    speed = _joint_speed_deg_s(config)
     summary: dict[str, Any] = {
         "config": source,
         "model": nominal.name,
@@ -69,31 +109,34 @@ def plan(
         "n_unreachable": len(planned.unreachable),
         "regions": _regions(planned),
     }
-    if len(q_cal):
-        state = State(nominal, offset, np.eye(3), np.zeros(3), np.zeros(3))
-        specs = parameter_specs(nominal)
-        _, J = jacobian(state, q_cal, specs)
-        ident = analyse_identifiability(J.reshape(-1, len(specs)), specs)
+    ident = plan_identifiability(nominal, planned, offset)
+    if ident is not None:
         summary["condition_number"] = ident.condition_number
-        summary["identified"] = [specs[i].name for i in ident.identified]
+        summary["identified"] = list(ident.identified_names)
         summary["unidentifiable"] = {
-            specs[i].name: WHY[ident.reason(i)] for i in ident.unidentifiable
+            ident.specs[i].name: WHY[ident.reason(i)] for i in ident.unidentifiable
         }
     if planned.selection is not None:
+        sel = planned.selection
         summary["optimal"] = {
-            "n": len(planned.selection.chosen),
+            "n": len(sel.chosen),
             "candidates": planned.candidates,
-            "log_det": planned.selection.log_det,
-            "exchanges": planned.selection.exchanges,
+            "log_det": sel.log_det,
+            "exchanges": sel.exchanges,
+            "history": list(sel.history),
         }
-    summary["cell_time_min"] = _minutes(planned, home, config, campaign.dwell_s)
+    summary["dwell_s"] = campaign.dwell_s
+    summary["joint_speed_deg_s"] = speed
+    q_all = np.array([p.q for p in planned.poses]).reshape(-1, nominal.dof)
+    seconds = cell_seconds(q_all, home, math.radians(speed), campaign.dwell_s)
+    summary["cell_time_min"] = seconds / 60.0
     if out_path is not None:
         write_atomically(out_path, plan_csv(planned, nominal.dof))
         summary["out"] = out_path
     if as_json:
-        print_json(summary)
+        print_json({**summary, "poses": _poses(planned)})
         return
-    _echo(planned, summary, campaign.dwell_s)
+    _echo(planned, summary)
 
 
 def _regions(p: Plan) -> dict[str, int]:
@@ -104,19 +147,13 @@ def _regions(p: Plan) -> dict[str, int]:
     return out
 
 
-def _minutes(p: Plan, home: np.ndarray, config: Any, dwell_s: float) -> float:
-    """Dwell at every pose plus each move, its largest joint turn at
-    simulation.joint_speed_deg_s × robot.speed (an estimate: a real controller's profile
-    differs)."""
-    speed = math.radians(config.simulation.joint_speed_deg_s) * config.robot.speed
-    here, total = home, 0.0
-    for pose in p.poses:
-        total += float(np.abs(pose.q - here).max()) / speed + dwell_s
-        here = pose.q
-    return total / 60.0
+def _joint_speed_deg_s(config: CellConfig) -> float:
+    """The joint speed the cell time assumes: simulation.joint_speed_deg_s (60 °/s unless
+    set; the simulated robot's full speed) × robot.speed. A real controller's differs."""
+    return float(config.simulation.joint_speed_deg_s * config.robot.speed)
 
 
-def _echo(p: Plan, s: dict[str, Any], dwell_s: float) -> None:
+def _echo(p: Plan, s: dict[str, Any]) -> None:
     click.echo(f"  {'idx':>4} {'role':<12}{'region':<7} {'q1..qN (deg)':<48} target (mm)")
     for pose in p.poses:
         q = " ".join(f"{v:7.2f}" for v in np.degrees(pose.q))
@@ -144,6 +181,7 @@ def _echo(p: Plan, s: dict[str, Any], dwell_s: float) -> None:
         left = "; ".join(f"{k} ({why})" for k, why in s["unidentifiable"].items())
         click.echo(f"left at nominal: {left or 'none'}")
     click.echo(
-        f"cell time about {s['cell_time_min']:.1f} min ({dwell_s:g} s dwell per pose, moves at "
-        "the configured speed)"
+        f"cell time about {s['cell_time_min']:.1f} min: {s['dwell_s']:g} s dwell per pose, "
+        f"moves at {s['joint_speed_deg_s']:g} °/s on the joint that turns most "
+        "(simulation.joint_speed_deg_s × robot.speed; a real controller's profile differs)"
     )

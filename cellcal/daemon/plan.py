@@ -17,8 +17,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from cellcal.calib.error_model import State, jacobian, parameter_specs
+from cellcal.calib.error_model import ParameterSpec, State, jacobian, parameter_specs, predict
 from cellcal.calib.geometry import Array, so3_exp
+from cellcal.calib.identifiability import Identifiability
 from cellcal.calib.identifiability import analyse as analyse_identifiability
 from cellcal.calib.inverse_kinematics import solve
 from cellcal.calib.kinematics import target_kinematics
@@ -194,15 +195,51 @@ def make_plan(
     return Plan(tuple(poses), tuple(unreachable))
 
 
+def cell_seconds(q: Array, start: Array, speed_rad_s: float, dwell_s: float) -> float:
+    """The time the poses ``q`` (N×n, rad, in order) take from ``start``: the dwell at
+    each plus each move, its largest joint turn at ``speed_rad_s`` (an estimate that
+    ignores acceleration and the controller's own motion profile)."""
+    path = np.vstack([np.asarray(start, dtype=np.float64)[None], q])
+    turns = np.abs(np.diff(path, axis=0)).max(axis=1) if len(q) else np.zeros(0)
+    return float(turns.sum() / speed_rad_s + dwell_s * len(q))
+
+
+def identification_jacobian(
+    model: RobotModel, q: Array, target_offset: Array
+) -> tuple[Array, tuple[ParameterSpec, ...]]:
+    """The identification Jacobian (N×3×P) at the poses ``q`` (rad) over every parameter
+    a calibration estimates, sensor frame and target offset included, as the
+    identification sets it up: the sensor frame's rotation about the centroid of the
+    measured points (which moves the condition number, not how the D-criterion ranks
+    sets of poses)."""
+    state = State(model, target_offset, np.eye(3), np.zeros(3), np.zeros(3))
+    centroid = predict(state, q).mean(axis=0)
+    state = State(model, target_offset, np.eye(3), np.zeros(3), centroid)
+    specs = parameter_specs(model)
+    _, J = jacobian(state, q, specs)
+    return J, specs
+
+
+def plan_identifiability(
+    model: RobotModel, plan: Plan, target_offset: Array
+) -> Identifiability | None:
+    """What the plan's calibration poses identify (None without any): the parameters,
+    those left at nominal and why, and the condition number of the column-scaled
+    Jacobian of the identified set."""
+    q = np.array([p.q for p in plan.poses if p.role == CALIBRATION])
+    if len(q) == 0:
+        return None
+    J, specs = identification_jacobian(model, q, target_offset)
+    return analyse_identifiability(J.reshape(-1, len(specs)), specs)
+
+
 def identification_blocks(
     model: RobotModel, q: Array, target_offset: Array
 ) -> tuple[Array, tuple[str, ...]]:
     """Per pose, the identification Jacobian's 3×P block of the parameters these poses
     identify (sensor frame and target offset included), columns scaled to unit length
     over all poses; and those parameters' names."""
-    state = State(model, target_offset, np.eye(3), np.zeros(3), np.zeros(3))
-    specs = parameter_specs(model)
-    _, J = jacobian(state, q, specs)
+    J, specs = identification_jacobian(model, q, target_offset)
     keep = list(analyse_identifiability(J.reshape(-1, len(specs)), specs).identified)
     G = J[:, :, keep]
     norms = np.linalg.norm(G.reshape(-1, len(keep)), axis=0)

@@ -18,57 +18,96 @@ def _cli(*args: str) -> subprocess.CompletedProcess[str]:
     )
 
 
-def test_the_plan_its_csv_and_its_json(tmp_path):
-    run = _cli("plan", "--config", str(TRACKER_CELL))
+def test_the_mock_cells_plan_is_printed():
+    run = _cli("plan", "--mock")
     assert run.returncode == 0, run.stderr
+    lines = run.stdout.splitlines()
+    # A header, one line per pose (idx, role, region, six joints, target), then the numbers.
+    rows = [line.split() for line in lines]
+    poses = [r for r in rows if r[:1] and r[0].isdigit() and r[1] in ("calibration", "validation")]
+    assert len(poses) == 128 and [int(p[0]) for p in poses] == list(range(128))
+    assert poses[0][1:3] == ["calibration", "cube"] and len(poses[0]) == 3 + 6 + 3
+    assert sum("unreachable: no joint solution within the limits" in x for x in lines) == 2
     assert "128 poses (80 calibration, 48 validation), 2 unreachable" in run.stdout
-    assert "condition number" in run.stdout and "left at nominal: theta1" in run.stdout
+    assert "condition number " in run.stdout and "left at nominal: theta1" in run.stdout
+    assert "7 s dwell per pose, moves at 15 °/s" in run.stdout
+
+
+def test_the_plans_csv_and_json(tmp_path):
     out = tmp_path / "plan.csv"
     run = _cli("plan", "--config", str(TRACKER_CELL), "--out", str(out), "--json")
     assert run.returncode == 0, run.stderr
     s = json.loads(run.stdout)
+    assert {
+        "config",
+        "model",
+        "n_poses",
+        "n_calibration",
+        "n_validation",
+        "n_unreachable",
+        "regions",
+        "condition_number",
+        "identified",
+        "unidentifiable",
+        "dwell_s",
+        "joint_speed_deg_s",
+        "cell_time_min",
+        "out",
+        "poses",
+    } <= set(s)
     assert (s["n_poses"], s["n_calibration"], s["n_unreachable"]) == (128, 80, 2)
     assert "theta1" in s["unidentifiable"] and "a2" in s["identified"]
-    assert s["condition_number"] > 1 and s["cell_time_min"] > 128 * 7 / 60
+    assert 1 < s["condition_number"] < 1000
+    assert s["cell_time_min"] > 128 * 7 / 60
+    assert len(s["poses"]) == 130 and s["poses"][-1]["reachable"] is False
     rows = list(csv.DictReader(io.StringIO(out.read_text())))
-    assert list(rows[0])[:10] == [
+    assert list(rows[0])[:13] == [
         "idx",
         "role",
         "region",
         "reachable",
-        "q1",
-        "q2",
-        "q3",
-        "q4",
-        "q5",
-        "q6",
+        *(f"q{i}" for i in range(1, 7)),
+        "x",
+        "y",
+        "z",
     ]
-    assert list(rows[0])[10:13] == ["x", "y", "z"]
-    assert len(rows) == 130
+    assert len(rows) == 130  # every pose, the 2 unreachable ones too
     assert sum(r["reachable"] == "no" for r in rows) == 2
-    assert all(r["q1"] == "" for r in rows if r["reachable"] == "no")
+    assert all(r["q1"] == "" and r["reason"] for r in rows if r["reachable"] == "no")
+    first = s["poses"][0]
+    assert abs(float(rows[0]["q1"]) - first["q_deg"][0]) < 1e-5
+    assert abs(float(rows[0]["z"]) - first["target_mm"][2]) < 1e-5
 
 
 def test_optimal_picks_n_calibration_poses(tmp_path):
-    run = _cli("plan", "--mock", "--optimal", "24", "--json")
+    out = tmp_path / "plan.csv"
+    run = _cli("plan", "--mock", "--optimal", "24", "--json", "--out", str(out))
     assert run.returncode == 0, run.stderr
     s = json.loads(run.stdout)
     assert s["n_calibration"] == 24 and s["optimal"]["n"] == 24
     assert s["optimal"]["candidates"] == 320
+    rows = list(csv.DictReader(io.StringIO(out.read_text())))
+    assert sum(r["role"] == "calibration" for r in rows) == 24
+    assert len(rows) == 24 + 48 + 2
 
 
 def test_bad_requests_are_one_line(tmp_path):
     run = _cli("plan", "--mock", "--optimal", "5")
     assert run.returncode == 2 and run.stderr.count("\n") == 1
-    assert "identifiable parameters" in run.stderr
+    assert "identifiable parameters; choose at least 10" in run.stderr
     run = _cli("plan", "--mock", "--optimal", "5000")
-    assert run.returncode == 2 and "candidates" in run.stderr
+    assert run.returncode == 2 and run.stderr.count("\n") == 1
+    assert "320 reachable candidates" in run.stderr
     far = tmp_path / "far.toml"
     far.write_text(
         TRACKER_CELL.read_text().replace(
             "cube_centre_mm = [750.0, 0.0, 1000.0]", "cube_centre_mm = [750.0, 0.0, 1950.0]"
         )
     )
-    run = _cli("plan", "--config", str(far))
+    run = _cli("plan", "--config", str(far), "--out", str(tmp_path / "far.csv"))
     assert run.returncode == 0, run.stderr
     assert "unreachable: outside the workspace box" in run.stdout
+    rows = list(csv.DictReader(io.StringIO((tmp_path / "far.csv").read_text())))
+    boxed = [r for r in rows if r["reason"] == "outside the workspace box"]
+    assert any(r["role"] == "calibration" for r in boxed)
+    assert all(r["reachable"] == "no" and r["q1"] == "" for r in boxed)

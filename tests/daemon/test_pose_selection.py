@@ -1,6 +1,6 @@
 """D-optimal poses: more information than random picks of the same candidates, the
-campaign's config key, refusals, and a calibration from 24 chosen poses about as good
-as the paper's 80-pose cube on a simulated robot."""
+campaign's config key, refusals, and a calibration from 30 chosen poses about as good
+as the paper's 80-pose cube on simulated robots."""
 
 from __future__ import annotations
 
@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from cellcal.calib.kinematics import target_kinematics
 from cellcal.calib.pose_selection import d_optimal, information, nearest_neighbour_order
 from cellcal.config import load_config
 from cellcal.daemon.plan import CALIBRATION, VALIDATION, identification_blocks, make_plan
@@ -43,10 +44,11 @@ def _logdet(M):
     return np.linalg.slogdet(M)[1]
 
 
-def test_d_optimal_beats_random_picks_of_the_same_candidates(cell):
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_d_optimal_beats_random_picks_of_the_same_candidates(cell, seed):
     config, nominal, home, offset = cell
     pool = make_plan(
-        config.campaign.model_copy(update={"optimal_poses": 24}),
+        config.campaign.model_copy(update={"optimal_poses": 24, "seed": seed}),
         nominal,
         home,
         offset,
@@ -58,14 +60,28 @@ def test_d_optimal_beats_random_picks_of_the_same_candidates(cell):
     chosen = d_optimal(G, 24)
     assert len(set(chosen.chosen)) == 24
     assert chosen.log_det == pytest.approx(_logdet(information(G, list(chosen.chosen))))
-    rng = np.random.default_rng(0)
+    # Exchanges only ever raise the determinant, and end where the result says.
+    assert np.all(np.diff(chosen.history) > -1e-6) and chosen.history[-1] == chosen.log_det
+    rng = np.random.default_rng(seed)
     randoms = [_logdet(information(G, rng.choice(len(q), 24, replace=False))) for _ in range(50)]
     assert chosen.log_det > max(randoms)
     assert d_optimal(G, 24) == chosen  # deterministic
-    with pytest.raises(InputError, match="at least 9"):
-        d_optimal(G, 8)
-    with pytest.raises(InputError, match="reachable candidates"):
-        d_optimal(G, len(q) + 1)
+
+
+def test_too_few_or_too_many_poses_are_refused(cell):
+    config, nominal, home, offset = cell
+    rng = np.random.default_rng(3)
+    G = rng.normal(size=(40, 3, 27))
+    # 3N equations must outnumber the 27 parameters, as the campaign itself demands.
+    with pytest.raises(InputError, match="at least 10"):
+        d_optimal(G, 9)
+    assert len(d_optimal(G, 10).chosen) == 10
+    with pytest.raises(InputError, match="40 reachable candidates"):
+        d_optimal(G, 41)
+    with pytest.raises(InputError, match="finite"):
+        d_optimal(np.full((40, 3, 27), np.nan), 12)
+    with pytest.raises(InputError, match="at least 10"):
+        make_plan(config.campaign.model_copy(update={"optimal_poses": 5}), nominal, home, offset)
 
 
 def test_the_campaign_key_picks_n_poses_in_a_short_tour(cell):
@@ -84,6 +100,12 @@ def test_the_campaign_key_picks_n_poses_in_a_short_tour(cell):
     assert [p.idx for p in plan.poses] == list(range(len(plan.poses)))
     lo, hi = nominal.limits
     assert all(((p.q >= lo) & (p.q <= hi)).all() for p in plan.poses)
+    box_lo, box_hi = np.array(config.campaign.workspace_min_mm), config.campaign.workspace_max_mm
+    assert all(((p.target_mm >= box_lo) & (p.target_mm <= box_hi)).all() for p in plan.poses)
+    # The chosen poses are where the nominal model puts the target: reachable as planned.
+    q_all = np.array([p.q for p in plan.poses])
+    reached = target_kinematics(nominal, q_all, offset, jacobian=False).p
+    np.testing.assert_allclose(reached, [p.target_mm for p in plan.poses], atol=1e-3)
     # The same configuration gives the same plan (a resumed campaign checks its digest).
     again = make_plan(
         config.campaign.model_copy(update={"optimal_poses": 20}), nominal, home, offset
@@ -97,14 +119,17 @@ def test_the_campaign_key_picks_n_poses_in_a_short_tour(cell):
     assert nearest_neighbour_order(q, home)[0] == int(np.argmin(np.abs(q - home).max(axis=1)))
 
 
-def test_24_chosen_poses_calibrate_about_as_well_as_the_80_pose_cube():
-    (row,) = _benchmark().held_out("kuka-kr5-arc", (24,), (21, 22, 23))
+def test_30_chosen_poses_calibrate_about_as_well_as_the_80_pose_cube():
+    # The median over ten simulated robots: one robot's held-out error varies by 2× with
+    # its noise draw, so fewer robots would test luck.
+    (row,) = _benchmark().held_out("kuka-kr5-arc", (30,), tuple(range(31, 41)))
     print(
-        f"held-out RMS: 24 D-optimal {row.optimal_mm:.4f} mm, 24 random {row.random_mm:.4f} mm, "
+        f"held-out RMS: 30 D-optimal {row.optimal_mm:.4f} mm, 30 random {row.random_mm:.4f} mm, "
         f"80-pose cube {row.cube_mm:.4f} mm"
     )
     assert row.optimal_mm < 1.5 * row.cube_mm
     assert row.optimal_mm < row.random_mm
+    assert row.minutes < 0.5 * row.cube_minutes
 
 
 def test_a_campaign_with_chosen_poses_runs_and_finds_its_plan_again(cell, tmp_path):
