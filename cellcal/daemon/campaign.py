@@ -14,8 +14,6 @@ from typing import Any
 
 import numpy as np
 
-from cellcal.calib.error_model import State, jacobian, parameter_specs
-from cellcal.calib.identifiability import analyse as analyse_identifiability
 from cellcal.calib.robot_model import RobotModel
 from cellcal.clock import Clock, SimulatedClock, WallClock
 from cellcal.config import CellConfig, config_from_dict, upgrade_stored
@@ -23,7 +21,7 @@ from cellcal.daemon.analysis import CampaignSummary, analyse
 from cellcal.daemon.devices import Devices, build_devices
 from cellcal.daemon.engine import Acquisition, PhaseWatcher, acquire
 from cellcal.daemon.locks import RunLock, robot_claim
-from cellcal.daemon.plan import CALIBRATION, VALIDATION, Plan, make_plan
+from cellcal.daemon.plan import CALIBRATION, VALIDATION, Plan, make_plan, plan_identifiability
 from cellcal.daemon.records import (
     CampaignEnded,
     CampaignEvent,
@@ -72,11 +70,8 @@ def _plan(config: CellConfig) -> tuple[Plan, RobotModel]:
     if plan.count(VALIDATION) == 0:
         raise CampaignError("no validation pose of the plan is reachable")
     # Refuse before any motion a plan that cannot identify what it will need to.
-    q = np.array([p.q for p in plan.poses if p.role == CALIBRATION])
-    state = State(nominal, target_offset, np.eye(3), np.zeros(3), np.zeros(3))
-    specs = parameter_specs(nominal)
-    _, J = jacobian(state, q, specs)
-    needed = len(analyse_identifiability(J.reshape(-1, len(specs)), specs).identified)
+    ident = plan_identifiability(nominal, plan, target_offset)
+    needed = 0 if ident is None else len(ident.identified)
     if 3 * n_cal <= needed:
         raise CampaignError(
             f"{n_cal} calibration poses give {3 * n_cal} equations for {needed} identifiable "

@@ -127,9 +127,10 @@ def poses_csv(data: PoseData) -> str:
     return "\n".join(lines) + "\n"
 
 
-def _timeline(store: Store, campaign_id: int) -> dict[str, str]:
-    """When the campaign was created and its poses stored (UTC), and its acquisition time
-    on the campaign's clock (simulated seconds in mock mode)."""
+def _timeline(store: Store, campaign_id: int) -> tuple[float, dict[str, str]]:
+    """The campaign's dwell (s), and the page's rows about what it did: its plan, when it
+    was created and its poses stored (UTC), its acquisition time on the campaign's clock
+    (simulated seconds in mock mode)."""
     created, dwell, config_json = store.conn.execute(
         "SELECT created, dwell_s, config_json FROM campaigns WHERE id = ?", (campaign_id,)
     ).fetchone()
@@ -142,7 +143,7 @@ def _timeline(store: Store, campaign_id: int) -> dict[str, str]:
         WHERE campaign_id = ?""",
         (campaign_id,),
     ).fetchone()
-    out = {"created": str(created), "dwell_s": f"{float(dwell):g}"}
+    out = {"created": str(created)}
     c = json.loads(config_json).get("campaign", {})
     with contextlib.suppress(KeyError, TypeError, ValueError):
         grid = "×".join(str(int(k)) for k in c["grid"])
@@ -156,7 +157,7 @@ def _timeline(store: Store, campaign_id: int) -> dict[str, str]:
         out["first pose stored"] = str(first)
         out["last pose stored"] = str(last)
         out["acquisition (campaign clock)"] = f"{(t1 - t0) / 60:.1f} min"
-    return out
+    return float(dwell), out
 
 
 @dataclass(frozen=True)
@@ -213,10 +214,8 @@ def write_report(
         files[f"validation-{sensor}.csv"] = measurements_csv(data, sensor, VALIDATION)
     if model is not None:
         files["model.toml"] = str(model[0])
-    timeline = _timeline(store, cid)
-    data_for_page = report_data(
-        store, cid, {**facts, "dwell_s": float(timeline.pop("dwell_s"))}, methods=methods
-    )
+    dwell_s, timeline = _timeline(store, cid)
+    data_for_page = report_data(store, cid, {**facts, "dwell_s": dwell_s}, methods=methods)
     files["index.html"] = report_html(data_for_page, timeline)
     for name, text in files.items():
         write_atomically(folder / name, text)
