@@ -12,7 +12,7 @@ model declares and no other, so ``sensor.0.move_timeout_s`` is refused for a tra
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Annotated, Any, Literal
 
 from pydantic import Field, PlainValidator, SerializeAsAny, ValidationError, model_validator
 from pydantic_core import PydanticCustomError
@@ -82,6 +82,9 @@ class CampaignConfig(Strict):
     orientation_variation_deg: Annotated[float, Field(ge=0, le=90)] = 30.0
     # 0: every grid point; N: the N candidate poses that identify the model best
     optimal_poses: Annotated[int, Field(ge=0, le=10000)] = 0
+    # which poses are optimal: D (the parameters' confidence volume, the default) or I
+    # (the mean prediction variance inside the cube and in the validation regions)
+    optimal_criterion: Literal["D", "I"] = "D"
     dwell_s: Annotated[float, Field(ge=0, le=3600)] = 7.0
     samples_per_pose: Annotated[int, Field(ge=1, le=10000)] = 20
     validation_inside: Annotated[int, Field(ge=0, le=10000)] = 20

@@ -17,8 +17,10 @@ from cellcal.daemon.plan import (
     CALIBRATION,
     Plan,
     cell_seconds,
+    expected_rms,
     make_plan,
     plan_identifiability,
+    workspace_poses,
 )
 from cellcal.errors import InputError
 from cellcal.modelfiles import load_model, write_atomically
@@ -79,20 +81,35 @@ def _poses(plan: Plan) -> list[dict[str, Any]]:
     help="Pick this many calibration poses that identify the model best (D-optimal); "
     "overrides campaign.optimal_poses.",
 )
+@click.option(
+    "--criterion",
+    type=click.Choice(["D", "I"]),
+    help="What --optimal optimises: D, the parameters' confidence volume; I, the mean "
+    "prediction variance in the cube and the validation regions; overrides "
+    "campaign.optimal_criterion (D unless set).",
+)
 @click.option("--out", "out_path", help="Write the plan as CSV here.")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout.")
 def plan(
-    config_path: str | None, mock: bool, optimal: int | None, out_path: str | None, as_json: bool
+    config_path: str | None,
+    mock: bool,
+    optimal: int | None,
+    criterion: str | None,
+    out_path: str | None,
+    as_json: bool,
 ) -> None:
     """Every pose of the campaign's plan, reachable or not and why, the condition number
     of the calibration poses and the parameters they identify, and the cell time it
-    takes; nothing connects or moves. The robot's start is the configuration's
-    robot.home_deg (the campaign starts there too), never the robot's reading.
-    --optimal 0: the whole cube."""
+    takes, and the error a calibration from these poses is expected to leave in the
+    cube and the validation regions (in units of the sensor's noise); nothing connects
+    or moves. The robot's start is the configuration's robot.home_deg (the campaign
+    starts there too), never the robot's reading. --optimal 0: the whole cube."""
     config, source = cell_config(config_path, mock)
     campaign = config.campaign
     if optimal is not None:
         campaign = campaign.model_copy(update={"optimal_poses": optimal})
+    if criterion is not None:
+        campaign = campaign.model_copy(update={"optimal_criterion": criterion})
     nominal = load_model(config.robot.model).model
     home = np.radians(np.asarray(config.robot.home_deg, dtype=np.float64))
     if len(home) != nominal.dof:
@@ -116,9 +133,15 @@ def plan(
         summary["unidentifiable"] = {
             ident.specs[i].name: WHY[ident.reason(i)] for i in ident.unidentifiable
         }
+    q_cal = np.array([p.q for p in planned.poses if p.role == CALIBRATION])
+    workspace = workspace_poses(campaign, nominal, home, offset)
+    expected = expected_rms(nominal, q_cal, offset, workspace)
+    if expected is not None:
+        summary["expected_rms_sigma"] = expected
     if planned.selection is not None:
         sel = planned.selection
         summary["optimal"] = {
+            "criterion": sel.criterion,
             "n": len(sel.chosen),
             "candidates": planned.candidates,
             "log_det": sel.log_det,
@@ -170,8 +193,8 @@ def _echo(p: Plan, s: dict[str, Any]) -> None:
     if "optimal" in s:
         o = s["optimal"]
         click.echo(
-            f"D-optimal: {o['n']} calibration poses of {o['candidates']} reachable candidates "
-            f"(log det {o['log_det']:.2f}, {o['exchanges']} exchanges)"
+            f"{o['criterion']}-optimal: {o['n']} calibration poses of {o['candidates']} "
+            f"reachable candidates (log det {o['log_det']:.2f}, {o['exchanges']} exchanges)"
         )
     if "condition_number" in s:
         click.echo(
@@ -180,6 +203,11 @@ def _echo(p: Plan, s: dict[str, Any]) -> None:
         )
         left = "; ".join(f"{k} ({why})" for k, why in s["unidentifiable"].items())
         click.echo(f"left at nominal: {left or 'none'}")
+    if "expected_rms_sigma" in s:
+        click.echo(
+            f"expected RMS error in the cube and the validation regions after calibration: "
+            f"{s['expected_rms_sigma']:.3f} × the sensor's noise (σ per coordinate)"
+        )
     click.echo(
         f"cell time about {s['cell_time_min']:.1f} min: {s['dwell_s']:g} s dwell per pose, "
         f"moves at {s['joint_speed_deg_s']:g} °/s on the joint that turns most "

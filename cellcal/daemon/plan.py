@@ -13,7 +13,7 @@ silently.
 from __future__ import annotations
 
 import hashlib
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -23,7 +23,13 @@ from cellcal.calib.identifiability import Identifiability
 from cellcal.calib.identifiability import analyse as analyse_identifiability
 from cellcal.calib.inverse_kinematics import solve
 from cellcal.calib.kinematics import target_kinematics
-from cellcal.calib.pose_selection import PoseSelection, d_optimal, nearest_neighbour_order
+from cellcal.calib.pose_selection import (
+    PoseSelection,
+    d_optimal,
+    i_optimal,
+    nearest_neighbour_order,
+    prediction_rms,
+)
 from cellcal.calib.robot_model import RobotModel
 from cellcal.config import CampaignConfig
 from cellcal.errors import InputError
@@ -35,6 +41,12 @@ CANDIDATE_ORIENTATIONS = 4
 #: and their wrist turned up to this much about each axis (deg), or the campaign's own
 #: orientation_variation_deg where that is more.
 CANDIDATE_VARIATION_DEG = 60.0
+#: The workspace points the prediction is judged at (I-optimal selection, the plan's
+#: expected error): drawn like the validation poses, from another seed (so that the
+#: validation poses stay held out), this many inside the cube and per validation region.
+WORKSPACE_INSIDE = 60
+WORKSPACE_PER_REGION = 20
+WORKSPACE_SEED = 7919
 
 
 @dataclass(frozen=True)
@@ -62,7 +74,7 @@ class UnreachablePose:
 class Plan:
     """The poses in order, the poses that cannot be reached, and with
     ``campaign.optimal_poses`` the selection: how many reachable candidates it chose
-    from, and its D-optimality."""
+    from, and its criterion's figures."""
 
     poses: tuple[PlannedPose, ...]
     unreachable: tuple[UnreachablePose, ...]
@@ -191,8 +203,27 @@ def make_plan(
             else:
                 poses.append(PlannedPose(len(poses), role, region, p, qi))
     if cfg.optimal_poses and select:
-        return _optimal(cfg.optimal_poses, poses, unreachable, model, home_q, target_offset)
+        workspace = workspace_poses(cfg, model, home_q, target_offset)
+        return _optimal(cfg, poses, unreachable, model, home_q, target_offset, workspace)
     return Plan(tuple(poses), tuple(unreachable))
+
+
+def workspace_poses(
+    cfg: CampaignConfig, model: RobotModel, home_q: Array, target_offset: Array
+) -> Array:
+    """Joint readings (rad) of the workspace points the prediction is judged at: inside
+    the cube and in the validation regions, drawn like the validation poses but from
+    another seed; the unreachable ones left out."""
+    points = cfg.model_copy(
+        update={
+            "seed": cfg.seed + WORKSPACE_SEED,
+            "optimal_poses": 0,
+            "validation_inside": WORKSPACE_INSIDE,
+            "validation_per_region": WORKSPACE_PER_REGION,
+        }
+    )
+    plan = make_plan(points, model, home_q, target_offset)
+    return np.array([p.q for p in plan.poses if p.role == VALIDATION]).reshape(-1, model.dof)
 
 
 def cell_seconds(q: Array, start: Array, speed_rad_s: float, dwell_s: float) -> float:
@@ -205,18 +236,19 @@ def cell_seconds(q: Array, start: Array, speed_rad_s: float, dwell_s: float) -> 
 
 
 def identification_jacobian(
-    model: RobotModel, q: Array, target_offset: Array
+    model: RobotModel, q: Array, target_offset: Array, also: Array | None = None
 ) -> tuple[Array, tuple[ParameterSpec, ...]]:
     """The identification Jacobian (N×3×P) at the poses ``q`` (rad) over every parameter
     a calibration estimates, sensor frame and target offset included, as the
     identification sets it up: the sensor frame's rotation about the centroid of the
     measured points (which moves the condition number, not how the D-criterion ranks
-    sets of poses)."""
+    sets of poses). With ``also``: those poses' rows follow, in the same parameters."""
     state = State(model, target_offset, np.eye(3), np.zeros(3), np.zeros(3))
     centroid = predict(state, q).mean(axis=0)
     state = State(model, target_offset, np.eye(3), np.zeros(3), centroid)
     specs = parameter_specs(model)
-    _, J = jacobian(state, q, specs)
+    rows = q if also is None or len(also) == 0 else np.concatenate([q, also])
+    _, J = jacobian(state, rows, specs)
     return J, specs
 
 
@@ -234,35 +266,59 @@ def plan_identifiability(
 
 
 def identification_blocks(
-    model: RobotModel, q: Array, target_offset: Array
-) -> tuple[Array, tuple[str, ...]]:
+    model: RobotModel, q: Array, target_offset: Array, workspace: Array | None = None
+) -> tuple[Array, Array, tuple[str, ...]]:
     """Per pose, the identification Jacobian's 3×P block of the parameters these poses
     identify (sensor frame and target offset included), columns scaled to unit length
-    over all poses; and those parameters' names."""
-    J, specs = identification_jacobian(model, q, target_offset)
-    keep = list(analyse_identifiability(J.reshape(-1, len(specs)), specs).identified)
+    over all poses; the same blocks at the ``workspace`` poses (J×3×P, J = 0 without);
+    and those parameters' names."""
+    J, specs = identification_jacobian(model, q, target_offset, workspace)
+    n = len(q)
+    keep = list(analyse_identifiability(J[:n].reshape(-1, len(specs)), specs).identified)
     G = J[:, :, keep]
-    norms = np.linalg.norm(G.reshape(-1, len(keep)), axis=0)
+    norms = np.linalg.norm(G[:n].reshape(-1, len(keep)), axis=0)
     out: Array = G / np.where(norms > 0, norms, 1.0)
-    return out, tuple(specs[k].name for k in keep)
+    return out[:n], out[n:], tuple(specs[k].name for k in keep)
+
+
+def expected_rms(
+    model: RobotModel, q: Array, target_offset: Array, workspace: Array
+) -> float | None:
+    """The expected RMS prediction error at the workspace poses of a calibration from the
+    poses ``q`` (rad), in units of the measurement noise σ per coordinate (√ of the mean
+    prediction variance, linearised at the nominal model); None without poses."""
+    if len(q) == 0 or len(workspace) == 0:
+        return None
+    G, H, _ = identification_blocks(model, q, target_offset, workspace)
+    return prediction_rms(G, H, list(range(len(q))))
 
 
 def _optimal(
-    n: int,
+    cfg: CampaignConfig,
     poses: list[PlannedPose],
     unreachable: list[UnreachablePose],
     model: RobotModel,
     home_q: Array,
     target_offset: Array,
+    workspace: Array,
 ) -> Plan:
-    """The plan with the n D-optimal calibration poses of the candidates, in a short
-    tour from home, then the validation poses; unreachable candidates are not poses."""
+    """The plan with the campaign's optimal calibration poses of the candidates (D- or
+    I-optimal), in a short tour from home, then the validation poses; unreachable
+    candidates are not poses."""
     candidates = [p for p in poses if p.role == CALIBRATION]
     if not candidates:
         raise InputError("no calibration candidate of the cube is reachable; check the cube")
     q = np.array([p.q for p in candidates])
-    G, _ = identification_blocks(model, q, target_offset)
-    selection = d_optimal(G, n)
+    G, H, _ = identification_blocks(model, q, target_offset, workspace)
+    n = cfg.optimal_poses
+    if cfg.optimal_criterion == "I":
+        if len(H) == 0:
+            raise InputError("no workspace point is reachable to judge the prediction at")
+        selection = i_optimal(G, H, n)
+    else:
+        selection = d_optimal(G, n)
+        if len(H):
+            selection = replace(selection, prediction_rms=prediction_rms(G, H, selection.chosen))
     chosen = [candidates[k] for k in selection.chosen]
     order = nearest_neighbour_order(np.array([p.q for p in chosen]), home_q)
     kept = [chosen[k] for k in order] + [p for p in poses if p.role != CALIBRATION]

@@ -6,6 +6,7 @@ from __future__ import annotations
 import csv
 import io
 import json
+import math
 import subprocess
 import sys
 
@@ -31,6 +32,7 @@ def test_the_mock_cells_plan_is_printed():
     assert "128 poses (80 calibration, 48 validation), 2 unreachable" in run.stdout
     assert "condition number " in run.stdout and "left at nominal: theta1" in run.stdout
     assert "7 s dwell per pose, moves at 15 °/s" in run.stdout
+    assert "expected RMS error in the cube and the validation regions" in run.stdout
 
 
 def test_the_plans_csv_and_json(tmp_path):
@@ -89,6 +91,16 @@ def test_optimal_picks_n_calibration_poses(tmp_path):
     rows = list(csv.DictReader(io.StringIO(out.read_text())))
     assert sum(r["role"] == "calibration" for r in rows) == 24
     assert len(rows) == 24 + 48 + 2
+    assert s["optimal"]["criterion"] == "D"
+    # I-optimal poses are expected to predict better in the cube and the regions.
+    run = _cli("plan", "--mock", "--optimal", "24", "--criterion", "I", "--json")
+    assert run.returncode == 0, run.stderr
+    i = json.loads(run.stdout)
+    assert i["optimal"]["criterion"] == "I" and i["n_calibration"] == 24
+    assert i["expected_rms_sigma"] < 0.9 * s["expected_rms_sigma"]
+    history = i["optimal"]["history"]
+    assert history[-1] == min(history)
+    assert math.isclose(history[-1] ** 0.5, i["expected_rms_sigma"], rel_tol=1e-6)
 
 
 def test_bad_requests_are_one_line(tmp_path):

@@ -1,6 +1,7 @@
-"""D-optimal poses: more information than random picks of the same candidates, the
-campaign's config key, refusals, and a calibration from 30 chosen poses about as good
-as the paper's 80-pose cube on simulated robots."""
+"""D- and I-optimal poses: more information (or less prediction variance) than random
+picks of the same candidates, the exchange's arithmetic, the campaign's config keys,
+refusals, and a calibration from 30 chosen poses about as good as the paper's 80-pose
+cube on simulated robots."""
 
 from __future__ import annotations
 
@@ -12,9 +13,25 @@ import numpy as np
 import pytest
 
 from cellcal.calib.kinematics import target_kinematics
-from cellcal.calib.pose_selection import d_optimal, information, nearest_neighbour_order
+from cellcal.calib.pose_selection import (
+    _swap_values,
+    d_optimal,
+    i_optimal,
+    information,
+    mean_variance,
+    nearest_neighbour_order,
+    prediction_rms,
+    workspace_weights,
+)
 from cellcal.config import load_config
-from cellcal.daemon.plan import CALIBRATION, VALIDATION, identification_blocks, make_plan
+from cellcal.daemon.plan import (
+    CALIBRATION,
+    VALIDATION,
+    expected_rms,
+    identification_blocks,
+    make_plan,
+    workspace_poses,
+)
 from cellcal.errors import InputError
 from cellcal.modelfiles import load_model
 from tests.conftest import TRACKER_CELL
@@ -55,7 +72,7 @@ def test_d_optimal_beats_random_picks_of_the_same_candidates(cell, seed):
         select=False,
     )
     q = np.array([p.q for p in pool.poses if p.role == CALIBRATION])
-    G, names = identification_blocks(nominal, q, offset)
+    G, _, names = identification_blocks(nominal, q, offset)
     assert len(names) == G.shape[2] == 27  # the KR 5 arc's identifiable set, frame included
     chosen = d_optimal(G, 24)
     assert len(set(chosen.chosen)) == 24
@@ -66,6 +83,57 @@ def test_d_optimal_beats_random_picks_of_the_same_candidates(cell, seed):
     randoms = [_logdet(information(G, rng.choice(len(q), 24, replace=False))) for _ in range(50)]
     assert chosen.log_det > max(randoms)
     assert d_optimal(G, 24) == chosen  # deterministic
+
+
+@pytest.fixture(scope="module")
+def blocks(cell):
+    """The bundled tracker cell's 320 candidates and its workspace points, as blocks."""
+    config, nominal, home, offset = cell
+    campaign = config.campaign.model_copy(update={"optimal_poses": 24})
+    pool = make_plan(campaign, nominal, home, offset, select=False)
+    q = np.array([p.q for p in pool.poses if p.role == CALIBRATION])
+    workspace = workspace_poses(campaign, nominal, home, offset)
+    G, H, _ = identification_blocks(nominal, q, offset, workspace)
+    return q, workspace, G, H
+
+
+def test_the_exchange_scores_every_swap_as_recomputing_would(blocks):
+    _, _, G, H = blocks
+    A = workspace_weights(H, G.shape[2])
+    chosen = list(d_optimal(G, 24).chosen)
+    M = information(G, chosen)
+    M_inv = np.linalg.inv(M)
+    delta = _swap_values(G, M_inv, M_inv @ A @ M_inv, chosen[5])
+    for k in (0, 17, 101, 250):
+        if k in chosen:
+            continue
+        swapped = [k if c == chosen[5] else c for c in chosen]
+        direct = mean_variance(information(G, swapped), A) - mean_variance(M, A)
+        assert delta[k] == pytest.approx(direct, rel=1e-6, abs=1e-9)
+
+
+def test_i_optimal_poses_predict_better_than_d_optimal_and_random_ones(cell, blocks):
+    _, nominal, _, offset = cell
+    q, workspace, G, H = blocks
+    assert G.shape == (320, 3, 27) and H.shape[1:] == (3, 27) and len(H) > 100
+    d = d_optimal(G, 24)
+    i = i_optimal(G, H, 24)
+    assert i.criterion == "I" and len(set(i.chosen)) == 24
+    # Exchanges only lower the mean variance; the D-optimal set is where they start.
+    assert i.history[0] == pytest.approx(prediction_rms(G, H, d.chosen) ** 2)
+    assert np.all(np.diff(i.history) < 0)
+    assert i.prediction_rms == pytest.approx(prediction_rms(G, H, i.chosen))
+    assert i.prediction_rms < 0.9 * prediction_rms(G, H, d.chosen)
+    rng = np.random.default_rng(4)
+    randoms = [prediction_rms(G, H, rng.choice(len(G), 24, replace=False)) for _ in range(50)]
+    assert i.prediction_rms < min(randoms)
+    # The plan's figure is the same number, from the joints.
+    assert expected_rms(nominal, q[list(i.chosen)], offset, workspace) == pytest.approx(
+        i.prediction_rms
+    )
+    assert i_optimal(G, H, 24) == i  # deterministic
+    with pytest.raises(InputError, match="workspace points"):
+        i_optimal(G, H[:, :, :5], 24)
 
 
 def test_too_few_or_too_many_poses_are_refused(cell):
@@ -111,6 +179,15 @@ def test_the_campaign_key_picks_n_poses_in_a_short_tour(cell):
         config.campaign.model_copy(update={"optimal_poses": 20}), nominal, home, offset
     )
     assert again.digest == plan.digest
+    by_i = make_plan(
+        config.campaign.model_copy(update={"optimal_poses": 20, "optimal_criterion": "I"}),
+        nominal,
+        home,
+        offset,
+    )
+    assert by_i.selection is not None and by_i.selection.criterion == "I"
+    assert by_i.count(CALIBRATION) == 20 and by_i.digest != plan.digest
+    assert plan.selection.prediction_rms > by_i.selection.prediction_rms
     q = np.array([p.q for p in plan.poses if p.role == CALIBRATION])
     tour = np.abs(np.diff(np.vstack([home, q]), axis=0)).max(axis=1).sum()
     rng = np.random.default_rng(1)
@@ -124,12 +201,14 @@ def test_30_chosen_poses_calibrate_about_as_well_as_the_80_pose_cube():
     # its noise draw, so fewer robots would test luck.
     (row,) = _benchmark().held_out("kuka-kr5-arc", (30,), tuple(range(31, 41)))
     print(
-        f"held-out RMS: 30 D-optimal {row.optimal_mm:.4f} mm, 30 random {row.random_mm:.4f} mm, "
+        f"held-out RMS: 30 D-optimal {row.optimal_mm:.4f} mm, 30 I-optimal "
+        f"{row.i_optimal_mm:.4f} mm, 30 random {row.random_mm:.4f} mm, "
         f"80-pose cube {row.cube_mm:.4f} mm"
     )
     assert row.optimal_mm < 1.5 * row.cube_mm
-    assert row.optimal_mm < row.random_mm
-    assert row.minutes < 0.5 * row.cube_minutes
+    assert row.i_optimal_mm < 1.1 * row.cube_mm
+    assert max(row.optimal_mm, row.i_optimal_mm) < row.random_mm
+    assert max(row.minutes, row.i_minutes) < 0.8 * row.cube_minutes
 
 
 def test_a_campaign_with_chosen_poses_runs_and_finds_its_plan_again(cell, tmp_path):
