@@ -62,6 +62,10 @@ class AravisCameraOptions(CameraOptions):
     packet_size: Annotated[int, Field(ge=576, le=16404)] = 8000
     region: Annotated[list[int], Field(min_length=4, max_length=4)] | None = None
     buffers: Annotated[int, Field(ge=2, le=64)] = 4
+    #: how a GigE Vision stream is received: ``udp``, a UDP socket with a receive buffer
+    #: of two frames; ``packet``, Aravis's raw packet socket (with CAP_NET_RAW); ``auto``,
+    #: ``udp`` where net.core.rmem_max allows two frames, else Aravis's own choice
+    stream_socket: Literal["auto", "udp", "packet"] = "auto"
 
 
 class AravisRigOptions(RigOptions):
@@ -194,6 +198,10 @@ class AravisRig:
             starting = {cam.name: self._workers[cam.name].submit(self._links[cam.name].start)}
             wait(starting.values(), timeout=CONNECT_S)
             self._raise_failures(starting)
+        if any(link.udp for link in self._links.values()):
+            # Aravis sizes a UDP socket's buffer as a frame begins: this set's frames may
+            # come incomplete (and be retried), the next ones have the whole buffer.
+            self.grab()
 
     def _raise_failures(self, futures: dict[str, Future[None]]) -> None:
         errors = []

@@ -59,6 +59,16 @@ def load_aravis() -> _Aravis:
     return _loaded[0]
 
 
+def rmem_max() -> int:
+    """net.core.rmem_max (bytes): the most a UDP socket's receive buffer may be set to
+    without CAP_NET_ADMIN; 0 where it cannot be read."""
+    try:
+        with open("/proc/sys/net/core/rmem_max", encoding="ascii") as f:
+            return int(f.read().strip())
+    except (OSError, ValueError):
+        return 0
+
+
 _capsule_pointer = ctypes.pythonapi.PyCapsule_GetPointer
 _capsule_pointer.restype = ctypes.c_void_p
 _capsule_pointer.argtypes = [ctypes.py_object, ctypes.c_char_p]
@@ -90,6 +100,8 @@ class AravisLink:
         self._last_id: int | None = None
         #: the camera stopped answering commands (its stop would wait for Aravis's timeout)
         self.gone = False
+        #: the stream comes through a UDP socket whose buffer Aravis sizes at a frame
+        self.udp = False
         self._count = 0
 
     def _error(self, what: str) -> DeviceError:
@@ -148,23 +160,47 @@ class AravisLink:
             cam.gv_set_packet_size(o.packet_size)
 
     def start(self) -> None:
-        """Create the stream with its buffers and start acquiring. With CAP_NET_RAW (root)
-        Aravis reads GigE streams through a raw packet socket (a 32 MB ring, where a UDP
-        socket's buffer is capped by net.core.rmem_max), which takes in whatever the
-        interface carries until its filter is set; so the rig starts its cameras one at a
-        time, and the stray packets come out as unfilled buffers that ``shot`` skips."""
+        """Create the stream with its buffers and start acquiring.
+
+        A GigE Vision stream comes either through a UDP socket, whose receive buffer is
+        capped by net.core.rmem_max, or, with CAP_NET_RAW (root), through Aravis's raw
+        packet socket (a 32 MB ring of blocks the kernel hands over when full or after
+        5 ms: a frame can wait there 100 ms and more for its last block). ``udp`` asks
+        for a buffer of two frames (Aravis sizes it when a frame begins, so one frame is
+        grabbed and dropped here to size it before any set); ``auto`` takes ``udp``
+        where rmem_max allows that, else leaves the choice to Aravis. The packet socket
+        takes in whatever the interface carries until its filter is set; so the rig
+        starts its cameras one at a time, and the stray packets come out as unfilled
+        buffers that ``shot`` skips."""
         a = load_aravis()
         try:
             payload = self.cam.get_payload()
+            udp = self.udp = self.cam.is_gv_device() and self._udp_buffer(payload) is not None
+            if udp:
+                self.cam.get_device().set_stream_options(
+                    a.Aravis.GvStreamOption.PACKET_SOCKET_DISABLED
+                )
             self.stream = self.cam.create_stream(None, None)
             if self.stream is None:
                 raise self._error("no stream")
+            if udp:
+                self.stream.set_property("socket-buffer", a.Aravis.GvStreamSocketBuffer.FIXED)
+                self.stream.set_property("socket-buffer-size", self._udp_buffer(payload))
             for _ in range(self.options.buffers):
                 self.stream.push_buffer(a.Aravis.Buffer.new_allocate(payload))
             self.cam.start_acquisition()
         except a.GLib.Error as exc:
             self.close()
             raise self._error(f"cannot start acquisition ({_text(exc)})") from None
+
+    def _udp_buffer(self, payload: int) -> int | None:
+        """The UDP receive buffer to ask for (bytes): two frames; None for Aravis's
+        choice (``packet``, or ``auto`` where net.core.rmem_max is below two frames)."""
+        mode = self.options.stream_socket
+        want = 2 * int(payload)
+        if mode == "packet" or (mode == "auto" and rmem_max() < want):
+            return None
+        return want
 
     def close(self) -> None:
         """Stop acquisition and drop the camera (which releases its control); safe twice."""

@@ -23,14 +23,27 @@ byte. A source that raises or gives no 2-D image makes a black frame (counted in
 its loop spins through the last millisecond before each poll, so faster costs CPU).
 Its frame ids start at 65401 and wrap after 65535 to 1, as Aravis does on purpose; its
 timestamps are the host's wall clock in ns, or ``device_clock()`` (s) when given.
+
+A fault of the fake camera (Aravis 0.8.26, ``arvgvfakecamera.c``), worked around here:
+its loop computes its poll timeout as ``(next_timestamp_us - g_get_real_time ()) /
+1000`` in unsigned arithmetic; when the time passes the deadline between the loop's
+check and that line, the difference wraps, the timeout is capped at 100 ms, and a
+trigger already received waits that long for its frame (one frame in 50–100 per
+camera). Any control packet ends the wait. So a waker thread per twin (in the cameras'
+namespace) watches each camera's software-trigger register and, when a trigger has been
+pending for three trigger polls, sends the camera one GVCP register read.
 """
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import logging
 import os
+import socket
+import struct
 import threading
+import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, Self
@@ -62,6 +75,11 @@ _DTYPE: dict[int, np.dtype[Any]] = {0x01080001: np.dtype(np.uint8), 0x01100007: 
 _REG_WIDTH, _REG_HEIGHT = 0x100, 0x104
 _REG_SENSOR_HEIGHT, _REG_SENSOR_WIDTH = 0x118, 0x11C
 _REG_PIXEL_FORMAT = 0x128
+_REG_TRIGGER_SOFTWARE = 0x30C
+#: GVCP: a READREG command (key 0x42, no ack asked, command 0x0080, 4 bytes, id 1) of the
+#: bootstrap Version register, to the fixed control port: it only wakes the camera.
+_WAKE_PACKET = struct.pack(">BBHHHI", 0x42, 0x00, 0x0080, 4, 1, 0x0000)
+_GVCP_PORT = 3956
 
 _vp, _u32 = ctypes.c_void_p, ctypes.c_uint32
 #: void (*ArvFakeCameraFillPattern)(ArvBuffer *, void *data, guint32 exposure_us,
@@ -91,6 +109,9 @@ class _Aravis:
         self.gv_running = fn(lib, "arv_gv_fake_camera_is_running", ctypes.c_int, _vp)
         self.gv_fake = fn(lib, "arv_gv_fake_camera_get_fake_camera", _vp, _vp)
         self.write = fn(lib, "arv_fake_camera_write_register", ctypes.c_int, _vp, _u32, _u32)
+        self.read = fn(
+            lib, "arv_fake_camera_read_register", ctypes.c_int, _vp, _u32, ctypes.POINTER(_u32)
+        )
         self.trigger_hz = fn(
             lib, "arv_fake_camera_set_trigger_frequency", None, _vp, ctypes.c_double
         )
@@ -175,6 +196,9 @@ class GigECameraTwin:
         self.device_clock = device_clock
         self._lib: _Aravis | None = None
         self._ns_fd: int | None = None
+        self._stopping = threading.Event()
+        #: wake packets sent (see the module's note on the fake camera's stalls)
+        self.wakes = 0
 
     @property
     def addresses(self) -> dict[str, str]:
@@ -202,6 +226,36 @@ class GigECameraTwin:
         except BaseException:
             self.stop()
             raise
+        # started here, it runs in the cameras' namespace
+        threading.Thread(target=self._wake_stalled, name="camera-twin-waker", daemon=True).start()
+
+    def _wake_stalled(self) -> None:
+        """Send a camera a GVCP packet when its software trigger has waited three trigger
+        polls (the fake camera's stall, see the module's note); until ``stop()``."""
+        lib = self._lib
+        assert lib is not None
+        poll_s = 1.0 / self.trigger_poll_hz
+        since: dict[str, float] = {}
+        value = _u32()
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
+            sock.setblocking(False)
+            while not self._stopping.wait(poll_s):
+                now = time.monotonic()
+                for c in self.cameras.values():
+                    with c.lock:  # stop_camera frees the camera under this lock
+                        pending = (
+                            c.fake is not None
+                            and lib.read(c.fake, _REG_TRIGGER_SOFTWARE, ctypes.byref(value))
+                            and value.value == 1
+                        )
+                    if not pending:
+                        since.pop(c.name, None)
+                    elif now - since.setdefault(c.name, now) > 3 * poll_s:
+                        with contextlib.suppress(OSError):
+                            sock.sendto(_WAKE_PACKET, (c.address, _GVCP_PORT))
+                            self.wakes += 1
+                        since[c.name] = now
+                _drop_answers(sock)
 
     def _open(self, c: _Camera) -> None:
         lib = self._lib
@@ -247,6 +301,7 @@ class GigECameraTwin:
 
     def stop(self) -> None:
         """Stop every camera and release the namespace; safe to call twice."""
+        self._stopping.set()
         for name in self.cameras:
             self.stop_camera(name)
         if self._ns_fd is not None:
@@ -304,6 +359,13 @@ class GigECameraTwin:
                 c.errors += 1
 
         return fill
+
+
+def _drop_answers(sock: socket.socket) -> None:
+    """Read and drop what the cameras answered to the wake packets."""
+    with contextlib.suppress(OSError):  # BlockingIOError: nothing (more) to read
+        while sock.recv(576):
+            continue
 
 
 def _source_failed(c: _Camera, exc: Exception) -> None:
