@@ -57,3 +57,53 @@ def test_without_a_loop_each_item_goes_at_once() -> None:
     c.phase("dwell", _pose(0), 1.0)
     assert [k for k, _ in published][-2:] == ["status", "status"]
     assert published[-1][1]["campaign"]["phase"] == "dwell"
+
+
+class _Loop:
+    """What the flusher asks of the asyncio loop, recorded instead of run."""
+
+    def __init__(self) -> None:
+        self.soon: list[object] = []
+        self.later: list[tuple[float, object]] = []
+
+    def call_soon_threadsafe(self, fn: object) -> None:
+        self.soon.append(fn)
+
+    def call_later(self, delay: float, fn: object) -> None:
+        self.later.append((delay, fn))
+
+
+def test_the_flusher_sends_at_once_after_a_quiet_spell_then_in_batches() -> None:
+    from cellcal.daemon.service import BATCH_S, Flusher
+
+    outbox: list[tuple[str, dict[str, int]]] = []
+    sent: list[tuple[str, dict[str, int]]] = []
+
+    def drain() -> list[tuple[str, dict[str, int]]]:
+        items = list(outbox)
+        outbox.clear()
+        return items
+
+    loop = _Loop()
+    flusher = Flusher(loop, drain, lambda kind, data: sent.append((kind, data)))  # type: ignore[arg-type]
+    # Quiet: the first event wakes the loop at once.
+    outbox.append(("pose", {"idx": 0}))
+    flusher.wake()
+    assert loop.soon == [flusher.flush] and not loop.later
+    flusher.flush()
+    assert sent == [("pose", {"idx": 0})]
+    # Events keep coming: the loop looks again BATCH_S later and is not woken for each.
+    assert loop.later == [(BATCH_S, flusher.flush)] and flusher.armed
+    for k in (1, 2, 3):
+        outbox.append(("pose", {"idx": k}))
+        flusher.wake()
+    assert len(loop.soon) == 1
+    flusher.flush()  # the timer
+    assert [d["idx"] for _, d in sent] == [0, 1, 2, 3]  # all of them, in order
+    assert len(loop.later) == 2
+    # Nothing more came: the next look finds nothing and stops looking.
+    flusher.flush()
+    assert not flusher.armed and len(loop.later) == 2
+    outbox.append(("status", {"idx": 4}))
+    flusher.wake()
+    assert len(loop.soon) == 2  # quiet again: at once
