@@ -127,6 +127,25 @@ def poses_csv(data: PoseData) -> str:
     return "\n".join(lines) + "\n"
 
 
+def plan_text(config_json: str) -> str:
+    """How the campaign chose its calibration poses, from its stored configuration: the
+    cube's grid, or N D- or I-optimal poses of the candidates (``cellcal plan``)."""
+    try:
+        campaign = json.loads(config_json).get("campaign", {})
+    except (ValueError, AttributeError):
+        campaign = {}
+    if not isinstance(campaign, dict):
+        campaign = {}
+    n = campaign.get("optimal_poses") or 0
+    if n:
+        criterion = campaign.get("optimal_criterion", "D")
+        return f"{n} {criterion}-optimal calibration poses of the cube's candidates"
+    grid = campaign.get("grid")
+    if isinstance(grid, list) and grid:
+        return "the cube's grid, " + " × ".join(str(k) for k in grid) + " points"
+    return "the cube's grid"
+
+
 def _timeline(store: Store, campaign_id: int) -> tuple[float, dict[str, str]]:
     """The campaign's dwell (s), and the page's rows about what it did: its plan, when it
     was created and its poses stored (UTC), its acquisition time on the campaign's clock
@@ -204,6 +223,7 @@ def write_report(
         "poses_stored": len(data.idx),
         "samples_per_pose": row.samples_per_pose,
         "mock": row.mock,
+        "plan": plan_text(row.config_json),
     }
     files: dict[str, str] = {
         "summary.json": json.dumps({**facts, "summary": summary}, indent=2) + "\n",

@@ -324,6 +324,7 @@ def _campaign(d: ReportData, timeline: dict[str, Any]) -> str:
         ["robot model", f["model"]],
         ["sensors", ", ".join(f["sensors"])],
         ["mode", "mock (simulated cell)" if f["mock"] else "real devices"],
+        ["calibration poses", f.get("plan", "")],
         ["poses planned / stored", f"{f['n_poses']} / {f['poses_stored']}"],
         ["samples per pose", f["samples_per_pose"]],
         ["dwell", f"{f['dwell_s']:g} s"],

@@ -82,6 +82,15 @@ def test_the_reports_numbers_are_the_analysis_numbers(campaign):
     assert "device" in kinds  # the tracker said who it is
 
 
+def test_the_report_names_how_the_poses_were_chosen():
+    from cellcal.daemon.report import plan_text
+
+    optimal = '{"campaign": {"optimal_poses": 24, "optimal_criterion": "I", "grid": [4, 4, 5]}}'
+    assert plan_text(optimal) == "24 I-optimal calibration poses of the cube's candidates"
+    assert plan_text('{"campaign": {"grid": [4, 4, 5]}}') == "the cube's grid, 4 × 4 × 5 points"
+    assert plan_text("{}") == plan_text("not json") == "the cube's grid"
+
+
 @needs_chromium
 def test_the_report_page_renders_in_chromium(campaign, capsys):
 
@@ -131,6 +140,7 @@ def test_the_report_page_renders_in_chromium(campaign, capsys):
         assert "0.200" in body and "Table 3" in body  # beside the paper's figures
         assert "mock mode" in body  # and says what a simulated campaign's numbers mean
         assert "cellcal mock-tracker, serial SIM-0001" in body
+        assert "the cube's grid, 3 × 3 × 3 points" in body  # how the poses were chosen
         errors = [e for e in browser.get_log("browser") if e["level"] == "SEVERE"]
         assert not errors, errors
         height = browser.execute_script("return document.body.scrollHeight")
