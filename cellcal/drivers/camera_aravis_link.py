@@ -175,7 +175,8 @@ class AravisLink:
         a = load_aravis()
         try:
             payload = self.cam.get_payload()
-            udp = self.udp = self.cam.is_gv_device() and self._udp_buffer(payload) is not None
+            buffer = self._udp_buffer(payload) if self.cam.is_gv_device() else None
+            udp = self.udp = buffer is not None
             if udp:
                 self.cam.get_device().set_stream_options(
                     a.Aravis.GvStreamOption.PACKET_SOCKET_DISABLED
@@ -185,7 +186,7 @@ class AravisLink:
                 raise self._error("no stream")
             if udp:
                 self.stream.set_property("socket-buffer", a.Aravis.GvStreamSocketBuffer.FIXED)
-                self.stream.set_property("socket-buffer-size", self._udp_buffer(payload))
+                self.stream.set_property("socket-buffer-size", buffer)
             for _ in range(self.options.buffers):
                 self.stream.push_buffer(a.Aravis.Buffer.new_allocate(payload))
             self.cam.start_acquisition()
