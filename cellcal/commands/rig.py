@@ -15,7 +15,15 @@ from cellcal.calib.rig_measurement import TargetMeter
 from cellcal.calib.target_pose import TargetPose
 from cellcal.commands.output import jsonable, print_json
 from cellcal.errors import AcceptanceError, InputError, MeasurementError
-from cellcal.imagefiles import image_option, load_views, read_image, set_folders, set_images
+from cellcal.imagefiles import (
+    Unreadable,
+    image_option,
+    load_views,
+    read_camera_image,
+    read_set,
+    set_folders,
+    stray_images,
+)
 from cellcal.photofiles import read_board, read_rig, read_target, write_rig
 
 
@@ -54,15 +62,48 @@ def _images(paths: dict[str, Path], rig_: Rig) -> dict[str, Any]:
         raise InputError(f"--image: {', '.join(unknown)} not a camera of rig {rig_.name!r}")
     out = {}
     for cam, path in paths.items():
-        img = read_image(path)
         c = rig_.camera(cam)
-        if img.shape[:2] != (c.height, c.width):
-            raise InputError(
-                f"{path}: {img.shape[1]}×{img.shape[0]} px, but camera {cam} is "
-                f"{c.width}×{c.height} in the rig file"
-            )
-        out[cam] = img
+        out[cam] = read_camera_image(path, cam, (c.width, c.height))
     return out
+
+
+def _refuse_stray_images(folders: list[Path], rig_: Rig, sets_dir: str) -> None:
+    """A ``<name>.png`` in a set that is no camera of the rig: the sets are of another rig."""
+    stray = stray_images(folders, (c.name for c in rig_.cameras))
+    if stray:
+        more = f"; {len(stray) - 1} more such files in {sets_dir}" if len(stray) > 1 else ""
+        raise InputError(
+            f"{stray[0]}: {stray[0].stem!r} is not a camera of rig {rig_.name!r} "
+            f"({', '.join(c.name for c in rig_.cameras)}){more}"
+        )
+
+
+def _left_out(unreadable: list[Unreadable]) -> str:
+    """The text line's note of a set's unreadable images, or ""."""
+    if not unreadable:
+        return ""
+    return " (" + "; ".join(f"{u.camera} left out: {u.reason}" for u in unreadable) + ")"
+
+
+def _some(items: list[str], n: int, sep: str) -> str:
+    shown = sep.join(items[:n])
+    return shown if len(items) <= n else f"{shown}{sep}and {len(items) - n} more"
+
+
+def _batch_summary(
+    sets: int, measured: int, unreadable: list[tuple[str, Unreadable]], skipped: list[str]
+) -> str:
+    """One line: how many sets were measured, the images that could not be used, the sets
+    skipped."""
+    parts = [f"rig measure: {measured} of {sets} sets measured"]
+    if unreadable:
+        files = [f"{name}/{u.path.name}: {u.reason}" for name, u in unreadable]
+        k = len(unreadable)
+        parts.append(f"{k} image{'s' * (k != 1)} unreadable ({_some(files, 3, '; ')})")
+    if skipped:
+        k = len(skipped)
+        parts.append(f"{k} set{'s' * (k != 1)} skipped ({_some(skipped, 5, ', ')})")
+    return "; ".join(parts)
 
 
 @rig.command("measure")
@@ -81,8 +122,13 @@ def measure(
     """Measure the target from one set of images (one per camera) or from many sets.
 
     Prints the target's reference point in the rig frame (mm) with its 1σ, the cameras
-    that saw it, the markers used and the reprojection RMS. With --sets, a set that fewer
-    than two cameras see gives its reason and the command goes on.
+    that saw it, the markers used and the reprojection RMS.
+
+    With --sets, every set is measured on its own and printed. An image that cannot be
+    used (truncated, not an image, empty, of another size than the rig's camera) is named
+    on stderr and in its set's line, and the set measured with the other cameras; a set
+    fewer than two cameras see gives its reason. After the last set, exit 0 if every set
+    was measured from all its images, else one summary line on stderr and exit 2.
     """
     if bool(image_specs) == bool(sets_dir):
         raise InputError("give either --image CAM=PATH (once per camera) or --sets DIR")
@@ -97,24 +143,45 @@ def measure(
             click.echo(f"rig measure: target {target.name!r} in rig {rig_.name!r}")
             click.echo(_pose_line(pose))
         return
-    cameras = tuple(c.name for c in rig_.cameras)
-    measured = 0
     folders = set_folders(sets_dir or "")
+    _refuse_stray_images(folders, rig_, sets_dir or "")
+    sizes = {c.name: (c.width, c.height) for c in rig_.cameras}
+    measured = 0
+    skipped: list[str] = []
+    unreadable_all: list[tuple[str, Unreadable]] = []
     for folder in folders:
         meter.reset()  # sets may be of different poses: each is measured on its own
+        images, unreadable = read_set(folder, sizes)
+        for u in unreadable:
+            click.echo(
+                f"cellcal: rig measure: {u.path}: {u.reason}; {u.camera} left out of {folder.name}",
+                err=True,
+            )
+        unreadable_all += [(folder.name, u) for u in unreadable]
+        bad = [{"camera": u.camera, "path": str(u.path), "error": u.reason} for u in unreadable]
         try:
-            pose = meter.measure(_images(set_images(folder, cameras), rig_))
+            if not images:
+                raise MeasurementError(
+                    "no image of the rig's cameras could be read"
+                    if unreadable
+                    else f"no image of the rig's cameras ({', '.join(sizes)}; <camera>.png)"
+                )
+            pose = meter.measure(images)
         except MeasurementError as exc:
-            line: dict[str, Any] = {"set": folder.name, "error": str(exc)}
-            click.echo(json.dumps(line) if as_json else f"{folder.name}: {exc}")
+            skipped.append(folder.name)
+            line: dict[str, Any] = {"set": folder.name, "error": str(exc), "unreadable": bad}
+            click.echo(
+                json.dumps(line) if as_json else f"{folder.name}: {exc}{_left_out(unreadable)}"
+            )
             continue
         measured += 1
         if as_json:
-            click.echo(json.dumps(jsonable({"set": folder.name, **_pose_json(pose)})))
+            line = {"set": folder.name, **_pose_json(pose), "unreadable": bad}
+            click.echo(json.dumps(jsonable(line)))
         else:
-            click.echo(f"{folder.name}: {_pose_line(pose)}")
-    if measured == 0:
-        raise MeasurementError(f"no set in {sets_dir} measured the target")
+            click.echo(f"{folder.name}: {_pose_line(pose)}{_left_out(unreadable)}")
+    if skipped or unreadable_all:
+        raise MeasurementError(_batch_summary(len(folders), measured, unreadable_all, skipped))
 
 
 def _calibration_json(cal: RigCalibration) -> dict[str, Any]:
