@@ -11,7 +11,7 @@ written file reads back identically (floats are written with all their digits).
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -106,7 +106,10 @@ def _data(path: str | Path) -> tuple[Path, dict[str, Any]]:
 def rig_from_dict(data: Mapping[str, Any], path: str | Path = "rig") -> Rig:
     """A rig from the contract's TOML structure (``name``, ``[[camera]]``)."""
     p = Path(path)
-    _keys(p, data, "", _RIG, {"camera"})
+    _keys(p, data, "", _RIG, {"camera", "accepted_despite"})
+    failed = data.get("accepted_despite", [])
+    if not isinstance(failed, list) or not all(isinstance(f, str) for f in failed):
+        raise FileFormatError(f"{p}: accepted_despite: expected a list of strings")
     cameras = []
     for k, row in enumerate(_tables(p, data, "camera"), start=1):
         where = f"camera[{k}]"
@@ -186,10 +189,12 @@ def _lines(table: Mapping[str, Any]) -> list[str]:
     return [f"{k} = {_toml(v)}" for k, v in table.items() if v is not None]
 
 
-def rig_toml(rig: Rig) -> str:
+def rig_toml(rig: Rig, accepted_despite: Sequence[str] = ()) -> str:
     """The rig file's text."""
     out = ["# cellcal camera rig (mm, px; OpenCV conventions): read by `rig measure`.", ""]
     out += _lines({"name": rig.name})
+    if accepted_despite:
+        out += _lines({"accepted_despite": list(accepted_despite)})
     for cam in rig.cameras:
         out += ["", "[[camera]]"]
         out += _lines(
@@ -233,8 +238,9 @@ def board_toml(board: Board) -> str:
     return "\n".join(out) + "\n"
 
 
-def write_rig(path: str | Path, rig: Rig) -> None:
-    write_atomically(path, rig_toml(rig))
+def write_rig(path: str | Path, rig: Rig, accepted_despite: Sequence[str] = ()) -> None:
+    """The rig file; ``accepted_despite`` records the checks it failed (``--accept``)."""
+    write_atomically(path, rig_toml(rig, accepted_despite))
 
 
 def write_target(path: str | Path, target: Target) -> None:

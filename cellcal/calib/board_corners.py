@@ -24,9 +24,10 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from cellcal.calib.board_edges import BoardEdges
 from cellcal.calib.camera_rig import Board
 from cellcal.calib.geometry import Array
-from cellcal.calib.marker_corners import grey
+from cellcal.calib.marker_corners import grey, grey_levels
 from cellcal.errors import InputError, MeasurementError
 
 Image = NDArray[Any]
@@ -71,12 +72,60 @@ def detect_corners(
     if ids is None or len(ids) < min_corners:
         return None
     ids = np.asarray(ids, dtype=np.int64).ravel()
+    if not _spread(board, ids):
+        return None
+    return CornerDetection(ids, np.asarray(corners, dtype=np.float64).reshape(-1, 2))
+
+
+def _spread(board: Board, ids: NDArray[np.int64]) -> bool:
+    """Whether the corners ``ids`` span the board in two directions (not one line)."""
     obj = board_points(board)[ids][:, :2]
     centred = obj - obj.mean(axis=0)
     spread = np.linalg.svd(centred, compute_uv=False)[1] / np.sqrt(len(ids))
-    if spread < 0.25 * board.square:
-        return None
-    return CornerDetection(ids, np.asarray(corners, dtype=np.float64).reshape(-1, 2))
+    return bool(spread >= 0.25 * board.square)
+
+
+class CornerMeter:
+    """The board's corners measured again with a camera's first calibration: OpenCV's
+    detector given the intrinsics (its corners start from the board's pose, through the
+    lens's distortion), then each corner from its edges
+    (:class:`~cellcal.calib.board_edges.BoardEdges`). Corners whose edges cannot be
+    measured are left out one by one; a view keeps its detection only while
+    ``min_corners`` remain, spread over the board."""
+
+    def __init__(self, board: Board, K: Array, dist: Array, min_corners: int = 6) -> None:
+        self.board = board
+        self.K = np.asarray(K, dtype=np.float64)
+        self.dist = np.asarray(dist, dtype=np.float64)
+        self.min_corners = min_corners
+        self.edges = BoardEdges(board)
+        self.points = board_points(board)
+        params = cv2.aruco.CharucoParameters()
+        params.cameraMatrix = self.K
+        params.distCoeffs = self.dist
+        self.detector = cv2.aruco.CharucoDetector(board.cv_board())
+        self.detector.setCharucoParameters(params)
+        #: corners the detector found whose edges could not be measured, so far
+        self.unmeasured = 0
+
+    def measure(self, image: Image) -> CornerDetection | None:
+        """The corners in ``image``; None when too few are measured."""
+        grey8_, levels = grey_levels(image)
+        corners, ids, _, _ = self.detector.detectBoard(grey8_)
+        if ids is None or len(ids) < self.min_corners:
+            return None
+        ids = np.asarray(ids, dtype=np.int64).ravel()
+        px = np.asarray(corners, dtype=np.float64).reshape(-1, 2)
+        ok, rvec, tvec = cv2.solvePnP(self.points[ids], px, self.K, self.dist)
+        if not ok:
+            return None
+        refined = self.edges.refine(
+            levels, self.K, self.dist, np.asarray(rvec, float), np.asarray(tvec, float), ids
+        )
+        self.unmeasured += len(refined.unmeasured)
+        if len(refined.ids) < self.min_corners or not _spread(self.board, refined.ids):
+            return None
+        return CornerDetection(refined.ids, refined.pixels)
 
 
 def shows_mirrored(board: Board, image: Image, min_corners: int = 6, detector: Any = None) -> bool:

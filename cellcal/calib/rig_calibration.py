@@ -32,6 +32,7 @@ from scipy.spatial.transform import Rotation
 from cellcal.calib import rig_bundle
 from cellcal.calib.board_corners import (
     CornerDetection,
+    CornerMeter,
     board_not_found,
     board_points,
     detect_corners,
@@ -50,6 +51,7 @@ from cellcal.calib.rig_bundle import (
     scale_check,
     triangulate,
 )
+from cellcal.calib.rig_verdict import CameraDiagnosis, diagnose_camera, holdout_failures
 
 __all__ = [
     "CameraReport",
@@ -81,8 +83,13 @@ class RigCalibrationOptions:
     min_views: int = 5
     holdout_every: int = 5
     outlier_sigma: float = 4.0
-    #: a camera losing more than this fraction of its corners as outliers is suspect
+    #: a camera losing more than this fraction of its corners, in views shifted as a
+    #: whole, moved (:mod:`cellcal.calib.rig_verdict`)
     max_rejected_fraction: float = 0.1
+    #: the held-out board lengths' largest RMS error for a calibration that passes, mm
+    max_length_rms_mm: float = 0.05
+    #: measure the corners again from their edges with each camera's first calibration
+    refine_corners: bool = True
 
 
 @dataclass(frozen=True, eq=False)
@@ -108,6 +115,8 @@ class CameraReport:
     sigma_position_mm: Array
     sigma_rotation_deg: Array
     covariance: Array
+    #: corners the detector found whose edges could not be measured (left out)
+    unmeasured: int = 0
 
 
 @dataclass(frozen=True, eq=False)
@@ -128,9 +137,11 @@ class HoldoutCheck:
 class RigCalibration:
     """The calibrated rig (each camera's ``reprojection_rms_px`` set), the per-camera
     fit, the overall reprojection RMS and σ̂ (px per axis), views fitted and held out,
-    the held-out check, the optional scale check, cameras whose residuals say they moved
-    (or a view is wrong), one-line warnings, the board poses ``T_rig_board`` of the
-    fitted views and the solver's iterations."""
+    the held-out check, the optional scale check, cameras whose residuals say they moved,
+    one-line warnings, the board poses ``T_rig_board`` of the fitted views, the solver's
+    iterations, each camera's diagnosis of its rejected corners, and ``failures``: the
+    causes, with their numbers, for which the result is not to be trusted (a moved
+    camera, a held-out check that fails); empty when it passed."""
 
     rig: Rig
     cameras: tuple[CameraReport, ...]
@@ -143,6 +154,8 @@ class RigCalibration:
     warnings: tuple[str, ...]
     T_rig_board: tuple[Array, ...]
     iterations: int
+    diagnoses: tuple[CameraDiagnosis, ...] = ()
+    failures: tuple[str, ...] = ()
 
 
 # --- the calibration -------------------------------------------------------------------
@@ -261,20 +274,16 @@ def calibrate_rig(
     held = [v for v in range(len(views)) if every > 0 and v % every == every - 1 and det[v]]
     fit = [v for v in range(len(views)) if v not in held and det[v]]
     pts = board_points(board)
+    for n in names:
+        _enough_views(board, n, views, det, fit, opt)
+    unmeasured = dict.fromkeys(names, 0)
+    if opt.refine_corners:
+        unmeasured = _remeasure(board, cameras, views, det, fit, pts, opt)
+        held = [v for v in held if det[v]]
+        fit = [v for v in fit if det[v]]
     K0, d0, rms0, T_cam_board = {}, {}, {}, {}
     for n in names:
-        dets = [(v, det[v][n]) for v in fit if n in det[v]]
-        if len(dets) < opt.min_views:
-            missed = [views[v][n] for v in fit if n in views[v] and n not in det[v]]
-            hint = (
-                " — its images show the board mirrored: is ReverseX or ReverseY set on it?"
-                if mirrored_count(board, missed, opt.min_corners)
-                else ""
-            )
-            raise MeasurementError(
-                f"{n}: the board was found in {len(dets)} of the fitted views, "
-                f"at least {opt.min_views} are needed{hint}"
-            )
+        dets = _enough_views(board, n, views, det, fit, opt)
         K0[n], d0[n], rms0[n], poses = _intrinsics(n, cameras[n], dets, pts, opt)
         T_cam_board.update({(v, n): T for v, T in poses.items()})
     T_rig_cam = place_cameras(names, T_cam_board)
@@ -294,26 +303,33 @@ def calibrate_rig(
     free[6:8] = not opt.fix_tangential
     obs = _observations(det, fit, names, pts)
     res = rig_bundle.adjust(state, obs, free, outlier_sigma=opt.outlier_sigma)
-    rig, reports = _results(name, names, cameras, res, obs, fit, det, rms0)
+    rig, reports = _results(name, names, cameras, res, obs, fit, det, rms0, unmeasured)
     holdout = (
         _holdout(board, rig, det, held, [vnames[v] for v in held], free, opt) if held else None
     )
-    warnings, suspects = list(unseen), []
-    for r in reports:
-        total = r.corners + r.rejected
-        if r.rejected > opt.max_rejected_fraction * total:
-            suspects.append(r.name)
-            warnings.append(
-                f"{r.name}: {r.rejected} of {total} corners rejected as outliers "
-                f"({r.rms_all_px:.2f} px RMS before, {r.rms_px:.3f} px after) — did the "
-                "camera move while the views were taken?"
-            )
+    fit_names = [vnames[v] for v in fit]
+    diagnoses = tuple(
+        diagnose_camera(n, c, res, obs, fit_names, opt.max_rejected_fraction)
+        for c, n in enumerate(names)
+    )
+    warnings = list(unseen) + [d.note for d in diagnoses if d.note is not None]
+    suspects = [d.name for d in diagnoses if d.moved]
+    failures = [d.note for d in diagnoses if d.moved and d.note is not None]
     inl = res.residuals[res.inliers]
+    rms_px = float(np.sqrt(np.mean(np.sum(inl**2, axis=1))))
+    if holdout is not None:
+        failures += holdout_failures(
+            holdout.reprojection_rms_px,
+            rms_px,
+            holdout.length_rms_mm,
+            holdout.length_max_mm,
+            opt.max_length_rms_mm,
+        )
     st = res.state
     return RigCalibration(
         rig=rig,
         cameras=reports,
-        rms_px=float(np.sqrt(np.mean(np.sum(inl**2, axis=1)))),
+        rms_px=rms_px,
         sigma_px=res.sigma_px,
         fit_views=tuple(vnames[v] for v in fit),
         holdout=holdout,
@@ -322,7 +338,64 @@ def calibrate_rig(
         warnings=tuple(warnings),
         T_rig_board=tuple(_T(R, t) for R, t in zip(st.R_rig_board, st.t_rig_board, strict=True)),
         iterations=res.iterations,
+        diagnoses=diagnoses,
+        failures=tuple(failures),
     )
+
+
+def _enough_views(
+    board: Board,
+    n: str,
+    views: Sequence[Mapping[str, Image]],
+    det: list[dict[str, CornerDetection]],
+    fit: list[int],
+    opt: RigCalibrationOptions,
+) -> list[tuple[int, CornerDetection]]:
+    """Camera ``n``'s detections in the fitted views; refused when fewer than
+    ``min_views`` (naming mirrored images when that is why)."""
+    dets = [(v, det[v][n]) for v in fit if n in det[v]]
+    if len(dets) < opt.min_views:
+        missed = [views[v][n] for v in fit if n in views[v] and n not in det[v]]
+        hint = (
+            " — its images show the board mirrored: is ReverseX or ReverseY set on it?"
+            if mirrored_count(board, missed, opt.min_corners)
+            else ""
+        )
+        raise MeasurementError(
+            f"{n}: the board was found in {len(dets)} of the fitted views, "
+            f"at least {opt.min_views} are needed{hint}"
+        )
+    return dets
+
+
+def _remeasure(
+    board: Board,
+    cameras: Mapping[str, tuple[int, int]],
+    views: Sequence[Mapping[str, Image]],
+    det: list[dict[str, CornerDetection]],
+    fit: list[int],
+    pts: Array,
+    opt: RigCalibrationOptions,
+) -> dict[str, int]:
+    """Every camera's corners measured again from their edges, with the intrinsics its
+    first-pass corners give (:class:`~cellcal.calib.board_corners.CornerMeter`);
+    ``det`` is updated in place. Returns per camera the corners left out as
+    unmeasurable."""
+    out = {}
+    for n in cameras:
+        dets = [(v, det[v][n]) for v in fit if n in det[v]]
+        K, dist, _, _ = _intrinsics(n, cameras[n], dets, pts, opt)
+        meter = CornerMeter(board, K, dist, opt.min_corners)
+        for v, view in enumerate(views):
+            if n not in det[v]:
+                continue
+            found = meter.measure(view[n])
+            if found is None:
+                del det[v][n]
+            else:
+                det[v][n] = found
+        out[n] = meter.unmeasured
+    return out
 
 
 def _T(R: Array, t: Array) -> Array:
@@ -344,6 +417,7 @@ def _results(
     fit: list[int],
     det: list[dict[str, CornerDetection]],
     rms0: dict[str, float],
+    unmeasured: dict[str, int],
 ) -> tuple[Rig, tuple[CameraReport, ...]]:
     st = res.state
     cams, reports = [], []
@@ -376,6 +450,7 @@ def _results(
                 sigma_position_mm=sd[12:15].copy(),
                 sigma_rotation_deg=np.degrees(sd[9:12]),
                 covariance=res.camera_cov[c].copy(),
+                unmeasured=unmeasured[n],
             )
         )
     return Rig(rig_name, tuple(cams)), tuple(reports)

@@ -197,6 +197,7 @@ def _calibration_json(cal: RigCalibration) -> dict[str, Any]:
                 "views": c.views,
                 "corners": c.corners,
                 "rejected": c.rejected,
+                "unmeasured": c.unmeasured,
                 "reprojection_rms_px": c.rms_px,
                 "sigma_fx_px": c.sigma_fx_px,
                 "sigma_fy_px": c.sigma_fy_px,
@@ -218,6 +219,8 @@ def _calibration_json(cal: RigCalibration) -> dict[str, Any]:
         },
         "suspect_cameras": list(cal.suspect_cameras),
         "warnings": list(cal.warnings),
+        "verdict": "fails" if cal.failures else "passes",
+        "failures": list(cal.failures),
     }
 
 
@@ -230,6 +233,19 @@ def _calibration_json(cal: RigCalibration) -> dict[str, Any]:
 @click.option("--name", default="cell-rig", show_default=True, help="The rig's name.")
 @click.option("--fix-k3", is_flag=True, help="Keep k3 at 0 (lenses with little distortion).")
 @click.option("--fix-tangential", is_flag=True, help="Keep p1 and p2 at 0.")
+@click.option(
+    "--max-length-error",
+    "max_length_mm",
+    type=float,
+    default=RigCalibrationOptions.max_length_rms_mm,
+    show_default=True,
+    help="Largest RMS error (mm) of the held-out board lengths for a rig that passes.",
+)
+@click.option(
+    "--accept",
+    is_flag=True,
+    help="Write the rig even if a check fails (the failures are recorded in the file).",
+)
 @click.option("--json", "as_json", is_flag=True, help="Print the result as JSON.")
 def calibrate(
     board_path: str,
@@ -238,30 +254,35 @@ def calibrate(
     name: str,
     fix_k3: bool,
     fix_tangential: bool,
+    max_length_mm: float,
+    accept: bool,
     as_json: bool,
 ) -> None:
     """Calibrate the camera rig (intrinsics and extrinsics) from ChArUco views.
 
-    Intrinsics per camera, then every camera's intrinsics and pose together by bundle
+    The board's corners are measured from their edges with each camera's first
+    calibration, then every camera's intrinsics and pose are fitted together by bundle
     adjustment; the rig frame is the first camera's. Every fifth view is held out and
-    measured with the result: its reprojection RMS and the board's known lengths. A
-    camera that loses more than a tenth of its corners as outliers (moved while the
-    views were taken) is refused with exit 3 and no rig file is written.
+    measured with the result: its reprojection RMS and the board's known lengths, with a
+    verdict. A camera whose views are shifted as a whole (it moved while the views were
+    taken), or a held-out check that fails, is refused with exit 3 and no rig file is
+    written, unless --accept is given.
     """
+    if not max_length_mm > 0:
+        raise InputError(
+            f"--max-length-error: expected a positive length in mm, got {max_length_mm}"
+        )
     board = read_board(board_path)
     views = load_views(views_dir)
-    options = RigCalibrationOptions(fix_k3=fix_k3, fix_tangential=fix_tangential)
+    options = RigCalibrationOptions(
+        fix_k3=fix_k3, fix_tangential=fix_tangential, max_length_rms_mm=max_length_mm
+    )
     cal = calibrate_rig(
         board, views.cameras, list(views.views), options, view_names=views.names, name=name
     )
-    if cal.suspect_cameras:
-        raise AcceptanceError(
-            "rig calibration",
-            f"{', '.join(cal.suspect_cameras)} lost more than a tenth of their corners as "
-            "outliers: a camera moved, or the lens was touched, while the views were taken; "
-            "take the views again",
-        )
-    write_rig(out_path, cal.rig)
+    if cal.failures and not accept:
+        raise AcceptanceError("rig calibration", "; ".join(cal.failures))
+    write_rig(out_path, cal.rig, accepted_despite=cal.failures)
     if as_json:
         print_json(_calibration_json(cal))
         return
@@ -272,7 +293,8 @@ def calibrate(
     for c in cal.cameras:
         sp = np.linalg.norm(c.sigma_position_mm)
         click.echo(
-            f"  {c.name}: {c.views} views, {c.corners} corners ({c.rejected} left out), "
+            f"  {c.name}: {c.views} views, {c.corners} corners ({c.rejected} outliers, "
+            f"{c.unmeasured} unmeasurable left out), "
             f"RMS {c.rms_px:.3f} px; 1σ fx {c.sigma_fx_px:.2f} cx {c.sigma_cx_px:.2f} "
             f"cy {c.sigma_cy_px:.2f} px, position {sp:.3f} mm, "
             f"rotation {np.linalg.norm(c.sigma_rotation_deg):.4f}°"
@@ -286,3 +308,12 @@ def calibrate(
         )
     for w in cal.warnings:
         click.echo(f"  warning: {w}")
+    if cal.failures:
+        click.echo(f"  verdict: fails, written with --accept ({'; '.join(cal.failures)})")
+    elif cal.holdout is not None:
+        click.echo(
+            f"  verdict: passes (held-out lengths within {options.max_length_rms_mm:g} mm RMS, "
+            "reprojection like the fit's)"
+        )
+    else:
+        click.echo("  verdict: not checked (no view held out)")

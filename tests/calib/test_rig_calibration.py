@@ -111,7 +111,8 @@ def test_rig_matches_the_truth(scene: Scene, calibrated: RigCalibration) -> None
         np.testing.assert_array_equal(cam.dist[2:], 0.0)  # tangential and k3 held at zero
         assert abs(cam.dist[0]) < 0.01
         assert cam.reprojection_rms_px == rep.rms_px < 0.15
-        assert rep.views == 16 and rep.corners > 300 and rep.rejected < 0.08 * rep.corners
+        # a view whose corners' edges cannot be measured is left out (15 or 16 views)
+        assert rep.views >= 15 and rep.corners > 300 and rep.rejected < 0.08 * rep.corners
         assert rep.initial_rms_px < 0.5
     assert res.rms_px < 0.15 and 0.02 < res.sigma_px < 0.08
     assert res.suspect_cameras == () and res.warnings == ()
@@ -170,7 +171,8 @@ def test_moved_camera_is_flagged(scene: Scene) -> None:
         mixed[k].update(renderer.frames(renderer.clean(poses[k]), rng))
     res = calibrate_rig(BOARD, _sizes(rig), mixed)  # all five distortion terms free
     assert res.suspect_cameras == ("cam2",)
-    assert len(res.warnings) == 1 and res.warnings[0].startswith("cam2: ")
+    assert len(res.warnings) == 1 and res.warnings[0].startswith("cam2: views 1, 2, 3, 4, 6")
+    assert res.failures[0] == res.warnings[0] and "the camera moved" in res.failures[0]
     rep = {r.name: r for r in res.cameras}
     assert rep["cam2"].rms_all_px > 1.0 and rep["cam2"].rejected > 0.2 * rep["cam2"].corners
     assert all(rep[n].rms_all_px < 0.3 for n in ("cam0", "cam1", "cam3"))
@@ -420,3 +422,41 @@ def test_a_calibrated_rig_measures_lengths(scene: Scene, calibrated: RigCalibrat
     assert known.min() > 20.0 and known.max() > 250.0
     rms = float(np.sqrt(np.mean(err**2)))
     assert rms < 0.025, (rms, np.abs(err).max())
+
+
+def _bundle_with(residuals: Array, inliers: Array, views: Array) -> tuple:
+    obs = rig_bundle.Observations(
+        np.zeros(len(views), dtype=np.int64), views.astype(np.int64),
+        np.zeros((len(views), 3)), np.zeros((len(views), 2)),
+    )  # fmt: skip
+    state = rig_bundle.RigState(*(np.zeros((1, 1)),) * 5)
+    res = rig_bundle.BundleResult(state, inliers, residuals, 0.05, np.zeros((1, 15, 15)), 1)
+    return res, obs
+
+
+def test_a_moved_camera_is_told_from_noisy_detections() -> None:
+    """The rule of rig_verdict: 12 views of 30 corners with 0.05 px noise. Outliers
+    scattered over every view (15 %) are noisy detections: named, the camera kept. The
+    last four views shifted as a whole by 0.8 px: the camera moved, and the note names
+    those views and the shift. One shifted view alone is a mismatched view."""
+    from cellcal.calib.rig_verdict import diagnose_camera
+
+    rng = np.random.default_rng(3)
+    views = np.repeat(np.arange(12), 30)
+    names = [f"v{k}" for k in range(12)]
+    noise = rng.normal(0.0, 0.05, (len(views), 2))
+    scattered = rng.random(len(views)) < 0.15
+    noisy = noise + np.where(scattered[:, None], rng.normal(0.0, 1.0, (len(views), 2)), 0.0)
+    d = diagnose_camera("cam2", 0, *_bundle_with(noisy, ~scattered, views), names, 0.1)
+    assert not d.moved and d.shifted == () and d.rejected == scattered.sum()
+    assert d.note is not None and "noisy detections" in d.note and "did not move" in d.note
+    shift = noise + np.where((views >= 8)[:, None], [0.8, 0.0], 0.0)
+    d = diagnose_camera("cam2", 0, *_bundle_with(shift, views < 8, views), names, 0.1)
+    assert d.moved and d.shifted == ("v8", "v9", "v10", "v11")
+    assert d.note is not None and d.note.startswith("cam2: views v8, v9, v10, v11 are shifted")
+    assert "by 0.80–0.81 px" in d.note and "the camera moved" in d.note
+    one = noise + np.where((views == 5)[:, None], [0.0, 0.9], 0.0)
+    d = diagnose_camera("cam2", 0, *_bundle_with(one, views != 5, views), names, 0.05)
+    assert not d.moved and d.shifted == ("v5",) and "view v5 is shifted" in (d.note or "")
+    clean = diagnose_camera("cam2", 0, *_bundle_with(noise, views >= 0, views), names, 0.1)
+    assert clean.note is None and not clean.moved

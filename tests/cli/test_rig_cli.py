@@ -170,6 +170,8 @@ def test_rig_calibrate_writes_a_rig_that_measures(
     )
     assert code == 0, err
     got = json.loads(text)
+    assert got["verdict"] == "passes" and got["failures"] == []
+    assert "accepted_despite" not in out.read_text()
     assert [c["name"] for c in got["cameras"]] == ["cam0", "cam1", "cam2", "cam3"]
     assert got["holdout"]["reprojection_rms_px"] < 0.2
     calibrated = read_rig(out)
@@ -188,3 +190,36 @@ def test_rig_calibrate_writes_a_rig_that_measures(
     for a, b in ((0, 1), (1, 2), (0, 2)):
         length = np.linalg.norm(scene["truths"][a] - scene["truths"][b])
         assert abs(np.linalg.norm(xyz[a] - xyz[b]) - length) < 0.3
+
+
+def test_rig_calibrate_refuses_a_failed_check_unless_accepted(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
+    """A held-out check that fails (here: a length limit no rig meets) is refused with
+    exit 3, its numbers on the line and no rig file; --accept writes it with the failure
+    recorded, and the file still reads."""
+    from cellcal.photofiles import read_rig, write_board
+    from tests.calib.test_rig_calibration import BOARD
+
+    rig = four_camera_rig()
+    renderer = SceneRenderer.for_board(rig.cameras, BOARD, Optics(supersample=3))
+    rng = np.random.default_rng(4)
+    for k, T in enumerate(board_poses(rig, BOARD, 10, seed=8)):
+        for cam, img in renderer.frames(renderer.clean(T), rng).items():
+            (tmp_path / "views" / f"v{k}").mkdir(parents=True, exist_ok=True)
+            write_image(tmp_path / "views" / f"v{k}" / f"{cam}.png", img)
+    write_board(tmp_path / "board.toml", BOARD)
+    out = tmp_path / "rig.toml"
+    args = ["rig", "calibrate", "--board", tmp_path / "board.toml", "--views"]
+    args += [tmp_path / "views", "--out", out, "--fix-k3", "--fix-tangential"]
+    code, text, err = run(capsys, *args, "--max-length-error", "0.00001")
+    assert code == 3 and not out.exists() and text == ""
+    assert err.startswith("cellcal: refused: rig calibration: held-out board lengths are off by")
+    assert "beyond 1e-05 mm" in err and len(err.strip().splitlines()) == 1
+    code, text, err = run(capsys, *args, "--max-length-error", "0.00001", "--accept")
+    assert code == 0, err
+    assert "verdict: fails, written with --accept (held-out board lengths" in text
+    assert "accepted_despite = [" in out.read_text()
+    assert [c.name for c in read_rig(out).cameras] == ["cam0", "cam1", "cam2", "cam3"]
+    code, _, err = run(capsys, *args, "--max-length-error", "-1")
+    assert code == 2 and "--max-length-error: expected a positive length" in err
