@@ -52,8 +52,11 @@ EDGE_SPAN = (0.2, 0.8)
 #: How far a blurred edge reaches, px: windows and level probes stay this far from any
 #: other edge of the board.
 BLUR_REACH_PX = 1.6
-#: Largest reach of the window into either side, px.
-WINDOW_MAX_PX = 8.0
+#: Largest reach of the window into either side, px: beyond about 3.5 σ of the blur the
+#: edge's tail is below a ten-thousandth of a pixel, and a longer window adds only noise.
+WINDOW_MAX_PX = 3.0
+#: Where the black square's level is read: this far into it, px (up to its middle).
+DARK_PROBE_PX = 5.0
 #: Passes over each edge, each centring the window on the last estimate.
 PASSES = 3
 #: Least difference between the white and the black level.
@@ -209,14 +212,17 @@ class BoardEdges:
         if np.any(np.abs(rate) < 1e-9):
             return None
         sign = np.sign(rate)  # +1: the black square lies toward larger scan coordinate
-        dark_px = np.minimum(0.5 * self.board.square / np.abs(rate), WINDOW_MAX_PX + 4)
+        dark_px = 0.5 * self.board.square / np.abs(rate)
         bright_px = self.margin / np.abs(rate)
         if np.median(bright_px) < 2.0 * BLUR_REACH_PX + 0.2:
             return None  # the white margin is too narrow in the image to read its level
         reach_dark = np.minimum(dark_px - BLUR_REACH_PX, WINDOW_MAX_PX)
         reach_bright = np.minimum(bright_px - BLUR_REACH_PX, WINDOW_MAX_PX)
-        probe_dark = np.minimum(0.5 * dark_px, WINDOW_MAX_PX)
-        probe_bright = 0.5 * bright_px
+        # the levels are read from three pixels a row where there is room (one in a
+        # narrow margin): their noise would otherwise shift a whole edge
+        probe_dark = np.minimum(0.5 * dark_px, DARK_PROBE_PX)[:, None] + np.array([-1, 0, 1])
+        spread = np.where(bright_px >= 2.0 * BLUR_REACH_PX + 2.0, 1.0, 0.0)
+        probe_bright = (0.5 * bright_px)[:, None] + spread[:, None] * np.array([-1, 0, 1])
         j_int = js.astype(np.int64)
         ok = np.ones(len(js), dtype=bool)
         offs = np.arange(-int(WINDOW_MAX_PX) - 2, int(WINDOW_MAX_PX) + 3)
@@ -234,10 +240,10 @@ class BoardEdges:
 
         dark = bright = float("nan")
         for _ in range(PASSES):
-            dark_v = gather(np.rint(e + sign * probe_dark))
-            bright_v = gather(np.rint(e - sign * probe_bright))
-            dark = float(np.nanmedian(np.where(ok, dark_v, np.nan))) if ok.any() else np.nan
-            bright = float(np.nanmedian(np.where(ok, bright_v, np.nan))) if ok.any() else np.nan
+            dark_v = gather(np.rint((e + sign * probe_dark.T).T))
+            bright_v = gather(np.rint((e - sign * probe_bright.T).T))
+            dark = _level(np.where(ok[:, None], dark_v, np.nan))
+            bright = _level(np.where(ok[:, None], bright_v, np.nan))
             if not np.isfinite(dark) or not np.isfinite(bright) or bright - dark < MIN_CONTRAST:
                 return None
             # the window [lo, hi] along the scan: toward the black square by reach_dark,
@@ -268,6 +274,16 @@ class BoardEdges:
         pts[:, ax] = js[ok]
         pts[:, 1 - ax] = e[ok]
         return pts
+
+
+def _level(values: Array) -> float:
+    """The mean of grey levels within 3 robust σ of their median (NaN when none)."""
+    v = values[np.isfinite(values)]
+    if v.size == 0:
+        return float("nan")
+    med = float(np.median(v))
+    mad = 1.4826 * float(np.median(np.abs(v - med)))
+    return float(v[np.abs(v - med) <= max(3.0 * mad, 1.0)].mean())
 
 
 class _Projector:

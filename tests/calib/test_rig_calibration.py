@@ -114,7 +114,7 @@ def test_rig_matches_the_truth(scene: Scene, calibrated: RigCalibration) -> None
         # a view whose corners' edges cannot be measured is left out (15 or 16 views)
         assert rep.views >= 15 and rep.corners > 300 and rep.rejected < 0.08 * rep.corners
         assert rep.initial_rms_px < 0.5
-    assert res.rms_px < 0.15 and 0.02 < res.sigma_px < 0.08
+    assert res.rms_px < 0.15 and 0.005 < res.sigma_px < 0.08
     assert res.suspect_cameras == () and res.warnings == ()
     assert len(res.T_rig_board) == 16
 
