@@ -6,12 +6,14 @@ from __future__ import annotations
 import json
 import os
 import re
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import click
 
 from cellcal.commands.output import SEED
-from cellcal.config import CellConfig, load_config
+from cellcal.config import CellConfig
 from cellcal.drivers.photogrammetry import CameraRigOptions
 from cellcal.errors import DeviceError, InputError
 
@@ -30,31 +32,81 @@ def _rig_sensor(config: CellConfig, name: str | None, source: str) -> CameraRigO
 
 
 @click.command("capture")
-@click.option("--config", "config_path", required=True, help="Cell configuration.")
+@click.option("--config", "config_path", help="Cell configuration (with --mock: optional).")
 @click.option("--out", "out_dir", required=True, help="Folder for the sets (created).")
 @click.option("--sets", "n_sets", type=click.IntRange(1, 100000), default=1, show_default=True)
 @click.option("--sensor", default=None, help="Which photogrammetry sensor (default: the first).")
+@click.option(
+    "--mock",
+    is_flag=True,
+    help="Grab from the simulated cell's camera twins (the bundled cell without --config).",
+)
+@click.option(
+    "--board",
+    "board_path",
+    help="With --mock: the cameras see this ChArUco board, a new pose every set.",
+)
+@click.option("--seed", type=SEED, help="With --mock: the seed of the simulated truth and noise.")
 @click.option("--json", "as_json", is_flag=True, help="One JSON object per set.")
 def rig_capture(
-    config_path: str, out_dir: str, n_sets: int, sensor: str | None, as_json: bool
+    config_path: str | None,
+    out_dir: str,
+    n_sets: int,
+    sensor: str | None,
+    mock: bool,
+    board_path: str | None,
+    seed: int | None,
+    as_json: bool,
 ) -> None:
     """Grab synchronised image sets from the configured cameras: one folder per set,
     ``<camera>.png`` in each (what ``rig measure --sets`` and the ``files`` backend read).
-    """
-    from cellcal.drivers.cameras import rig_class
-    from cellcal.imagefiles import write_image
 
-    config = load_config(config_path)
-    options = _rig_sensor(config, sensor, config_path)
+    With --mock the cameras are the simulated cell's twins, reached through the
+    configured driver: they see the flange's target where the simulated robot holds it
+    (at home), or with --board a calibration board held up at a new pose every set (the
+    views `rig calibrate` takes).
+    """
+    from cellcal.commands.run import cell_config
+
+    if not mock and (board_path is not None or seed is not None):
+        raise InputError("--board and --seed are for --mock (the simulated cell's cameras)")
+    if config_path is None and not mock:
+        raise InputError("--config FILE is needed (or --mock for the simulated cell)")
+    config, source = cell_config(config_path, mock)
+    options = _rig_sensor(config, sensor, source)
     out = Path(out_dir)
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise InputError(f"--out {out}: {exc.strerror}") from None
-    cameras = rig_class(options.capture.backend).from_options(options.capture)
+    if mock:
+        from cellcal.mocks.rig_capture_twin import mock_rig
+
+        twin = mock_rig(config, options, board_path, n_sets, seed)
+        try:
+            _grab(twin.cameras, out, n_sets, as_json, twin.announce)
+        finally:
+            twin.stop()
+        return
+    from cellcal.drivers.cameras import rig_class
+
+    _grab(rig_class(options.capture.backend).from_options(options.capture), out, n_sets, as_json)
+
+
+def _grab(
+    cameras: Any,
+    out: Path,
+    n_sets: int,
+    as_json: bool,
+    announce: Callable[[int], None] | None = None,
+) -> None:
+    from cellcal.imagefiles import write_image
+
     cameras.connect()
     try:
         for k in range(1, n_sets + 1):
+            if announce is not None:
+                announce(k - 1)
             frames = cameras.grab()
             folder = out / f"set-{k:04d}"
             folder.mkdir(exist_ok=True)
@@ -91,28 +143,53 @@ def _hosts(text: str, n: int) -> int:
 
 @click.command("cameras")
 @click.option("--rig", "rig_path", required=True, help="Rig file (the cameras to serve).")
-@click.option("--target", "target_path", required=True, help="Target file (what they see).")
+@click.option("--target", "target_path", help="Target file (what they see on the flange).")
+@click.option("--board", "board_path", help="Board file: they see this ChArUco board instead.")
+@click.option(
+    "--views",
+    type=click.IntRange(1, 10000),
+    default=20,
+    show_default=True,
+    help="With --board: the board's poses, one a set, in turn.",
+)
 @click.option("--hosts", default="127.0.0.2-5", show_default=True, help="Their addresses.")
 @click.option(
     "--config", "config_path", help="Cell configuration (default: the bundled simulated cell)."
 )
 @click.option("--seed", type=SEED, help="Seed of the simulated truth and noise.")
 def mock_cameras(
-    rig_path: str, target_path: str, hosts: str, config_path: str | None, seed: int | None
+    rig_path: str,
+    target_path: str | None,
+    board_path: str | None,
+    views: int,
+    hosts: str,
+    config_path: str | None,
+    seed: int | None,
 ) -> None:
     """Serve the simulated cell's cameras as GigE Vision devices (Aravis's fake camera)
-    in a network namespace of their own, each frame rendered from where the simulated
-    robot holds the target (at home), until Ctrl-C or SIGTERM."""
+    in a network namespace of their own, until Ctrl-C or SIGTERM: each frame rendered
+    from where the simulated robot holds the target (at home), or with --board a
+    ChArUco board held up at --views poses in turn (a new pose each set)."""
     from cellcal.commands.mock import simulated_cell_of, wait_for_signal
+    from cellcal.mocks.board_views import BoardScene
     from cellcal.mocks.gige_cameras import GigECameraTwin
     from cellcal.mocks.rig_twin import RigScene, RigTruth
-    from cellcal.photofiles import read_rig, read_target
+    from cellcal.photofiles import read_board, read_rig, read_target
 
-    rig, target = read_rig(rig_path), read_target(target_path)
+    if (target_path is None) == (board_path is None):
+        raise InputError("give either --target FILE (the flange's target) or --board FILE")
+    rig = read_rig(rig_path)
     first = _hosts(hosts, len(rig.cameras))
     config, cell = simulated_cell_of(config_path, seed)
     sensor = _rig_sensor(config, None, config_path or "the bundled cell")
-    scene = RigScene(RigTruth.of(cell, sensor.name), rig, target, lambda: cell.q)
+    truth = RigTruth.of(cell, sensor.name)
+    scene: RigScene | BoardScene
+    if board_path is not None:
+        board = read_board(board_path)
+        scene = BoardScene(rig, board, views, truth.seed, truth.blur_px, truth.noise_grey)
+    else:
+        assert target_path is not None
+        scene = RigScene(truth, rig, read_target(target_path), lambda: cell.q)
     cam = rig.cameras[0]
     twin = GigECameraTwin(
         [c.name for c in rig.cameras],

@@ -21,7 +21,7 @@ import logging
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Literal
+from typing import Any, Literal, Protocol
 
 import cv2
 import numpy as np
@@ -304,7 +304,18 @@ def serve(options: CameraRigOptions, cell: SimulatedCell, time_scale: float) -> 
     return RigTwin(options.model_copy(update={"capture": rendered}), None, sid)
 
 
-def serve_gige(options: CameraRigOptions, scene: RigScene) -> RunningTwin:
+class CameraScene(Protocol):
+    """What GigE Vision camera twins serve: a rig's cameras, each camera's next frame
+    (or written into its buffer)."""
+
+    rig: Rig
+
+    def image(self, camera: str) -> Image: ...
+
+    def write(self, camera: str, out: Image) -> None: ...
+
+
+def serve_gige(options: CameraRigOptions, scene: CameraScene) -> RunningTwin:
     """The scene's cameras as GigE Vision devices for the rig's ``aravis`` capture (in a
     network namespace of this process), the options pointed at them."""
     from cellcal.mocks.gige_cameras import serve_rig
