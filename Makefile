@@ -76,6 +76,7 @@ bench: $(STAMP)
 	$(BIN)/python benchmarks/pose_selection.py
 	$(BIN)/python benchmarks/campaign.py
 	$(BIN)/python benchmarks/photogrammetry.py
+	$(BIN)/python benchmarks/rig_calibration.py
 	$(BIN)/python benchmarks/service.py
 
 clean:
