@@ -3,16 +3,18 @@ and its pose in the rig frame (the first camera's frame), with their uncertainty
 
 1. ChArUco corners per image (OpenCV's ``CharucoDetector``); detections with fewer than
    ``min_corners`` corners, or with all corners on one line, are dropped.
-2. Per camera, ``cv2.calibrateCamera`` on its views: the intrinsics' starting values and
-   the board's pose in each of its views.
+2. Per camera, ``cv2.calibrateCamera`` on its views; with those intrinsics each image's
+   corners are measured again from the board's edges (:mod:`cellcal.calib.rig_views`,
+   :mod:`cellcal.calib.board_edges`), and ``cv2.calibrateCamera`` gives the starting
+   values and the board's pose in each of the camera's views.
 3. Cameras are placed one by one from views they share with cameras already placed
    (the medoid of the composed board poses); each view's board pose likewise.
 4. A bundle adjustment of all of it together (:mod:`cellcal.calib.rig_bundle`), corners
-   beyond ``outlier_sigma``·σ̂ dropped; a camera losing many corners is reported as
-   suspect (it moved, or a view is mismatched).
+   beyond ``outlier_sigma``·σ̂ dropped; what the dropped corners say — a camera that
+   moved, a mismatched view, noise — by :mod:`cellcal.calib.rig_verdict`.
 5. Held-out views (every ``holdout_every``-th, not used in the fit): the reprojection
    error with only the board's pose re-estimated, and the board's inner-corner distances
-   triangulated from all cameras against their known lengths (mm).
+   triangulated from all cameras against their known lengths (mm), with a verdict.
 
 Pure numerics: images (numpy arrays) in, a frozen :class:`RigCalibration` out. Lengths
 mm, angles degrees at the boundary; ``T_a_b`` maps frame b into frame a.
@@ -32,13 +34,10 @@ from scipy.spatial.transform import Rotation
 from cellcal.calib import rig_bundle
 from cellcal.calib.board_corners import (
     CornerDetection,
-    CornerMeter,
     board_not_found,
     board_points,
     detect_corners,
     grey8,
-    mirrored_count,
-    shows_mirrored,
 )
 from cellcal.calib.camera_rig import Board, Camera, Rig
 from cellcal.calib.geometry import Array
@@ -52,6 +51,14 @@ from cellcal.calib.rig_bundle import (
     triangulate,
 )
 from cellcal.calib.rig_verdict import CameraDiagnosis, diagnose_camera, holdout_failures
+from cellcal.calib.rig_views import (
+    RigCalibrationOptions,
+    check_inputs,
+    enough_views,
+    intrinsics,
+    remeasure,
+    unseen_views,
+)
 
 __all__ = [
     "CameraReport",
@@ -70,26 +77,6 @@ __all__ = [
 from cellcal.errors import InputError, MeasurementError
 
 Image = NDArray[Any]
-
-
-@dataclass(frozen=True)
-class RigCalibrationOptions:
-    """Choices of the calibration: distortion terms held at zero, detection and
-    outlier thresholds, and which views are held out (every n-th; 0 for none)."""
-
-    fix_k3: bool = False
-    fix_tangential: bool = False
-    min_corners: int = 6
-    min_views: int = 5
-    holdout_every: int = 5
-    outlier_sigma: float = 4.0
-    #: a camera losing more than this fraction of its corners, in views shifted as a
-    #: whole, moved (:mod:`cellcal.calib.rig_verdict`)
-    max_rejected_fraction: float = 0.1
-    #: the held-out board lengths' largest RMS error for a calibration that passes, mm
-    max_length_rms_mm: float = 0.05
-    #: measure the corners again from their edges with each camera's first calibration
-    refine_corners: bool = True
 
 
 @dataclass(frozen=True, eq=False)
@@ -161,26 +148,6 @@ class RigCalibration:
 # --- the calibration -------------------------------------------------------------------
 
 
-def _intrinsics(
-    name: str,
-    size: tuple[int, int],
-    dets: list[tuple[int, CornerDetection]],
-    pts: Array,
-    options: RigCalibrationOptions,
-) -> tuple[Array, Array, float, dict[int, Array]]:
-    flags = (cv2.CALIB_FIX_K3 if options.fix_k3 else 0) | (
-        cv2.CALIB_ZERO_TANGENT_DIST if options.fix_tangential else 0
-    )
-    obj = [pts[d.ids].astype(np.float32) for _, d in dets]
-    img = [d.pixels.astype(np.float32).reshape(-1, 1, 2) for _, d in dets]
-    try:
-        rms, K, dist, rvecs, tvecs = cv2.calibrateCamera(obj, img, size, None, None, flags=flags)
-    except cv2.error as exc:
-        raise MeasurementError(f"{name}: calibrateCamera failed ({exc.err})") from None
-    poses = {v: pose(r, t) for (v, _), r, t in zip(dets, rvecs, tvecs, strict=True)}
-    return np.asarray(K, float), np.asarray(dist, float).ravel()[:5], float(rms), poses
-
-
 def _observations(
     det: list[dict[str, CornerDetection]], views: list[int], names: list[str], pts: Array
 ) -> rig_bundle.Observations:
@@ -201,48 +168,6 @@ def _observations(
     )
 
 
-def _unseen_views(
-    board: Board,
-    views: Sequence[Mapping[str, Image]],
-    det: list[dict[str, CornerDetection]],
-    names: list[str],
-    min_corners: int,
-) -> list[str]:
-    """One warning per view in which no camera found the board; it says so when the
-    board shows mirrored there (turned over: seen through from its back)."""
-    out = []
-    detector = cv2.aruco.CharucoDetector(board.cv_board())
-    for v, view in enumerate(views):
-        if det[v] or not view:
-            continue
-        flipped = [n for n, im in view.items() if shows_mirrored(board, im, min_corners, detector)]
-        if flipped:
-            out.append(
-                f"view {names[v]}: the board shows mirrored ({', '.join(flipped)}) — turned "
-                "over, seen through from its back? The view is left out"
-            )
-        else:
-            out.append(f"view {names[v]}: no camera found the board; the view is left out")
-    return out
-
-
-def _check_inputs(
-    cameras: Mapping[str, tuple[int, int]], views: Sequence[Mapping[str, Image]], names: list[str]
-) -> None:
-    if not cameras:
-        raise InputError("cameras: at least one camera is needed")
-    for v, view in enumerate(views):
-        for cam, img in view.items():
-            if cam not in cameras:
-                raise InputError(f"view {names[v]}: {cam!r} is not one of the rig's cameras")
-            w, h = cameras[cam]
-            if np.shape(img)[:2] != (h, w):
-                raise InputError(
-                    f"view {names[v]}: {cam} image is {np.shape(img)[1]}×{np.shape(img)[0]}, "
-                    f"the camera's {w}×{h}"
-                )
-
-
 def calibrate_rig(
     board: Board,
     cameras: Mapping[str, tuple[int, int]],
@@ -259,7 +184,7 @@ def calibrate_rig(
     vnames = list(view_names) if view_names is not None else [f"{k + 1}" for k in range(len(views))]
     if len(vnames) != len(views):
         raise InputError(f"view_names: {len(vnames)} names for {len(views)} views")
-    _check_inputs(cameras, views, vnames)
+    check_inputs(cameras, views, vnames)
     detector = cv2.aruco.CharucoDetector(board.cv_board())
     det: list[dict[str, CornerDetection]] = []
     for view in views:
@@ -269,22 +194,23 @@ def calibrate_rig(
         det.append({c: d for c, d in found.items() if d is not None})
     if not any(det):
         raise board_not_found(board, [img for v in views for img in v.values()], opt.min_corners)
-    unseen = _unseen_views(board, views, det, vnames, opt.min_corners)
+    unseen = unseen_views(board, views, det, vnames, opt.min_corners)
     every = opt.holdout_every
     held = [v for v in range(len(views)) if every > 0 and v % every == every - 1 and det[v]]
     fit = [v for v in range(len(views)) if v not in held and det[v]]
     pts = board_points(board)
     for n in names:
-        _enough_views(board, n, views, det, fit, opt)
-    unmeasured = dict.fromkeys(names, 0)
+        enough_views(board, n, views, det, fit, opt)
+    unmeasured: dict[str, int] = dict.fromkeys(names, 0)
+    kept: list[str] = []
     if opt.refine_corners:
-        unmeasured = _remeasure(board, cameras, views, det, fit, pts, opt)
+        unmeasured, kept = remeasure(board, cameras, views, det, fit, pts, opt)
         held = [v for v in held if det[v]]
         fit = [v for v in fit if det[v]]
     K0, d0, rms0, T_cam_board = {}, {}, {}, {}
     for n in names:
-        dets = _enough_views(board, n, views, det, fit, opt)
-        K0[n], d0[n], rms0[n], poses = _intrinsics(n, cameras[n], dets, pts, opt)
+        dets = enough_views(board, n, views, det, fit, opt)
+        K0[n], d0[n], rms0[n], poses = intrinsics(n, cameras[n], dets, pts, opt)
         T_cam_board.update({(v, n): T for v, T in poses.items()})
     T_rig_cam = place_cameras(names, T_cam_board)
     T_rig_board = [
@@ -312,7 +238,7 @@ def calibrate_rig(
         diagnose_camera(n, c, res, obs, fit_names, opt.max_rejected_fraction)
         for c, n in enumerate(names)
     )
-    warnings = list(unseen) + [d.note for d in diagnoses if d.note is not None]
+    warnings = list(unseen) + kept + [d.note for d in diagnoses if d.note is not None]
     suspects = [d.name for d in diagnoses if d.moved]
     failures = [d.note for d in diagnoses if d.moved and d.note is not None]
     inl = res.residuals[res.inliers]
@@ -341,61 +267,6 @@ def calibrate_rig(
         diagnoses=diagnoses,
         failures=tuple(failures),
     )
-
-
-def _enough_views(
-    board: Board,
-    n: str,
-    views: Sequence[Mapping[str, Image]],
-    det: list[dict[str, CornerDetection]],
-    fit: list[int],
-    opt: RigCalibrationOptions,
-) -> list[tuple[int, CornerDetection]]:
-    """Camera ``n``'s detections in the fitted views; refused when fewer than
-    ``min_views`` (naming mirrored images when that is why)."""
-    dets = [(v, det[v][n]) for v in fit if n in det[v]]
-    if len(dets) < opt.min_views:
-        missed = [views[v][n] for v in fit if n in views[v] and n not in det[v]]
-        hint = (
-            " — its images show the board mirrored: is ReverseX or ReverseY set on it?"
-            if mirrored_count(board, missed, opt.min_corners)
-            else ""
-        )
-        raise MeasurementError(
-            f"{n}: the board was found in {len(dets)} of the fitted views, "
-            f"at least {opt.min_views} are needed{hint}"
-        )
-    return dets
-
-
-def _remeasure(
-    board: Board,
-    cameras: Mapping[str, tuple[int, int]],
-    views: Sequence[Mapping[str, Image]],
-    det: list[dict[str, CornerDetection]],
-    fit: list[int],
-    pts: Array,
-    opt: RigCalibrationOptions,
-) -> dict[str, int]:
-    """Every camera's corners measured again from their edges, with the intrinsics its
-    first-pass corners give (:class:`~cellcal.calib.board_corners.CornerMeter`);
-    ``det`` is updated in place. Returns per camera the corners left out as
-    unmeasurable."""
-    out = {}
-    for n in cameras:
-        dets = [(v, det[v][n]) for v in fit if n in det[v]]
-        K, dist, _, _ = _intrinsics(n, cameras[n], dets, pts, opt)
-        meter = CornerMeter(board, K, dist, opt.min_corners)
-        for v, view in enumerate(views):
-            if n not in det[v]:
-                continue
-            found = meter.measure(view[n])
-            if found is None:
-                del det[v][n]
-            else:
-                det[v][n] = found
-        out[n] = meter.unmeasured
-    return out
 
 
 def _T(R: Array, t: Array) -> Array:

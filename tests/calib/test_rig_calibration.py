@@ -460,3 +460,30 @@ def test_a_moved_camera_is_told_from_noisy_detections() -> None:
     assert not d.moved and d.shifted == ("v5",) and "view v5 is shifted" in (d.note or "")
     clean = diagnose_camera("cam2", 0, *_bundle_with(noise, views >= 0, views), names, 0.1)
     assert clean.note is None and not clean.moved
+
+
+def test_a_camera_whose_edges_cannot_be_read_keeps_the_detectors_corners(
+    scene: Scene, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """When a camera's board edges cannot be measured (white margins too narrow in its
+    images), it is not refused: it keeps OpenCV's corners, and a warning says so."""
+    from cellcal.calib import rig_views
+    from cellcal.calib.board_corners import CornerMeter
+
+    made: list[CornerMeter] = []
+
+    class Meter(CornerMeter):  # the cameras are measured in order: the 4th is cam3's
+        def __init__(self, *args: object, **kw: object) -> None:
+            super().__init__(*args, **kw)  # type: ignore[arg-type]
+            made.append(self)
+
+        def measure(self, image: Image) -> object:
+            return None if len(made) == 4 else super().measure(image)
+
+    monkeypatch.setattr(rig_views, "CornerMeter", Meter)
+    rig, _, views = scene
+    res = calibrate_rig(BOARD, _sizes(rig), views, RigCalibrationOptions(fix_k3=True))
+    assert res.warnings[0].startswith("cam3: the board's edges could be measured in 0 of its")
+    rep = {r.name: r for r in res.cameras}
+    assert rep["cam3"].views == 16 and rep["cam3"].unmeasured == 0
+    assert rep["cam0"].unmeasured > 0
