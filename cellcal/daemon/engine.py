@@ -5,7 +5,9 @@ Per pose: move → (the driver returns once the robot reports it is in position)
 dwell on the clock, waiting on the stop event → sample every sensor concurrently (a
 sensor fault measures the pose again; a sensor that does not see its target —
 :class:`~cellcal.errors.NoTargetError`, a broken beam — is left out of the pose, with an
-event) → emit the pose with its raw samples (the store, a critical subscriber, writes it in one
+event; a series short of ``samples_per_pose`` after its driver's re-takes is kept with a
+``short-series`` event, another series' note becomes a ``sensor-note`` event) → emit the
+pose with its raw samples (the store, a critical subscriber, writes it in one
 transaction before the next move). Poses already stored (a resumed campaign) are
 skipped. A stop request (Ctrl-C, SIGTERM, the service) acts at once during the dwell
 and between steps: the pose under way is abandoned unstored, so the campaign stays
@@ -183,9 +185,14 @@ def _visit(
         start = clock.now()
     series = [o for o in outcomes if isinstance(o, Series)]
     for got in series:
-        if got.note:
-            message = f"pose {pose.idx}, {got.sensor}: {got.note}"
-            stream.emit(CampaignEvent(campaign_id, "sensor-note", message, pose.idx, clock.now()))
+        # a series short of samples_per_pose (its driver's re-takes ran out) says so in
+        # a kind of its own; a complete one with trouble on the way in a sensor-note
+        short = got.n < samples_per_pose
+        if got.note or short:
+            why = got.note or f"{got.n} of {samples_per_pose} samples"
+            message = f"pose {pose.idx}, {got.sensor}: {why}"
+            kind = "short-series" if short else "sensor-note"
+            stream.emit(CampaignEvent(campaign_id, kind, message, pose.idx, clock.now()))
     for s, o in zip(sensors, outcomes, strict=True):
         if isinstance(o, NoTargetError):
             # A broken beam, a target out of the cameras' view: the pose keeps what the

@@ -47,8 +47,10 @@ class Series:
     A sensor that knows each sample's uncertainty (the photogrammetry rig) adds ``cov``
     (N×3×3, mm²), the target's orientation in its frame (``orientation``, N×4 unit
     quaternions w, x, y, z) and the covariance of the mean (``mean_cov``, 3×3, mm², which
-    may hold a part that does not average over samples); ``note`` says what it could
-    not measure (frames lost)."""
+    may hold a part that does not average over samples). ``note`` says what went wrong on
+    the way (sets or points that failed and were taken again, frames lost) and, for a
+    series with fewer samples than asked (its driver's re-takes ran out: at most twice
+    as many), why."""
 
     sensor: str
     host_time: Array
@@ -130,7 +132,9 @@ class PositionSensor(Protocol):
     def connect(self) -> None: ...
 
     def measure(self, n: int, rate_hz: float) -> Series:
-        """``n`` samples at ``rate_hz``; blocks for about n / rate_hz seconds."""
+        """``n`` samples at ``rate_hz``; blocks for about n / rate_hz seconds. What fails
+        is taken again, at most ``2 n`` attempts in all; a series still short comes back
+        with what it has and a note saying why."""
         ...
 
     def close(self) -> None: ...

@@ -4,24 +4,31 @@ point with its covariance and the target's orientation.
 
 Configured as a ``[[sensor]]`` with ``kind = "photogrammetry"`` and ``driver =
 "cameras"``: the rig file (``rig calibrate --out``), the target file, and under
-``[sensor.capture]`` the cameras (a backend's options, ``docs/cameras.md``). A series at
-one pose triggers ``n`` sets at ``rate_hz``; a set whose target is not measured (seen by
-fewer than ``min_cameras``) is left out and named in the series' note; a series whose
-first :data:`GIVE_UP_SETS` sets all miss is a :class:`~cellcal.errors.NoTargetError`
-(the campaign keeps the pose with the other sensors). A camera that gives nothing after
-its own retries is named in the note, and the set is measured with the others; a set
-with no frame at all is a device fault. The series' note becomes a ``sensor-note``
-event of the campaign.
+``[sensor.capture]`` the cameras (a backend's options, ``docs/cameras.md``). A series of
+``n`` samples at one pose triggers sets at ``rate_hz`` until ``n`` of them measured the
+target, at most ``2 n`` sets: a set whose target is not measured (seen by fewer than
+``min_cameras``) is left out, named in the series' note, and another set is taken; a
+series still short after ``2 n`` sets is returned with what it has (the campaign stores
+it with a ``short-series`` event). A series whose first :data:`GIVE_UP_SETS` sets all
+miss is a :class:`~cellcal.errors.NoTargetError` (the campaign keeps the pose with the
+other sensors). A camera that gives nothing after its own retries is named in the note,
+and the set is measured with the others; a set with no frame at all is a device fault.
+A complete series' note becomes a ``sensor-note`` event of the campaign.
+
+A sample's host time is the clock when its set was triggered. Whoever listens to the
+rig's sets (:data:`SetListener`, set on the options: mock mode's camera twin) is told
+each set's index in its series and that time before the cameras are triggered.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor, wait
 from pathlib import Path
 from typing import Annotated, Literal
 
 import numpy as np
-from pydantic import Field
+from pydantic import Field, PrivateAttr
 from scipy.spatial.transform import Rotation
 
 from cellcal.calib.camera_rig import Rig, Target
@@ -40,6 +47,10 @@ from cellcal.photofiles import read_rig, read_target
 
 #: A series whose first sets all miss the target stops after this many.
 GIVE_UP_SETS = 3
+
+#: Told of each set before its cameras are triggered: its index in the series (0, 1, …;
+#: a series measured again at the same pose starts at 0 again) and the clock's time.
+SetListener = Callable[[int, float], None]
 
 #: What ``[sensor.capture]`` may be: a backend's rig options, told apart by ``backend``.
 CaptureOptions = Annotated[
@@ -60,6 +71,18 @@ class CameraRigOptions(SensorOptions):
     capture: CaptureOptions
     min_cameras: Annotated[int, Field(ge=2, le=64)] = 2
     keep_images: str = ""
+    # not configurable: mock mode's camera twin listens to the sets (module docstring)
+    _set_listener: SetListener | None = PrivateAttr(default=None)
+
+    @property
+    def set_listener(self) -> SetListener | None:
+        return self._set_listener
+
+    def listened(self, listener: SetListener) -> CameraRigOptions:
+        """These options with ``listener`` told of every set the sensor triggers."""
+        out = self.model_copy()
+        out._set_listener = listener
+        return out
 
     def endpoint(self) -> str:
         """The cameras' addresses (a recording's folder for ``files``)."""
@@ -115,6 +138,7 @@ class CameraRigSensor:
         *,
         min_cameras: int = 2,
         keep_images: str = "",
+        set_listener: SetListener | None = None,
     ) -> None:
         missing = sorted({c.name for c in rig.cameras} - set(cameras.cameras))
         extra = sorted(set(cameras.cameras) - {c.name for c in rig.cameras})
@@ -130,6 +154,7 @@ class CameraRigSensor:
         self.clock = clock
         self.meter = TargetMeter(rig, target, min_cameras=min_cameras)
         self.keep_images = Path(keep_images) if keep_images else None
+        self.set_listener = set_listener
         self._grabber = ThreadPoolExecutor(max_workers=1, thread_name_prefix=f"{name}-grab")
 
     @classmethod
@@ -146,6 +171,7 @@ class CameraRigSensor:
             context.clock,
             min_cameras=options.min_cameras,
             keep_images=options.keep_images,
+            set_listener=options.set_listener,
         )
 
     def connect(self) -> None:
@@ -156,43 +182,50 @@ class CameraRigSensor:
         self.cameras.close()
 
     def measure(self, n: int, rate_hz: float) -> Series:
-        """``n`` sets at ``rate_hz``: the reference point of each set that measured.
-        The next set is grabbed while this one is measured."""
+        """``n`` samples at ``rate_hz``: the reference point of each set that measured,
+        sets taken until ``n`` measured or ``2 n`` were taken (module docstring). The
+        next set is grabbed while this one is measured when it is sure to be needed."""
         self.meter.reset()
         t0 = self.clock.now()
         poses: list[TargetPose] = []
         host: list[float] = []
         device: list[float] = []
-        notes: list[str] = []
+        missed: list[str] = []
+        lost: list[str] = []
         retries = 0
-        pending = self._trigger(t0)
+        k = 0  # sets taken so far
+        pending: Future[tuple[float, FrameSet]] | None = self._trigger(t0, k)
         try:
-            for k in range(n):
-                frames = pending.result()
-                if k + 1 < n:
-                    pending = self._trigger(t0 + (k + 1) / rate_hz)
+            while pending is not None:
+                when, frames = pending.result()
+                k += 1
+                pending = None
+                if len(poses) + 1 < n and k < 2 * n:  # needed whether this set measures
+                    pending = self._trigger(t0 + k / rate_hz, k)
                 retries += frames.retries
                 if not frames.frames:
-                    lost = "; ".join(f"{c}: {why}" for c, why in frames.lost.items())
-                    raise DeviceError(f"{self.name}: no camera gave a frame ({lost})")
+                    reasons = "; ".join(f"{c}: {why}" for c, why in frames.lost.items())
+                    raise DeviceError(f"{self.name}: no camera gave a frame ({reasons})")
                 for cam, why in frames.lost.items():
-                    notes.append(f"set {k}: camera {cam} lost ({why})")
-                self._keep(frames)
+                    lost.append(f"set {k - 1}: camera {cam} lost ({why})")
+                self._keep(when, frames)
                 try:
                     images = {c: f.image for c, f in frames.frames.items()}
                     poses.append(self.meter.measure(images))
                 except MeasurementError as exc:
-                    notes.append(f"set {k}: {exc}")
-                    if not poses and k + 1 >= GIVE_UP_SETS:
+                    missed.append(f"set {k - 1}: {exc}")
+                    if not poses and k >= GIVE_UP_SETS:
                         break  # the robot holds still: the next sets would not see it either
+                    if pending is None and k < 2 * n:
+                        pending = self._trigger(t0 + k / rate_hz, k)
                     continue
-                first = next(iter(frames.frames.values()))
-                host.append(float(np.mean([f.host_time for f in frames.frames.values()])))
-                device.append(first.device_time)
+                host.append(when)
+                device.append(next(iter(frames.frames.values())).device_time)
         finally:
-            wait([pending])
+            if pending is not None:
+                wait([pending])
         if not poses:
-            raise NoTargetError(f"{self.name}: no set measured the target ({notes[0]})")
+            raise NoTargetError(f"{self.name}: no set measured the target ({missed[0]})")
         mean = mean_of(poses)
         return Series(
             self.name,
@@ -203,35 +236,46 @@ class CameraRigSensor:
             cov=np.array([p.cov_mm2 for p in poses]),
             orientation=np.array([quaternion(p.T_rig_target[:3, :3]) for p in poses]),
             mean_cov=mean.cov_mm2,
-            note=_summary(notes, n),
+            note=_summary(len(poses), n, k, missed, lost),
         )
 
-    def _trigger(self, when: float) -> Future[FrameSet]:
-        """Wait on the clock until ``when``, then grab a set in the background (on a
-        branch of the clock from ``when``: its frames are stamped in this series' time)."""
+    def _trigger(self, when: float, index: int) -> Future[tuple[float, FrameSet]]:
+        """Wait on the clock until ``when``, then grab set ``index`` of the series in the
+        background (on a branch of the clock from ``when``: its frames are stamped in
+        this series' time); the future gives the clock at the trigger and the set."""
         wait_s = when - self.clock.now()
         if wait_s > 0:
             self.clock.sleep(wait_s)
+        listener = self.set_listener
 
-        def grab() -> FrameSet:
+        def grab() -> tuple[float, FrameSet]:
             with self.clock.branch(when):
-                return self.cameras.grab()
+                t = self.clock.now()
+                if listener is not None:
+                    listener(index, t)
+                return t, self.cameras.grab()
 
         return self._grabber.submit(grab)
 
-    def _keep(self, frames: FrameSet) -> None:
+    def _keep(self, t: float, frames: FrameSet) -> None:
         if self.keep_images is None:
             return
-        t = np.mean([f.host_time for f in frames.frames.values()])
         folder = self.keep_images / self.name / f"{round(t * 1000):013d}"
         folder.mkdir(parents=True, exist_ok=True)
         for cam, f in frames.frames.items():
             write_image(folder / f"{cam}.png", f.image)
 
 
-def _summary(notes: list[str], n: int) -> str:
-    """The series' note: how many of ``n`` sets had trouble, and the first reasons."""
-    if not notes:
+def _summary(measured: int, n: int, taken: int, missed: list[str], lost: list[str]) -> str:
+    """The series' note: how many of ``n`` samples it has after how many sets, what
+    went wrong on the way and the first reasons; empty when nothing did."""
+    if not missed and not lost:
         return ""
+    counts = []
+    if missed:
+        counts.append(f"{len(missed)} set{'s' * (len(missed) != 1)} missed the target")
+    if lost:
+        counts.append(f"{len(lost)} camera frame{'s' * (len(lost) != 1)} lost")
+    notes = sorted(missed + lost, key=lambda s: int(s.split(":", 1)[0].removeprefix("set ")))
     shown = "; ".join(notes[:3]) + ("; …" if len(notes) > 3 else "")
-    return f"{len(notes)} problem(s) in {n} sets: {shown}"
+    return f"{measured} of {n} samples after {taken} sets ({', '.join(counts)}): {shown}"

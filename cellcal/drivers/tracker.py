@@ -12,9 +12,14 @@ Faults, and what the driver does about them:
 * every request has a timeout; no answer → reconnect and retry once, then an error;
 * garbled or unexpected lines are counted (``garbage``) and logged, never taken for
   data; ``EVT`` lines are recorded (``events``) wherever they appear;
-* ``BEAM_BROKEN`` in a series: the points before the break are kept, the driver waits
-  for the beam (``EVT BEAM OK`` or ``STAT?``), measures the rest, and gives up after
-  ``beam_retries`` breaks with a :class:`BeamBrokenError` that says how many it kept;
+* a series of ``n`` points is re-taken until it has ``n``, in at most ``2 n`` attempts
+  (a point kept, or one that failed: a break, a garbled point, a lost link, a series
+  cut short): the points before a fault are kept and the rest asked for again. After
+  ``BEAM_BROKEN`` the driver first waits for the beam (``EVT BEAM OK`` or ``STAT?``);
+  the break after ``beam_retries`` of them ends the series. A series still short is returned
+  with what it has and a note saying why (the campaign stores it with a
+  ``short-series`` event); with no point at all, a broken beam is a
+  :class:`BeamBrokenError` (the pose is kept without the tracker);
 * a dropped connection or an unplugged device: reconnect with exponential backoff
   (``reconnects`` attempts), repeat the handshake, carry on; points already received
   are kept.
@@ -327,10 +332,11 @@ class LineTracker:
 
     # ------------------------------------------------------------------ measuring
 
-    def _series(self, k: int, rate_hz: float, got: _Received) -> bool:
-        """One ``MEAS k``: append the points received to ``got``; True when the series
-        completed, False when the tracker ended it early (STOP); raises BeamBrokenError after
-        keeping the points before the break."""
+    def _series(self, k: int, rate_hz: float, got: _Received) -> int:
+        """One ``MEAS k``: append the points received to ``got``; return how many the
+        tracker says it took (``END c``: fewer than ``k`` when it was stopped, more than
+        were received when some came garbled); raises BeamBrokenError after keeping the
+        points before the break."""
         request = f"MEAS {k} {rate_hz:g}"
         self.lines.write_line(request)
         ok = self._reply(request, self.timeout)
@@ -363,9 +369,9 @@ class LineTracker:
                 got.xyz.append((msg.x, msg.y, msg.z))
                 expected += 1
             elif isinstance(msg, End):
-                if msg.count != expected:
+                if not expected <= msg.count <= k:
                     raise TrackerError(f"{self.label}: END {msg.count} after {expected} points")
-                return expected == k
+                return msg.count
             elif isinstance(msg, Err):
                 raise error_for(msg, request, f"{self.label}")
             else:
@@ -391,39 +397,69 @@ class LineTracker:
         raise BeamBrokenError(f"{self.label}: no beam for {self.beam_wait_s:g} s", 40)
 
     def measure(self, n: int, rate_hz: float) -> Series:
-        """``n`` points at ``rate_hz``, surviving beam breaks and dropped links."""
+        """``n`` points at ``rate_hz``, surviving beam breaks, garbled points and dropped
+        links: re-taken until there are ``n``, in at most ``2 n`` attempts (a point kept
+        or one that failed: a break, a garbled point, a lost link, a series cut short)."""
         if not 1 <= n <= 10000 or not 0 < rate_hz <= 1000:
             raise TrackerBadParameterError(
                 f"measure: n in 1..10000 and rate in (0, 1000] Hz, got {n}, {rate_hz}"
             )
         got = _Received()
-        breaks = 0
-        links = 0
-        while len(got.xyz) < n:
-            mark = len(self.events)
+        failed = breaks = links = series = 0
+        problems: list[str] = []
+        while len(got.xyz) < n and len(got.xyz) + failed < 2 * n:
+            k = min(n - len(got.xyz), 2 * n - len(got.xyz) - failed)
+            before, mark = len(got.xyz), len(self.events)
+            series += 1
             try:
-                self._series(n - len(got.xyz), rate_hz, got)
-            except BeamBrokenError as exc:
+                told = self._series(k, rate_hz, got)
+            except BeamBrokenError:
                 breaks += 1
-                self.retries += 1
+                failed += 1
+                problems.append(f"beam broken after {len(got.xyz) - before} of {k} points")
                 if breaks > self.beam_retries:
-                    raise BeamBrokenError(
-                        f"{self.label}: beam broken {breaks} times; {len(got.xyz)} of "
-                        f"{n} points kept ({exc})",
-                        40,
-                    ) from None
+                    limit = f"beam broken {breaks} times, beam_retries is {self.beam_retries}"
+                    problems.insert(0, limit)
+                    break
                 log.warning("%s: beam broken after %d points; waiting", self.label, len(got.xyz))
-                self._wait_for_beam(mark)
+                try:
+                    self._wait_for_beam(mark)
+                except BeamBrokenError as exc:
+                    problems.insert(0, str(exc).removeprefix(f"{self.label}: "))
+                    break
+                continue
             except (TransportError, TrackerTimeoutError) as exc:
                 links += 1
-                self.retries += 1
                 if links > self.reconnects:
                     raise
+                failed += 1
+                problems.append(f"link lost after {len(got.xyz) - before} of {k} points")
                 self._reconnect(exc)
+                continue
+            received = len(got.xyz) - before
+            if told > received:
+                failed += told - received
+                problems.append(f"{told - received} of {k} points garbled")
+            if told < k:
+                failed += 1
+                problems.append(f"series ended after {told} of {k} points")
+        self.retries += series - 1
+        kept = len(got.xyz)
+        why = "; ".join(problems[:3]) + ("; …" if len(problems) > 3 else "")
+        if kept == 0:
+            if breaks:
+                raise BeamBrokenError(
+                    f"{self.label}: beam broken {breaks} times; 0 of {n} points kept ({why})", 40
+                )
+            raise TrackerError(f"{self.label}: no point measured in {failed} attempts ({why})")
+        note = ""
+        if problems:
+            note = f"{kept} of {n} samples after {kept + failed} attempts ({failed} failed): {why}"
         return Series(
             self.name,
             np.array(got.host),
             np.array(got.device),
             np.array(got.xyz, dtype=np.float64).reshape(-1, 3),
-            retries=breaks + links,
+            retries=series - 1,
+            note=note,
         )

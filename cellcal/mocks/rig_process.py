@@ -9,7 +9,10 @@ a child process (``spawn``: the campaign's threads are not forked):
   sensor's options, reads the rig and target files itself, makes its network namespace
   and serves the cameras there (:func:`~cellcal.mocks.rig_twin.serve_gige`);
 * it follows the simulated robot through six shared doubles the campaign's process
-  writes at every move (:meth:`~cellcal.mocks.simulated_cell.SimulatedCell.watch`);
+  writes at every move (:meth:`~cellcal.mocks.simulated_cell.SimulatedCell.watch`),
+  and the rig's sets through four more, which the sensor's set listener
+  (:meth:`CameraProcess.announce`) writes before each set is triggered
+  (:class:`~cellcal.mocks.rig_twin.SetMark`: each frame's noise and timestamp);
 * it answers with the options that point the ``aravis`` driver at its cameras (the
   namespace as ``/proc/<child>/fd/<n>``), or with the reason it could not;
 * it serves until told to stop, or until the campaign's process is gone (its end of the
@@ -36,7 +39,7 @@ from cellcal.mocks.simulated_cell import SimulatedCell
 from cellcal.mocks.twins import RunningTwin
 
 if TYPE_CHECKING:
-    from cellcal.mocks.rig_twin import RigTruth
+    from cellcal.mocks.rig_twin import RigTruth, SetMark
 
 log = logging.getLogger("cellcal.mocks.rig")
 
@@ -61,13 +64,47 @@ class _Joints:
             return np.array(self.shared[:], dtype=np.float64)
 
 
-class _Child:
-    """The running child: ``stop()`` ends it (and stops following the robot)."""
+class _Marks:
+    """The last set announced (:class:`~cellcal.mocks.rig_twin.SetMark`), shared between
+    the two processes as four doubles; a pose of -1 before any."""
 
-    def __init__(self, process: BaseProcess, pipe: Connection, unwatch: Any) -> None:
+    def __init__(self, shared: Any) -> None:
+        self.shared = shared
+
+    def write(self, pose: int, visit: int, index: int, t: float) -> None:
+        with self.shared.get_lock():
+            self.shared[:] = [float(pose), float(visit), float(index), t]
+
+    def read(self) -> SetMark | None:
+        from cellcal.mocks.rig_twin import SetMark
+
+        with self.shared.get_lock():
+            pose, visit, index, t = self.shared[:]
+        return None if pose < 0 else SetMark(int(pose), int(visit), int(index), t)
+
+
+class CameraProcess:
+    """The running child: ``announce(index, t)`` tells it the set the sensor triggers
+    next (where the simulated robot is now); ``stop()`` ends it (and stops following
+    the robot)."""
+
+    def __init__(
+        self,
+        process: BaseProcess,
+        pipe: Connection,
+        unwatch: Any,
+        marks: _Marks,
+        cell: SimulatedCell,
+    ) -> None:
         self.process = process
         self.pipe = pipe
         self.unwatch = unwatch
+        self.marks = marks
+        self.cell = cell
+
+    def announce(self, index: int, t: float) -> None:
+        pose, visit = self.cell.pose_key
+        self.marks.write(pose, visit, index, t)
 
     def stop_camera(self, name: str) -> None:
         """Fault injection: camera ``name`` answers nothing more (as in
@@ -96,11 +133,12 @@ def serve_in_process(
     :class:`DeviceError` when it fails otherwise."""
     ctx = multiprocessing.get_context("spawn")
     joints = _Joints(ctx.Array("d", len(cell.q)))
+    marks = _Marks(ctx.Array("d", [-1.0, 0.0, 0.0, 0.0]))
     unwatch = cell.watch(joints.write)
     ours, theirs = ctx.Pipe()
     process = ctx.Process(
         target=_child_main,
-        args=(options, truth, joints.shared, theirs),
+        args=(options, truth, joints.shared, marks.shared, theirs),
         name=f"{options.name}-cameras",
         daemon=True,
     )
@@ -110,7 +148,7 @@ def serve_in_process(
         unwatch()
         raise DeviceError(f"camera twin: cannot start its process ({exc})") from None
     theirs.close()
-    child = _Child(process, ours, unwatch)
+    child = CameraProcess(process, ours, unwatch, marks, cell)
     try:
         if not ours.poll(START_S):
             raise DeviceError(f"camera twin: its process did not start within {START_S:g} s")
@@ -131,15 +169,18 @@ def serve_in_process(
     return RunningTwin(payload, child)
 
 
-def _child_main(options: CameraRigOptions, truth: RigTruth, shared: Any, pipe: Connection) -> None:
+def _child_main(
+    options: CameraRigOptions, truth: RigTruth, shared: Any, marked: Any, pipe: Connection
+) -> None:
     """The child: serve the rig's cameras until told to stop or orphaned."""
     from cellcal.mocks.gige_cameras import GigECameraTwin
     from cellcal.mocks.rig_twin import RigScene, serve_gige
 
-    joints = _Joints(shared)
+    joints, marks = _Joints(shared), _Marks(marked)
     try:
         rig, target = rig_and_target(options)
-        running = serve_gige(options, RigScene(truth, rig, target, joints.read))
+        scene = RigScene(truth, rig, target, joints.read, mark=marks.read)
+        running = serve_gige(options, scene)
     except NamespaceUnavailableError as exc:
         pipe.send(("unavailable", str(exc)))
         return

@@ -7,6 +7,15 @@ clean image per camera per robot pose, fresh sensor noise per frame. The fixture
 mounted with its reference point at the sensor's true target offset and its face turned
 toward the rig at the home orientation.
 
+A frame's noise is a function of the seed, the noise stream, the camera, where the
+robot is (the joints and how often it arrived there) and the set: the rig's sensor
+tells the twin each set's index in its series and its trigger time before triggering
+(:class:`SetMark`), so a frame grabbed again (an incomplete frame, a timeout), a camera
+lost in one set or a series measured again at the same pose change no other set's
+noise, and the same seed gives the same images whatever the load. The cameras' clocks
+read the set's trigger time plus :data:`DEVICE_CLOCK_S`. Frames no sensor announced
+(the driver's first grab, ``cellcal mock cameras``) take fresh noise in turn.
+
 Mock mode serves those frames as GigE Vision cameras (``gige_cameras.py``, in a network
 namespace of their own) and the configured ``aravis`` driver grabs them unchanged. Where
 no namespace can be made (no root, no user namespaces), or for the ``opencv`` and
@@ -19,6 +28,7 @@ from __future__ import annotations
 import itertools
 import logging
 import threading
+import zlib
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, Literal, Protocol
@@ -58,6 +68,8 @@ MOCK_TIMEOUT_S = 5.0
 #: Sub-pixel samples per pixel side in the campaign's renders, as in the benchmark: 4
 #: costs a quarter but leaves 0.02 mm of systematic error per pose mean, not 0.01.
 SUPERSAMPLE = 8
+#: The twin's cameras' clocks: the engine's clock at the set's trigger plus this, s.
+DEVICE_CLOCK_S = 500.0
 
 
 #: a camera's clean view of the target (the part of its image that is not plain
@@ -107,9 +119,46 @@ class RigTruth:
         )
 
 
+@dataclass(frozen=True)
+class SetMark:
+    """The set the rig's sensor announced last: where the robot was (``pose``, a checksum
+    of the joints, and ``visit``, its arrivals there: the simulated cell's
+    :attr:`~cellcal.mocks.simulated_cell.SimulatedCell.pose_key`), the set's index in
+    its series and the engine's clock at its trigger (s)."""
+
+    pose: int
+    visit: int
+    index: int
+    time: float
+
+
+def pose_checksum(q: Array) -> int:
+    """The checksum of joint positions that a :class:`SetMark`'s ``pose`` holds."""
+    return zlib.crc32(np.asarray(q, dtype=np.float64).tobytes())
+
+
+class SetMarks:
+    """The last set announced, in this process: ``listener(cell)`` is what the rig's
+    sensor calls (its options' set listener), ``last`` what the scene reads."""
+
+    def __init__(self) -> None:
+        self.last: SetMark | None = None
+
+    def listener(self, cell: SimulatedCell) -> Callable[[int, float], None]:
+        def announce(index: int, t: float) -> None:
+            pose, visit = cell.pose_key
+            self.last = SetMark(pose, visit, index, t)
+
+        return announce
+
+    def read(self) -> SetMark | None:
+        return self.last
+
+
 class RigScene:
     """The rig's view of the simulated cell: ``image(camera)`` is that camera's frame
-    now, with the robot at ``joints()`` (rad). Thread-safe: the cameras are triggered
+    now, with the robot at ``joints()`` (rad), for the set ``mark()`` says (None, or no
+    ``mark``: frames no sensor announced). Thread-safe: the cameras are triggered
     together from their own threads."""
 
     def __init__(
@@ -119,9 +168,11 @@ class RigScene:
         target: Target,
         joints: Callable[[], Array],
         optics: Optics | None = None,
+        mark: Callable[[], SetMark | None] | None = None,
     ) -> None:
         self.truth = truth
         self.joints = joints
+        self.mark = mark
         self.rig = rig
         optics = optics or Optics(
             supersample=SUPERSAMPLE, blur_px=truth.blur_px, noise_grey=truth.noise_grey
@@ -140,19 +191,17 @@ class RigScene:
         self.T_flange_target[:3, 3] = truth.target_offset - R @ target.reference
         self._lock = threading.Lock()
         self._q: Array | None = None
+        self._pose = 0
         self._T = np.eye(4)
         self._clean: dict[str, _View] = {}
-        # one generator per camera: each camera's frames come in order on its own thread,
-        # so the same seed gives the same images whatever the threads' order (a resumed
-        # campaign, the cell's next noise stream, draws fresh noise)
-        self._rngs = {
-            c.name: np.random.default_rng([truth.seed, 2, truth.noise_stream, k])
-            for k, c in enumerate(rig.cameras)
-        }
+        # the noise is seeded per frame (the module's note); a resumed campaign, the
+        # cell's next noise stream, draws fresh noise
+        self._camera_k = {c.name: k for k, c in enumerate(rig.cameras)}
+        self._unannounced = dict.fromkeys(self._camera_k, 0)
         self._bank: dict[str, list[Image]] = {}
-        for c in rig.cameras:
+        for k, c in enumerate(rig.cameras):
             background = np.full((c.height, c.width), optics.background, dtype=np.float32)
-            rng = self._rngs[c.name]
+            rng = np.random.default_rng([truth.seed, 2, truth.noise_stream, k])
             self._bank[c.name] = [
                 exposed(background, rng, optics.noise_grey) for _ in range(NOISE_BANK)
             ]
@@ -178,25 +227,34 @@ class RigScene:
         is allocated per frame); another size or pixel type is cropped, padded or
         scaled as :func:`~cellcal.mocks.gige_cameras.fit` does."""
         q = self.joints()
+        mark = self.mark() if self.mark is not None else None
         with self._lock:
             if self._q is None or not np.array_equal(q, self._q):
                 self._q, self._T = q, self.T_rig_target(q)
+                self._pose = pose_checksum(q)
                 self._clean.clear()
             T = self._T
             cached = self._clean.get(camera)
+            if mark is not None and mark.pose == self._pose:
+                key = [self._pose, mark.visit, 1, mark.index]
+            else:
+                key = [self._pose, 0, 0, self._unannounced[camera]]
+                self._unannounced[camera] += 1
         if cached is None:
             cached = self._render(camera, T)
             with self._lock:
                 if self._q is not None and np.array_equal(q, self._q):
                     self._clean[camera] = cached
         part, (rows, cols), bank = cached
-        with self._lock:
-            rng = self._rngs[camera]
-            k = int(rng.integers(len(bank)))
-            noise = None
-            if rows.stop > rows.start and cols.stop > cols.start:
-                shape = (rows.stop - rows.start, cols.stop - cols.start)
-                noise = rng.standard_normal(shape, dtype=np.float32)
+        truth = self.truth
+        rng = np.random.default_rng(
+            [truth.seed, 2, truth.noise_stream, self._camera_k[camera], *key]
+        )
+        k = int(rng.integers(len(bank)))
+        noise = None
+        if rows.stop > rows.start and cols.stop > cols.start:
+            shape = (rows.stop - rows.start, cols.stop - cols.start)
+            noise = rng.standard_normal(shape, dtype=np.float32)
         if out.dtype == np.uint8 and out.shape == bank[k].shape:
             np.copyto(out, bank[k])  # the camera's own buffer: written in place
             frame = out
@@ -207,6 +265,12 @@ class RigScene:
             frame[rows, cols] = cv2.add(part, noise, dtype=cv2.CV_8U)
         if frame is not out:
             np.copyto(out, fit(frame, out.shape[0], out.shape[1], out.dtype))
+
+    def device_time(self) -> float:
+        """The cameras' clock (s): the announced set's trigger time plus
+        :data:`DEVICE_CLOCK_S` (its offset alone before any set)."""
+        mark = self.mark() if self.mark is not None else None
+        return (mark.time if mark is not None else 0.0) + DEVICE_CLOCK_S
 
     def _render(self, camera: str, T_rig_target: Array) -> _View:
         """One camera's clean view of the target and its bank of noisy frames of the
@@ -254,7 +318,8 @@ class RenderedRig:
         self._frame_id += 1
         t = self.clock.now()
         frames = {
-            c: Frame(c, self.scene.image(c), self._frame_id, t, t + 500.0) for c in self.cameras
+            c: Frame(c, self.scene.image(c), self._frame_id, t, t + DEVICE_CLOCK_S)
+            for c in self.cameras
         }
         return FrameSet(frames, {})
 
@@ -288,31 +353,37 @@ def serve(options: CameraRigOptions, cell: SimulatedCell, time_scale: float) -> 
     why = _why_in_process(capture)
     if why is None and isinstance(capture, AravisRigOptions):
         from cellcal.mocks.netns import NamespaceUnavailableError
-        from cellcal.mocks.rig_process import serve_in_process
+        from cellcal.mocks.rig_process import CameraProcess, serve_in_process
 
         try:
             running = serve_in_process(options, truth, cell)
         except NamespaceUnavailableError as exc:
             why = str(exc)
         else:
-            return RigTwin(options.model_copy(update={"capture": running.options}), running)
+            assert isinstance(running.server, CameraProcess)
+            pointed = options.model_copy(update={"capture": running.options})
+            return RigTwin(pointed.listened(running.server.announce), running)
     log.warning("sensor %s: cameras simulated in-process (%s)", options.name, why)
     sid = next(_ids)
-    _SCENES[sid] = RigScene(truth, rig, target, lambda: cell.q)
+    marks = SetMarks()
+    _SCENES[sid] = RigScene(truth, rig, target, lambda: cell.q, mark=marks.read)
     names = tuple(c.name for c in capture.cameras)
     rendered = RenderedRigOptions(name=capture.name, cameras=names, scene=sid)
-    return RigTwin(options.model_copy(update={"capture": rendered}), None, sid)
+    pointed = options.model_copy(update={"capture": rendered})
+    return RigTwin(pointed.listened(marks.listener(cell)), None, sid)
 
 
 class CameraScene(Protocol):
     """What GigE Vision camera twins serve: a rig's cameras, each camera's next frame
-    (or written into its buffer)."""
+    (or written into its buffer) and the cameras' clock (s)."""
 
     rig: Rig
 
     def image(self, camera: str) -> Image: ...
 
     def write(self, camera: str, out: Image) -> None: ...
+
+    def device_time(self) -> float: ...
 
 
 def serve_gige(options: CameraRigOptions, scene: CameraScene) -> RunningTwin:
@@ -330,7 +401,14 @@ def serve_gige(options: CameraRigOptions, scene: CameraScene) -> RunningTwin:
         for c in capture.cameras
     ]
     capture = capture.model_copy(update={"cameras": slow})
-    return serve_rig(capture, scene.image, width=cam.width, height=cam.height, writer=scene.write)
+    return serve_rig(
+        capture,
+        scene.image,
+        width=cam.width,
+        height=cam.height,
+        writer=scene.write,
+        device_clock=scene.device_time,
+    )
 
 
 def _why_in_process(capture: RigOptions) -> str | None:

@@ -9,13 +9,18 @@ configuration is only a guess, off by up to 0.5 mm), and the sensors' noise:
 * photogrammetry rig: no noise model here; its cameras see rendered images
   (``rig_twin.py``), and their noise is the images' (grey levels, blur).
 
-Same seed, same truth; the noise comes from a generator seeded from it too.
+Same seed, same truth. The noise is drawn per sample, from a generator seeded by the
+seed, the noise stream, the sensor, where the robot is (:attr:`SimulatedCell.pose_key`:
+the joints and how often the robot has arrived there) and the sample's place in the
+pose's series: a re-taken or re-measured sample gets the noise it would have had, so
+faults and the threads' order change no number.
 """
 
 from __future__ import annotations
 
 import math
 import threading
+import zlib
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -72,13 +77,9 @@ class SimulatedCell:
         self.sensors: dict[str, SensorTruth] = {}
         for s in config.sensor:
             self.sensors[s.name] = self._sensor_truth(s, config, rng)
-        # One generator per sensor: sensors sample concurrently, and the same seed must
-        # give the same campaign whatever the threads' order. A resumed campaign draws
-        # fresh noise: its stream is the number of poses already stored.
-        self.noise = {
-            name: np.random.default_rng([self.seed, 1, noise_stream, k])
-            for k, name in enumerate(self.sensors)
-        }
+        # Each sample's noise is its own generator's (see the module's note); a resumed
+        # campaign draws fresh noise: its stream is the number of poses already stored.
+        self._sensor_k = {name: k for k, name in enumerate(self.sensors)}
         self.joint_speed = math.radians(sim.joint_speed_deg_s)
         self.home_deg = list(config.robot.home_deg)
         self.cube_centre_mm = list(config.campaign.cube_centre_mm)
@@ -86,6 +87,9 @@ class SimulatedCell:
         self._lock = threading.Lock()
         self._q = np.radians(np.asarray(config.robot.home_deg, dtype=np.float64))
         self._watchers: list[Callable[[Array], None]] = []
+        self._visits = PoseVisits()
+        self._visits.see(self._q)
+        self._fresh: dict[str, tuple[tuple[int, int], int]] = {}  # sample() without first
 
     @staticmethod
     def _sensor_truth(
@@ -111,9 +115,17 @@ class SimulatedCell:
         with self._lock:
             return self._q.copy()
 
+    @property
+    def pose_key(self) -> tuple[int, int]:
+        """Where the robot is, as the twins key their noise on it: (a checksum of the
+        joints, how often the robot has arrived at them)."""
+        with self._lock:
+            return self._visits.key
+
     def set_q(self, q: Array) -> None:
         with self._lock:
             self._q = np.asarray(q, dtype=np.float64).copy()
+            self._visits.see(self._q)
             for tell in self._watchers:
                 tell(self._q)
 
@@ -168,15 +180,28 @@ class SimulatedCell:
         out: Array = p @ s.T_sensor_base[:3, :3].T + s.T_sensor_base[:3, 3]
         return out if q is not None and np.ndim(q) == 2 else out[0]
 
-    def sample(self, sensor: str, n: int) -> Array:
+    def sample(self, sensor: str, n: int, first: int | None = None) -> Array:
         """n noisy measurements of a tracker's target at the robot's current position
-        (n×3, mm)."""
+        (n×3, mm): samples ``first`` … ``first + n - 1`` of the pose's series, or
+        without ``first`` the next ``n`` fresh ones at this pose."""
         s = self.sensors[sensor]
         if s.kind != "laser-tracker":
             raise ValueError(f"{sensor}: the simulated cell samples trackers only")
         p = self.true_position(sensor)
+        k = self._sensor_k[sensor]
         with self._lock:
-            z = self.noise[sensor].normal(size=(n, 3))
+            pose, visit = self._visits.key
+            if first is None:
+                at, drawn = self._fresh.get(sensor, ((0, 0), 0))
+                drawn = drawn if at == (pose, visit) else 0
+                self._fresh[sensor] = ((pose, visit), drawn + n)
+                where, start = 0, drawn
+            else:
+                where, start = 1, first
+        seed = [self.seed, 1, self.noise_stream, k, pose, visit, where]
+        z = np.array(
+            [np.random.default_rng([*seed, i]).normal(size=3) for i in range(start, start + n)]
+        ).reshape(n, 3)
         r = float(np.linalg.norm(p))
         u = p / r
         a = np.cross(u, [0.0, 0.0, 1.0] if abs(u[2]) < 0.9 else [1.0, 0.0, 0.0])
@@ -188,12 +213,43 @@ class SimulatedCell:
         return out
 
 
+class PoseVisits:
+    """Counts the robot's arrivals at each joint position it is told of: ``key`` is
+    (a checksum of the current joints, the arrivals there so far). Positions passed
+    through while moving are counted too, but never match a pose the robot stops at."""
+
+    def __init__(self) -> None:
+        self._last: bytes | None = None
+        self._counts: dict[int, int] = {}
+        self.key = (0, 0)
+
+    def see(self, q: Array) -> None:
+        raw = np.asarray(q, dtype=np.float64).tobytes()
+        if raw == self._last:
+            return
+        self._last = raw
+        crc = zlib.crc32(raw)
+        self._counts[crc] = self._counts.get(crc, 0) + 1
+        self.key = (crc, self._counts[crc])
+
+
 class CellTarget:
-    """One sensor's target as the simulated cell sees it now (a tracker server's source)."""
+    """One sensor's target as the simulated cell sees it now (a tracker server's source).
+
+    A tracker's series at one pose may come in parts: the rest after a broken beam or a
+    lost link (``MEAS`` of fewer points than the first), or the whole series again.
+    The source numbers the samples as the pose's series does — a part of ``n`` points
+    after a first request of ``N`` are samples N − n … N − 1 — so each sample's noise is
+    the one it would have had in one go."""
 
     def __init__(self, cell: SimulatedCell, sensor: str) -> None:
         self.cell = cell
         self.sensor = sensor
+        self._series: tuple[tuple[int, int], int] | None = None  # pose key, first request
 
     def sample(self, n: int) -> Array:
-        return self.cell.sample(self.sensor, n)
+        pose = self.cell.pose_key
+        if self._series is None or self._series[0] != pose or n >= self._series[1]:
+            self._series = (pose, n)
+        first = self._series[1] - n
+        return self.cell.sample(self.sensor, n, first)

@@ -243,6 +243,43 @@ def test_a_sensor_that_does_not_see_its_target_leaves_the_pose_to_the_others(tmp
     devices.close()
 
 
+def test_a_short_series_is_stored_with_what_it_has_and_an_event_that_says_why(tmp_path):
+    clock = SimulatedClock()
+    plan, devices, store, cid = _setup(tmp_path, clock)
+    rig = next(s.sensor for s in devices.sensors if s.sensor.name == "rig")
+    original = rig.measure
+    calls = {"n": 0}
+
+    def retaking(n, rate):
+        calls["n"] += 1
+        s = original(n, rate)
+        if calls["n"] == 2:  # re-takes ran out: 18 of 20
+            keep = slice(0, n - 2)
+            why = "18 of 20 samples after 40 sets (22 sets missed the target): set 0: …"
+            return Series(s.sensor, s.host_time[keep], s.device_time[keep], s.xyz[keep], note=why)
+        if calls["n"] == 5:  # complete, with trouble on the way
+            return dataclasses.replace(s, note="20 of 20 samples after 21 sets (1 set …)")
+        return s
+
+    rig.measure = retaking
+    out = _acquire(store, cid, plan, devices, clock)
+    assert out.stored == 10
+    events = [(e["kind"], e["pose_idx"], e["message"]) for e in store.events(cid)]
+    assert events == [
+        ("short-series", 1, "pose 1, rig: 18 of 20 samples after 40 sets (22 sets missed the "
+         "target): set 0: …"),
+        ("sensor-note", 4, "pose 4, rig: 20 of 20 samples after 21 sets (1 set …)"),
+    ]  # fmt: skip
+    counts = dict(
+        store.conn.execute(
+            "SELECT p.idx, COUNT(*) FROM samples s JOIN poses p ON s.pose_id = p.id "
+            "WHERE s.sensor = 'rig' GROUP BY p.idx"
+        ).fetchall()
+    )
+    assert counts == {k: 18 if k == 1 else 20 for k in range(10)}
+    devices.close()
+
+
 def test_every_pose_and_event_is_a_record_and_a_failing_watcher_stops_nothing(tmp_path):
     clock = SimulatedClock()
     plan, devices, store, cid = _setup(tmp_path, clock)

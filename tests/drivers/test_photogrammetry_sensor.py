@@ -13,7 +13,7 @@ import pytest
 from cellcal.config import load_config
 from cellcal.drivers.camera_files import FilesRigOptions
 from cellcal.drivers.cameras import CameraOptions
-from cellcal.errors import NoTargetError
+from cellcal.errors import MeasurementError, NoTargetError
 from cellcal.families import find
 from tests.drivers.families import cell_for, mock_devices
 
@@ -74,6 +74,99 @@ def test_a_camera_that_stops_mid_series_is_named_and_the_others_measure():
         assert "camera cam3 lost" in s.note and "not acknowledged" in s.note
         truth = devices.simulated_cell.true_position("rig")
         assert np.linalg.norm(s.mean - truth) < 0.05
+
+
+def _missing(sensor, misses):
+    """The sensor's meter misses the target in the sets ``misses(k)`` says (k: the
+    set's place in the series); the grabs are counted, the images kept."""
+    measure, grab = sensor.meter.measure, sensor.cameras.grab
+    seen = {"sets": 0, "grabs": 0, "images": []}
+
+    def scripted(images):
+        k = seen["sets"]
+        seen["sets"] += 1
+        seen["images"].append(images)
+        if misses(k):
+            raise MeasurementError(f"target 'dome' seen by 1 camera(s) (scripted {k})")
+        return measure(images)
+
+    def counting():
+        seen["grabs"] += 1
+        return grab()
+
+    sensor.meter.measure, sensor.cameras.grab = scripted, counting
+    return seen
+
+
+def test_sets_that_miss_are_taken_again_until_n_measured():
+    config = cell_for(FAMILY)
+    with mock_devices(config) as devices:
+        sensor, _ = _rig(devices)
+        devices.robot.move_joints(_near_home(config, 3), 0.25)
+        measure, grab = sensor.meter.measure, sensor.cameras.grab
+        plain = _missing(sensor, lambda k: False)
+        full = sensor.measure(8, 10.0)
+        sensor.meter.measure, sensor.cameras.grab = measure, grab
+        seen = _missing(sensor, lambda k: k in (2, 5))
+        t0 = sensor.clock.now()
+        s = sensor.measure(6, 10.0)
+    assert s.n == 6 and seen["grabs"] == 8 and full.n == 8
+    assert s.note == (
+        "6 of 6 samples after 8 sets (2 sets missed the target): set 2: target 'dome' seen "
+        "by 1 camera(s) (scripted 2); set 5: target 'dome' seen by 1 camera(s) (scripted 5)"
+    )
+    kept = [0, 1, 3, 4, 6, 7]
+    # a sample's host time is its set's trigger; the twin's cameras stamp it too
+    np.testing.assert_allclose(s.host_time, t0 + 0.1 * np.array(kept), atol=1e-9)
+    np.testing.assert_allclose(s.device_time, s.host_time + 500.0, atol=1e-6)
+    # a set's images depend on its place in the series alone: the sets left out change
+    # none of the others
+    for a, b in zip(seen["images"], plain["images"], strict=True):
+        assert a.keys() == b.keys() and all(np.array_equal(a[c], b[c]) for c in a)
+    np.testing.assert_array_equal(s.xyz[:2], full.xyz[:2])
+
+
+def test_a_series_short_after_twice_n_sets_keeps_what_it_has_and_says_why():
+    config = cell_for(FAMILY)
+    with mock_devices(config) as devices:
+        sensor, _ = _rig(devices)
+        devices.robot.move_joints(_near_home(config, 4), 0.25)
+        seen = _missing(sensor, lambda k: k % 3 != 0)
+        s = sensor.measure(5, 10.0)
+    assert s.n == 4 and seen["grabs"] == 10  # sets 0, 3, 6, 9 measured: 2 × 5 sets taken
+    assert s.cov.shape == (4, 3, 3) and s.orientation.shape == (4, 4)
+    assert s.note.startswith(
+        "4 of 5 samples after 10 sets (6 sets missed the target): set 1: target 'dome' seen "
+        "by 1 camera(s) (scripted 1); set 2: "
+    )
+
+
+def test_a_set_grabbed_again_or_measured_again_at_the_pose_has_the_same_images():
+    """The twin keys each frame's noise on the pose and the set's place in the series: a
+    trigger repeated for a set (as a retried frame is), or the series measured again at
+    the same pose (the engine's re-ask), gives the same numbers; coming back to the pose
+    later gives others."""
+    config = cell_for(FAMILY)
+    with mock_devices(config) as devices:
+        sensor, _ = _rig(devices)
+        here, away = _near_home(config, 5), _near_home(config, 6)
+        devices.robot.move_joints(here, 0.25)
+        first = sensor.measure(4, 10.0)
+        grab = sensor.cameras.grab
+
+        def twice():
+            grab()  # every camera triggered, its frame thrown away: a retry
+            return grab()
+
+        sensor.cameras.grab = twice
+        again = sensor.measure(4, 10.0)
+        sensor.cameras.grab = grab
+        devices.robot.move_joints(away, 0.25)
+        devices.robot.move_joints(here, 0.25)
+        later = sensor.measure(4, 10.0)
+    np.testing.assert_array_equal(again.xyz, first.xyz)
+    np.testing.assert_array_equal(again.cov, first.cov)
+    assert np.abs(later.xyz - first.xyz).max() > 1e-4
 
 
 def test_a_target_out_of_view_is_no_target_after_three_sets():

@@ -22,6 +22,7 @@ from cellcal.drivers.tracker_protocol import (
     Point,
     TrackerBadParameterError,
     TrackerBusyError,
+    TrackerError,
     TrackerNotInitializedError,
     TrackerTimeoutError,
     TrackerUnknownCommandError,
@@ -146,9 +147,9 @@ def test_beam_broken_mid_series_keeps_points_waits_and_completes():
     assert s.retries == 1 and t.done
 
 
-def test_beam_broken_too_often_is_reported_with_what_was_kept():
+def test_beam_broken_too_often_returns_what_was_kept_and_says_why():
     broken = ["OK 3", "PT 0 1.0 1 1 1", "ERR 40 BEAM_BROKEN"]
-    lt, _ = tracker(
+    lt, t = tracker(
         [
             ("MEAS 3 10", broken),
             ("STAT?", ["OK ready=1 beam=1 meteo=1 init=1"]),
@@ -156,8 +157,58 @@ def test_beam_broken_too_often_is_reported_with_what_was_kept():
         ],
         beam_retries=1,
     )
-    with pytest.raises(BeamBrokenError, match="beam broken 2 times; 1 of 3 points kept"):
+    s = lt.measure(3, 10.0)
+    assert s.n == 1 and s.retries == 1 and t.done
+    assert s.note == (
+        "1 of 3 samples after 3 attempts (2 failed): beam broken 2 times, beam_retries is 1; "
+        "beam broken after 1 of 3 points; beam broken after 0 of 2 points"
+    )
+
+
+def test_a_beam_broken_before_any_point_is_no_target():
+    lt, _ = tracker([("MEAS 3 10", ["ERR 40 BEAM_BROKEN"])], beam_retries=0)
+    with pytest.raises(BeamBrokenError, match="beam broken 1 times; 0 of 3 points kept"):
         lt.measure(3, 10.0)
+
+
+def test_garbled_points_are_taken_again_until_there_are_n():
+    lt, t = tracker(
+        [
+            (
+                "MEAS 3 10",
+                ["OK 3", "PT 0 1.0 1 1 1", "PT 1 1.1 x y z", "PT 2 1.2 3 3 3", "END 3"],
+            ),
+            # PT 1 came garbled, so PT 2 is out of order: both are taken again
+            ("MEAS 2 10", ["OK 2", "PT 0 2.0 4 4 4", "PT 1 2.1 5 5 5", "END 2"]),
+        ]
+    )
+    s = lt.measure(3, 10.0)
+    np.testing.assert_array_equal(s.xyz[:, 0], [1, 4, 5])
+    np.testing.assert_allclose(s.device_time, [1.0, 2.0, 2.1])
+    assert s.retries == 1 and lt.garbage == 2 and t.done
+    assert s.note == "3 of 3 samples after 5 attempts (2 failed): 2 of 3 points garbled"
+
+
+def test_re_takes_stop_at_twice_n_attempts_and_keep_what_they_have():
+    lt, t = tracker(
+        [
+            ("MEAS 2 10", ["OK 2", "PT 0 1.0 1 1 1", "PT 1 garbled", "END 2"]),
+            ("MEAS 1 10", ["OK 1", "PT 0 garbled", "END 1"]),
+            ("MEAS 1 10", ["OK 1", "END 0"]),
+        ]
+    )
+    s = lt.measure(2, 10.0)
+    assert s.n == 1 and s.retries == 2 and t.done  # 1 kept + 3 failed = 4 attempts: no more
+    assert s.note == (
+        "1 of 2 samples after 4 attempts (3 failed): 1 of 2 points garbled; 1 of 1 points "
+        "garbled; series ended after 0 of 1 points"
+    )
+
+
+def test_an_end_that_counts_fewer_points_than_were_sent_is_a_fault():
+    lt, _ = tracker([("MEAS 2 10", ["OK 2", "PT 0 1.0 1 1 1", "PT 1 1.1 2 2 2", "END 1"])])
+    with pytest.raises(TrackerError, match="END 1 after 2 points"):
+        lt.measure(2, 10.0)
 
 
 def test_dropped_link_reconnects_and_carries_on():

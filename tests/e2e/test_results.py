@@ -112,6 +112,14 @@ def test_the_rig_measures_every_pose_it_sees_with_an_honest_covariance(finished)
     assert rig_poses == run["n_calibration_poses"] == 80
     n_rig = conn.execute("SELECT COUNT(*) FROM pose_stats WHERE sensor = 'rig'").fetchone()[0]
     assert kinds.get("no-target", 0) == run["n_poses"] - n_rig
+    # every rig pose has its 20 samples (a set that misses is taken again), or a
+    # short-series event that says why not
+    short = conn.execute(
+        "SELECT p.idx FROM pose_stats s JOIN poses p ON p.id = s.pose_id "
+        "WHERE s.sensor = 'rig' AND s.n != 20 AND NOT EXISTS (SELECT 1 FROM events e "
+        "WHERE e.kind = 'short-series' AND e.pose_idx = p.idx AND e.message LIKE '%, rig: %')"
+    ).fetchall()
+    assert short == []
     # registered like the tracker: a few µm above the tracker's residual, under 0.03 mm
     reg = {r["sensor"]: r for r in run["registrations"]}
     assert reg["tracker"]["rms_calibrated_mm"] < reg["rig"]["rms_calibrated_mm"] < 0.03

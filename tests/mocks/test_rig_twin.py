@@ -11,7 +11,7 @@ import pytest
 from cellcal.commands.mock import simulated_cell_of
 from cellcal.drivers.photogrammetry import rig_and_target
 from cellcal.mocks.netns import NamespaceUnavailableError
-from cellcal.mocks.rig_twin import RigScene, RigTruth
+from cellcal.mocks.rig_twin import DEVICE_CLOCK_S, RigScene, RigTruth, SetMarks
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -50,6 +50,38 @@ def test_the_same_seed_gives_the_same_frames_and_a_resume_fresh_noise():
     assert not any(np.array_equal(x, y) for x, y in zip(a, resumed, strict=True))
     # the target is in the middle of every camera's view, not plain background
     assert all(f.max() > 150 for f in a)
+
+
+def test_a_frame_s_noise_is_its_set_s_whatever_came_before():
+    """Announced sets: a camera's frame for set k at a pose is the same however many
+    frames were taken before it (retries, lost frames, sets of another series), another
+    set's or another arrival's differs; the cameras' clock reads the set's trigger."""
+    config, cell = simulated_cell_of(None, 11)
+    sensor = _rig_sensor(config)
+    rig, target = rig_and_target(sensor)
+    truth = RigTruth.of(cell, sensor.name)
+    marks = SetMarks()
+    announce = marks.listener(cell)
+    scene = RigScene(truth, rig, target, lambda: cell.q, mark=marks.read)
+    cam = rig.cameras[1].name
+
+    announce(3, 7.3)
+    first = scene.image(cam)
+    assert scene.device_time() == 7.3 + DEVICE_CLOCK_S
+    retried = scene.image(cam)  # the same set's trigger again
+    announce(4, 7.4)
+    other = scene.image(cam)
+    announce(3, 9.3)  # set 3 of the series measured again at this pose
+    again = scene.image(cam)
+    assert np.array_equal(first, retried) and np.array_equal(first, again)
+    assert not np.array_equal(first, other)
+    home = cell.q
+    cell.set_q(home + 0.01)
+    cell.set_q(home)  # back: another arrival
+    announce(3, 11.3)
+    assert not np.array_equal(first, scene.image(cam))
+    fresh = RigScene(truth, rig, target, lambda: cell.q, mark=marks.read)
+    assert np.array_equal(fresh.image(cam), scene.image(cam))  # by the set, not the order
 
 
 def test_the_camera_process_ends_when_the_campaign_is_gone():
