@@ -165,12 +165,12 @@ def test_the_table_is_consistent():
         ({"driver": "ur", "map": {}}, r"robot\.map: unknown key"),
         ({"driver": "ur", "heartbeat_timeout_s": 1.0}, r"robot\.heartbeat_timeout_s: unknown key"),
         ({"driver": "simulated", "move_timeout_s": 5.0}, r"robot\.move_timeout_s: unknown key"),
-        ({"driver": "modbus", "modbus": {}}, r"robot\.modbus: unknown key \(renamed: map"),
-        ({"driver": "ur", "settle_timeout_s": 9.0}, r"renamed: move_timeout_s"),
+        ({"driver": "modbus", "modbus": 5}, r"robot\.modbus: unknown key \(renamed: map"),
+        ({"driver": "modbus", "modbus": {}, "map": {}}, r"\[robot\.modbus\] is deprecated and \[robot\.map\] replaces it; both are given"),  # noqa: E501
+        ({"driver": "ur", "settle_timeout_s": 9.0, "move_timeout_s": 9.0}, r"robot\.settle_timeout_s is deprecated and robot\.move_timeout_s replaces it"),  # noqa: E501
         ({"driver": "modbus", "map": {"status": 12}}, r"robot\.map: actual_joints .* and status .* overlap"),  # noqa: E501
         ({"driver": "modbus", "map": {"sequence": 7}}, r"robot\.map: sequence \(7\) must be the register after command"),  # noqa: E501
         ({"driver": "modbus", "map": {"speed": 65535}}, r"robot\.map: speed \(2 registers at 65535\) runs past 65535"),  # noqa: E501
-        ({"driver": "modbus", "map": {"ack": 500}}, r"span 501 registers"),
         ({"driver": "modbus", "map": {"device_id": 256}}, r"robot\.map\.device_id: "),
     ],
 )  # fmt: skip
@@ -184,8 +184,9 @@ def test_robot_options_that_do_not_belong_to_the_driver_are_refused(robot, messa
 @pytest.mark.parametrize(
     ("sensor", "message"),
     [
-        ({"kind": "laser-tracker", "url": "socket://h:1"}, r"sensor\.2\.url: unknown key \(renamed: address\)"),  # noqa: E501
-        ({"kind": "laser-tracker", "driver": "simulated"}, r"sensor\.2\.driver: no laser-tracker driver 'simulated' \(choose line-protocol\)"),  # noqa: E501
+        ({"kind": "laser-tracker", "url": "socket://h:1", "address": "socket://h:1"}, r"sensor\.2\.url is deprecated and sensor\.2\.address replaces it; both are given"),  # noqa: E501
+        ({"kind": "laser-tracker", "driver": "nmea"}, r"sensor\.2\.driver: no laser-tracker driver 'nmea' \(choose line-protocol\)"),  # noqa: E501
+        ({"kind": "photogrammetry", "driver": "simulated"}, r"sensor\.2\.driver = \"simulated\" was the noise model of an earlier cellcal"),  # noqa: E501
         ({"kind": "sonar"}, r"sensor\.2\.kind: 'sonar' is not a sensor kind \(laser-tracker, photogrammetry\)"),  # noqa: E501
         ({"driver": "line-protocol"}, r"sensor\.2\.kind: required key missing"),
         ({"kind": "photogrammetry", "timeout_s": 3.0}, r"sensor\.2\.rig_file: required key missing"),  # noqa: E501

@@ -15,7 +15,6 @@ from pydantic import Field, model_validator
 from cellcal.device_options import Strict
 
 N_JOINTS = 6
-MAX_READ = 125  # registers in one read request (Modbus limit)
 
 # status bits
 READY = 1 << 0
@@ -56,15 +55,19 @@ BLOCKS: dict[str, int] = {
 }
 #: The blocks a client writes; the rest are read only.
 WRITABLE = ("target_joints", "target_pose", "speed", "command", "sequence")
+#: The one-register blocks read at every poll, in the order their requests go out when
+#: they lie apart: ack first, so the status bits read after it are never older than the
+#: acknowledgement (as in one request), the error code after the status bits.
+STATUS_REGISTERS = ("ack", "heartbeat", "status", "error_code")
 
 
 class ModbusMap(Strict):
     """Holding-register addresses (0-based), the float32 word order and the device id.
 
-    Refused: a block that runs past register 65535, two blocks that overlap, a
+    Refused: a block that runs past register 65535, two blocks that overlap, and a
     ``sequence`` that is not the register after ``command`` (both go in one write
-    request), and a status block (heartbeat, status, error code, ack) wider than one
-    read request (125 registers)."""
+    request). Registers between the blocks are holes: the map does not have them, and
+    no request touches them (:meth:`status_reads`)."""
 
     device_id: Annotated[int, Field(ge=0, le=255)] = 1
     word_order: Literal["big", "little"] = "big"
@@ -97,12 +100,6 @@ class ModbusMap(Strict):
                 f"sequence ({self.sequence}) must be the register after command "
                 f"({self.command}): both are written in one request"
             )
-        lo, hi = self.status_block
-        if hi - lo + 1 > MAX_READ:
-            raise ValueError(
-                f"heartbeat, status, error_code and ack span {hi - lo + 1} registers; "
-                f"one read request takes at most {MAX_READ}"
-            )
         return self
 
     def span(self, block: str) -> tuple[int, int]:
@@ -110,8 +107,17 @@ class ModbusMap(Strict):
         lo = int(getattr(self, block))
         return lo, lo + BLOCKS[block] - 1
 
-    @property
-    def status_block(self) -> tuple[int, int]:
-        """First and last address of the block read at every poll."""
-        addrs = (self.heartbeat, self.status, self.error_code, self.ack)
-        return min(addrs), max(addrs)
+    def status_reads(self) -> tuple[tuple[int, int], ...]:
+        """The read requests of one status poll, as (first address, count): the status
+        registers (heartbeat, status, error code, ack) in runs of consecutive addresses,
+        one request a run, never across a hole; the run holding ``ack`` first, then in
+        the order of :data:`STATUS_REGISTERS`. The default map: one request, (0, 4)."""
+        runs: list[list[int]] = []
+        for address in sorted(int(getattr(self, name)) for name in STATUS_REGISTERS):
+            if runs and address == runs[-1][-1] + 1:
+                runs[-1].append(address)
+            else:
+                runs.append([address])
+        order = [int(getattr(self, name)) for name in STATUS_REGISTERS]
+        runs.sort(key=lambda run: min(order.index(a) for a in run))
+        return tuple((run[0], len(run)) for run in runs)

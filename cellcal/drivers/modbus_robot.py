@@ -4,13 +4,17 @@ xArm and Lebai natively. pymodbus 3.16's synchronous ``ModbusTcpClient``.
 
 The handshake, and what the driver does about faults:
 
-* ``connect`` reads the status block and refuses (``DeviceError``) a controller whose
+* The status registers (heartbeat, status, error code, ack) are read in as few requests
+  as their addresses allow: one for each run of consecutive addresses, never across a
+  register the map does not have (a controller answers such a read with exception 2),
+  the run holding ack first (``ModbusMap.status_reads``).
+* ``connect`` reads the status registers and refuses (``DeviceError``) a controller whose
   e-stop or error bit is set or whose remote bit is clear, then reads the actual joints
   and refuses implausible values (not finite, beyond ±10 000°, or a nonzero magnitude
   below 1e-20° — what a word-order mismatch gives).
 * ``move_joints`` checks the status again, writes the target joints (deg, float32) and
   the speed, then the command and a new sequence number in ONE write request, and polls
-  the status block every ``poll_s`` until ack == sequence AND in_position AND NOT busy
+  the status registers every ``poll_s`` until ack == sequence AND in_position AND NOT busy
   (busy clear alone may mean "not started yet"). The error bit or the e-stop end the
   wait at once; a heartbeat that does not change for ``heartbeat_timeout_s`` is a comms
   fault; after ``timeout_s`` the move has failed; an acknowledgement of another sequence
@@ -77,7 +81,7 @@ class ModbusRobotOptions(RobotOptions):
     """``[robot]`` with ``driver = "modbus"``: ``address`` is host or host:port (502),
     ``[robot.map]`` the controller's handshake map; a move that is not done within
     ``move_timeout_s`` has failed, a heartbeat that does not change for
-    ``heartbeat_timeout_s`` during a move is a comms fault, and the status block is
+    ``heartbeat_timeout_s`` during a move is a comms fault, and the status registers are
     read every ``poll_s`` while a move runs."""
 
     driver: Literal["modbus"] = "modbus"
@@ -89,7 +93,7 @@ class ModbusRobotOptions(RobotOptions):
 
 @dataclass(frozen=True)
 class ModbusRobotStatus:
-    """One reading of the status block."""
+    """One reading of the status registers."""
 
     heartbeat: int
     bits: int
@@ -263,15 +267,19 @@ class ModbusRobot:
         return f"{self.host}:{self.port}"
 
     def status(self) -> ModbusRobotStatus:
-        """Read heartbeat, status bits, error code and acknowledgement in one request."""
-        lo, hi = self.map.status_block
-        regs = self._read(lo, hi - lo + 1, "status")
+        """Read heartbeat, status bits, error code and acknowledgement: one request for
+        each run of consecutive addresses among them (one for the default map), none
+        across a register the map does not have (``ModbusMap.status_reads``)."""
         m = self.map
+        values: dict[int, int] = {}
+        for address, count in m.status_reads():
+            regs = self._read(address, count, "status")
+            values.update(zip(range(address, address + count), regs, strict=True))
         return ModbusRobotStatus(
-            heartbeat=regs[m.heartbeat - lo],
-            bits=regs[m.status - lo],
-            error_code=regs[m.error_code - lo],
-            ack=regs[m.ack - lo],
+            heartbeat=values[m.heartbeat],
+            bits=values[m.status],
+            error_code=values[m.error_code],
+            ack=values[m.ack],
         )
 
     def actual_pose(self) -> Array:

@@ -7,8 +7,10 @@ independently of any client's converters, so a driver that gets the word order w
 caught.
 
 Registers (holding, 0-based; function codes 3 and 4 read the same ones; float32 in the
-configured word order; reading or writing any other address answers exception code 2,
-writing a read-only block too, and nothing of such a request is done):
+configured word order): exactly those of the configured map (``ModbusMap``), as a
+controller has them. Reading or writing any other address — a hole between two blocks
+included, and a range that covers one — answers exception code 2, writing a read-only
+block too, and nothing of such a request is done. The default map's:
 
 * 0 heartbeat, 1 status, 2 error code, 3 acknowledged sequence — read only;
 * 10..21 actual joints (deg), 30..41 actual flange pose (mm, deg) — read only;

@@ -7,6 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from cellcal.config import with_robot
 from cellcal.drivers.safety import SafetyError
 from cellcal.errors import DeviceError
 from cellcal.families import families
@@ -54,6 +55,26 @@ def test_modbus_faults_end_the_move_with_one_clear_error():
         devices.servers[0].server.faults = ModbusRobotFaults(estop=True)
         with pytest.raises(DeviceError, match="e-stop"):
             devices.robot.move_joints(devices.robot.actual_joints() + 0.05, 0.25)
+
+
+def test_modbus_map_with_holes_from_the_configuration():
+    """[robot.map] with holes (heartbeat 4 and status 7 beside error code 2 and ack 3;
+    the blocks moved apart): the factory's driver connects to the twin, which has these
+    registers and no other, and moves; no status read crosses a hole."""
+    holed = {"heartbeat": 4, "status": 7, "actual_joints": 40, "actual_pose": 70,
+             "target_joints": 300, "speed": 400, "command": 500, "sequence": 501}  # fmt: skip
+    config = with_robot(cell_for(_family("modbus")), map=holed)
+    home = np.radians(config.robot.home_deg)
+    with mock_devices(config) as devices:
+        robot, twin = devices.robot, devices.servers[0].server
+        for step in ([5.0, -4.0, 6.0, 3.0, -5.0, 10.0], [-3.0, 2.0, -4.0, 0.0, 6.0, -8.0]):
+            target = home + np.radians(step)
+            robot.move_joints(target, 0.25)
+            np.testing.assert_allclose(robot.actual_joints(), target, atol=1e-4)
+        robot.move_joints(home, 0.5)
+        np.testing.assert_allclose(devices.simulated_cell.q, home, atol=1e-4)
+        reads = {(r.address, r.count) for r in twin.requests if r.values is None}
+    assert reads == {(2, 3), (7, 1), (40, 12)}
 
 
 def test_ur_protective_stop_is_an_error():

@@ -1,6 +1,7 @@
 """The Modbus twin against clients nobody here wrote: pyModbusTCP (not pymodbus, which
 the driver is built on) runs the handshake of docs/robots.md on a moved map,
-little-endian words and device id 7, as a PLC programmer would; and raw sockets pin,
+little-endian words and device id 7, as a PLC programmer would, and reads a map with
+holes register by register (unmapped ones are exception 2); and raw sockets pin,
 byte for byte, what the twin's MBAP server answers where a Modbus/TCP device must
 (docs/robots.md, "What the twin answers on the wire"): exception codes echoing the
 function code, pipelined requests, a frame of another protocol id, framing errors."""
@@ -94,6 +95,57 @@ def test_pymodbustcp_runs_the_handshake_on_the_configured_map(twin):
         assert c.read_holding_registers(MAP.status, 1) is None and c.last_except == 0x0B
     finally:
         c.close()
+
+
+#: The issue's map: heartbeat 4 and status 7 beside error code 2 and ack 3, so 5 and 6
+#: are holes; and the holes between the other blocks.
+HOLED = ModbusMap(heartbeat=4, status=7)
+HOLED_REGISTERS = {2, 3, 4, 7, *range(10, 22), *range(30, 42), *range(100, 126), 130, 131}
+
+
+def _wait_listening(host, port, timeout=5.0):
+    deadline = time.monotonic() + timeout
+    while True:
+        try:
+            socket.create_connection((host, port), timeout=0.5).close()
+            return
+        except OSError:
+            assert time.monotonic() < deadline, f"nothing listening on {host}:{port}"
+            time.sleep(0.005)
+
+
+def test_pymodbustcp_reads_the_registers_of_a_map_with_holes():
+    """What a controller answers: every mapped register reads, every other address, a
+    hole between two blocks included, is exception 2, and so is any range across one
+    (the single read 2..7 of the status registers that earlier drivers sent)."""
+    sim = ModbusRobotSimulator(q0_deg=Q0, map=HOLED)
+    host, port = sim.start("127.0.0.96", 0)
+    c = modbus_tcp.ModbusClient(host=host, port=port, unit_id=1, timeout=2.0, auto_open=True)
+    try:
+        _wait_listening(host, port)
+        for address in range(140):
+            for read in (c.read_holding_registers, c.read_input_registers):
+                regs = read(address, 1)
+                if address in HOLED_REGISTERS:
+                    assert regs is not None and len(regs) == 1, address
+                else:
+                    assert regs is None and c.last_except == 2, address
+        error_code, ack, _ = c.read_holding_registers(2, 3)
+        (status,) = c.read_holding_registers(7, 1)
+        assert (error_code, ack) == (0, 0) and status & READY and status & REMOTE
+        np.testing.assert_allclose(floats(c.read_holding_registers(10, 12), "big"), Q0, atol=1e-5)
+        assert len(c.read_holding_registers(100, 26)) == 26  # target joints, pose, speed
+        for address, count in ((2, 6), (4, 4), (3, 5), (10, 13), (100, 27), (125, 6)):
+            assert c.read_holding_registers(address, count) is None, (address, count)
+            assert c.last_except == 2
+        assert not c.write_single_register(5, 1) and c.last_except == 2
+        assert not c.write_multiple_registers(126, [0, 0]) and c.last_except == 2
+    finally:
+        c.close()
+        sim.stop()
+    # nothing refused was served, nothing was written
+    assert all(r.values is None for r in sim.requests)
+    assert {r.address for r in sim.requests} <= HOLED_REGISTERS
 
 
 def _mbap(tid, pdu, unit=7, proto=0):
