@@ -234,12 +234,17 @@ def calibrate(
     accepted: list[str] = []
     specs = parameter_specs(nominal, paper_parameters=paper_parameters, groups=g, orientation=six)
     pinned = _expand_fix(specs, fix)
-    check_sessions(measured, g)
     findings: list[Finding] = []
+    still = False  # a session whose target did not move at all
     for s in range(len(g.sessions)):
         rows = g.session == s
         findings += check_data(nominal, q[rows], measured[rows], nominal.tool)
+        still |= bool(np.ptp(measured[rows], axis=0).max() <= 1e-9)
+    if not still:  # points on a line are degenerate geometry (exit 2) ...
+        check_sessions(measured, g)
+    # ... a target that stays put while the robot moves does not follow it (exit 3)
     _refuse_or_note(findings[:1], accept, warnings, accepted)
+    check_sessions(measured, g)
 
     def frames_fit(model: RobotModel, qq: Array, mm: Array) -> float:
         return frames_rms(model, qq, mm, g)

@@ -149,3 +149,18 @@ def test_wrapped_angles_lie_in_the_half_open_interval(a):
     w = wrap_deg(a)
     assert -180.0 < w <= 180.0
     assert math.isclose(math.cos(math.radians(w)), math.cos(math.radians(a % 360.0)), abs_tol=1e-6)
+
+
+def test_a_target_that_never_moves_does_not_follow_the_robot() -> None:
+    """Every measurement the same point while the robot moves (a twin or a sensor that
+    does not see this robot): refused as a target that does not follow the robot (exit
+    3), not as degenerate geometry (exit 2), which points on a line still are."""
+    from cellcal.errors import DegenerateGeometryError
+
+    q = well_spread("kuka-kr5-arc", 4, 30).q
+    still = np.tile([1500.0, 20.0, 300.0], (30, 1))
+    with pytest.raises(AcceptanceError, match=f"^{CHECK_FOLLOWS}: the measured target moves 0"):
+        calibrate(KR5, q, still)
+    line = np.outer(np.arange(30.0), [1.0, 2.0, 3.0])
+    with pytest.raises(DegenerateGeometryError):
+        calibrate(KR5, q, line)
