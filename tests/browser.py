@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import shutil
+from collections.abc import Iterator
 from typing import Any
 
 import pytest
@@ -28,3 +29,15 @@ def chromium(width: int, height: int) -> Any:
     options.add_argument("--disable-background-networking")
     options.add_argument(f"--window-size={width},{height}")
     return webdriver.Chrome(options=options, service=DriverService(str(CHROMEDRIVER)))
+
+
+@pytest.fixture(scope="session")
+def shared_chromium() -> Iterator[Any]:
+    """One headless Chromium for every page test of the session (each test navigates it
+    and sets its window size); started by the first test that asks, quit at the end."""
+    browser = chromium(1280, 1500)
+    browser.set_page_load_timeout(30)
+    try:
+        yield browser
+    finally:
+        browser.quit()

@@ -3,6 +3,7 @@ also reads a database file directly (``--db``)."""
 
 from __future__ import annotations
 
+import math
 import sys
 from pathlib import Path
 from typing import Any
@@ -118,12 +119,14 @@ def status(sock: str | None, as_json: bool) -> None:
         print_json(snap)
         return
     click.echo(f"{snap['state']}: {snap['reason']}")
-    c = snap.get("campaign")
-    if c and snap["state"] not in ("idle",):
-        eta = c.get("eta_s")
+    c = snap.get("campaign")  # the running one, else the one held, else the last one
+    if c:
+        active = snap["state"] in ("running", "pausing", "aborting", "analysing")
+        eta = c.get("eta_s") if active else None
+        status = f" ({c['status']})" if c.get("status") else ""
         click.echo(
-            f"campaign {c['id']}: {c.get('stored', 0)} of {c.get('planned', 0)} poses stored, "
-            f"phase {c.get('phase')}" + (f", about {eta:.0f} s to go" if eta else "")
+            f"campaign {c['id']}{status}: {c.get('stored', 0)} of {c.get('planned', 0)} poses "
+            f"stored, phase {c.get('phase')}" + (f", about {eta:.0f} s to go" if eta else "")
         )
     devices = ", ".join(f"{k} {v['state']}" for k, v in snap["devices"].items())
     click.echo(f"devices: {devices}")
@@ -218,6 +221,14 @@ def watch(campaign_id: int | None, sock: str | None, as_json: bool) -> int:
     return EXIT_REFUSED if ended.get("status") == "refused" else 0
 
 
+def _sigma(s: dict[str, Any]) -> str:
+    """A sensor's σ at a pose as the status page shows it: the service's ``sigma_mm``, the
+    3-D norm √(σx² + σy² + σz²) of the per-axis standard deviations (computed here from
+    ``std_mm`` for a service that does not send it)."""
+    v = s.get("sigma_mm") if "sigma_mm" in s else math.hypot(*s["std_mm"])
+    return "—" if v is None or not math.isfinite(v) else f"{v:.4f} mm"
+
+
 def _line(obj: Any) -> str:
     import json
 
@@ -230,9 +241,7 @@ def _show(kind: str, data: dict[str, Any]) -> None:
         progress = f" [{c.get('stored', 0)}/{c.get('planned', 0)}]" if c else ""
         click.echo(f"{data['state']}{progress}: {data['reason']}")
     elif kind == "pose":
-        sigma = ", ".join(
-            f"{name} σ {max(s['std_mm']):.4f} mm" for name, s in data["sensors"].items()
-        )
+        sigma = ", ".join(f"{name} 3-D σ {_sigma(s)}" for name, s in data["sensors"].items())
         click.echo(
             f"pose {data['stored']}/{data['planned']} stored ({data['role']}, {data['region']}; "
             f"{sigma})"

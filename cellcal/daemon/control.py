@@ -12,6 +12,9 @@ States (``specs``: the service): ``idle``, ``running``, ``pausing`` (a deferred 
 the pose under way is finished and stored), ``paused``, ``aborting``, ``analysing``,
 ``stopping`` (SIGTERM). A paused campaign — by an operator, by a device fault, or found
 running after a crash — holds the queue until an operator resumes or aborts it.
+
+One campaign is shown at a time (``campaign`` and the last poses): the running one, else
+the one held, else the last one; a campaign that starts replaces it and its poses.
 """
 
 from __future__ import annotations
@@ -26,13 +29,7 @@ from typing import Any
 import numpy as np
 
 from cellcal.daemon.plan import PlannedPose
-from cellcal.daemon.records import (
-    CampaignEnded,
-    CampaignEvent,
-    CampaignStarted,
-    PoseStored,
-    Record,
-)
+from cellcal.daemon.records import CampaignEnded, CampaignEvent, CampaignStarted, PoseStored, Record
 from cellcal.errors import UserError
 
 STATES = ("idle", "running", "pausing", "paused", "aborting", "analysing", "stopping")
@@ -69,6 +66,14 @@ def _deg(q: Any) -> list[float]:
     return [round(float(x), 4) for x in np.degrees(np.asarray(q)).ravel()]
 
 
+def sigma_mm(std: Any) -> float | None:
+    """The σ shown for a sensor at a pose (status page, ``cellcal campaign watch``): the
+    3-D norm √(σx² + σy² + σz²) of the per-axis sample standard deviations (mm), the
+    spread of one sample about the pose's mean (not the σ of the mean)."""
+    norm = float(np.linalg.norm(np.asarray(std, dtype=np.float64)))
+    return round(norm, 6) if np.isfinite(norm) else None
+
+
 class Control:
     """The thread-safe control object; see the module docstring."""
 
@@ -101,8 +106,10 @@ class Control:
         self.shutting_down = False
         self.closing = threading.Event()  # set on SIGTERM: every wait of the engine ends
         self.heartbeat = time.monotonic()
-        self.campaign: dict[str, Any] | None = None
-        self.recent: deque[dict[str, Any]] = deque(maxlen=RECENT_POSES)
+        self.campaign: dict[str, Any] | None = None  # the campaign shown
+        self.recent: deque[dict[str, Any]] = deque(maxlen=RECENT_POSES)  # its last poses
+        #: a campaign's last stored poses, from the database (never raises; any thread)
+        self.history: Callable[[int], list[dict[str, Any]]] | None = None
         self.last_end: dict[str, Any] | None = None
         self._resume: int | None = None
 
@@ -144,7 +151,12 @@ class Control:
         self.blocking = None
         self.state = "running"
         self.reason = f"campaign {job.campaign_id}: {'resuming' if job.resume else 'starting'}"
-        self.campaign = {"id": job.campaign_id, "stored": 0, "planned": 0, "phase": "starting"}
+        c = self.campaign if self.campaign and self.campaign["id"] == job.campaign_id else {}
+        if not c:
+            self.recent.clear()  # another campaign is shown: none of the last one's poses
+        kept: dict[str, Any] = {k: c[k] for k in ("stored", "planned", "roles") if k in c}
+        self.campaign = {"id": job.campaign_id, "status": "running", "stored": 0, "planned": 0}
+        self.campaign.update(kept, phase="starting")
         self._changed()
         return job
 
@@ -171,7 +183,7 @@ class Control:
             if self.shutting_down:
                 self.state = "stopping"
             if self.campaign is not None:
-                self.campaign["phase"] = status
+                self.campaign.update(phase=status, status=status)
             self._changed()
 
     def set_device(self, name: str, state: str, message: str = "") -> None:
@@ -194,21 +206,23 @@ class Control:
             c = self.campaign
             c.update(phase=name, phase_started=time.time())
             if c.get("pose_idx") != pose.idx:  # a new pose (its numbers once)
-                c.update(
-                    pose_idx=pose.idx,
-                    role=pose.role,
-                    region=pose.region,
-                    target_mm=_mm(pose.target_mm),
-                    planned_q_deg=_deg(pose.q),
-                )
+                c.update(pose_idx=pose.idx, role=pose.role, region=pose.region)
+                c.update(target_mm=_mm(pose.target_mm), planned_q_deg=_deg(pose.q))
         self._status_later()
 
     def record(self, record: Record) -> None:
         """A subscriber of the campaign's record stream: progress in, events out."""
         self.beat()
+        before = None  # a resumed campaign's poses stored before this process saw them
+        known = len(self.recent)  # changed in this thread only, once the engine runs
+        if isinstance(record, CampaignStarted) and known < min(record.done, RECENT_POSES):
+            before = self.history(record.campaign_id) if self.history else None  # off the lock
         with self._lock:
             c = self.campaign
             if isinstance(record, CampaignStarted) and c is not None:
+                if before is not None:
+                    self.recent.clear()
+                    self.recent.extend(before)
                 if self.state == "running":
                     self.reason = f"campaign {record.campaign_id}: acquiring"
                 roles: dict[str, dict[str, int]] = {}
@@ -216,14 +230,9 @@ class Control:
                     r = roles.setdefault(p.role, {"stored": 0, "planned": 0})
                     r["planned"] += 1
                     r["stored"] += p.idx in self._done
-                c.update(
-                    stored=record.done,
-                    planned=record.total,
-                    roles=roles,
-                    dwell_wall_s=round(self._dwell_wall_s, 3),
-                    started=time.time(),
-                    stored_at_start=record.done,
-                )
+                c.update(stored=record.done, planned=record.total, roles=roles)
+                c.update(dwell_wall_s=round(self._dwell_wall_s, 3), started=time.time())
+                c["stored_at_start"] = record.done
             elif isinstance(record, PoseStored) and c is not None:
                 c["stored"] = record.done
                 c["reached_q_deg"] = _deg(record.reached_q)
@@ -241,8 +250,18 @@ class Control:
         if isinstance(record, CampaignEnded):
             self.last_end = data
         self._send(KINDS[type(record)], data)
-        if isinstance(record, (CampaignStarted, PoseStored, CampaignEnded)):
+        if isinstance(record, CampaignStarted):  # the campaign shown, with its poses
+            self._send("status", self.snapshot(recent=True))
+        elif isinstance(record, (PoseStored, CampaignEnded)):
             self._status_later()
+
+    def show(self, campaign: dict[str, Any], poses: list[Any], end: dict[str, Any] | None) -> None:
+        """At start-up: the campaign shown (held, else the last), as the database has it."""
+        with self._lock:
+            self.campaign, self.last_end = campaign, end
+            self.recent.clear()
+            self.recent.extend(poses)
+            self._changed()
 
     def _send(self, kind: str, data: dict[str, Any] | None) -> None:
         """Out to the watchers, in order; ``data`` None: a snapshot when it goes."""
@@ -357,10 +376,8 @@ class Control:
             if cid is None:
                 raise ControlError("invalid-state", "no campaign is paused; name the one to resume")
             if self.blocking is not None and cid != self.blocking:
-                raise ControlError(
-                    "invalid-state",
-                    f"campaign {self.blocking} is paused: resume or abort it first",
-                )
+                why = f"campaign {self.blocking} is paused: resume or abort it first"
+                raise ControlError("invalid-state", why)
             status = status_of(cid)
             if status not in ("paused", "interrupted", "refused"):
                 raise ControlError("invalid-state", f"campaign {cid} is {status}, not resumable")
@@ -396,6 +413,8 @@ class Control:
                 self.blocking = None
                 self.state, self.reason = "idle", f"campaign {target} aborted"
                 self._lock.notify_all()
+            if self.campaign is not None and self.campaign["id"] == target:
+                self.campaign.update(status="aborted", phase="aborted")
             self._changed()
             return "aborted", target
 
@@ -458,6 +477,7 @@ def event_data(record: Record) -> dict[str, Any]:
             "retries": record.retries,
             "sensors": {
                 s.sensor: {"n": s.n, "mean_mm": _mm(s.mean), "std_mm": _mm(s.std)}
+                | {"sigma_mm": sigma_mm(s.std)}
                 for s in record.statistics
             },
         }

@@ -6,7 +6,8 @@ file is refused with a line that names the service and its pid.
 
 Start-up: lock the database, open it, mark a campaign found ``running`` or ``paused``
 ``interrupted`` (the previous service died under it) and hold the queue until an
-operator resumes or aborts it, listen, ``READY=1``; the devices connect in the engine
+operator resumes or aborts it, show that campaign (else the last one) as the database
+has it, listen, ``READY=1``; the devices connect in the engine
 thread meanwhile (their states in ``STATUS=``). SIGTERM: ``STOPPING=1``, the pose under
 way is abandoned, the robot stopped, the campaign ``interrupted``, exit 0. SIGHUP: the
 configuration is read again when no campaign runs (else when it ends).
@@ -19,6 +20,7 @@ import contextlib
 import logging
 import os
 import signal
+import sqlite3
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -29,7 +31,7 @@ from aiohttp import web
 
 from cellcal.clock import Clock, SimulatedClock, WallClock
 from cellcal.config import CellConfig, load_config
-from cellcal.daemon.api import EventHub, Service, make_app
+from cellcal.daemon.api import EventHub, Service, campaign_view, make_app, stored_poses
 from cellcal.daemon.control import Control
 from cellcal.daemon.locks import RunLock, robot_claim
 from cellcal.daemon.page import HttpAddress, make_page_app
@@ -205,6 +207,10 @@ async def serve(opts: DaemonOptions) -> int:
             recovered = recover(store, control, lock.previous)
             for cid in recovered:
                 log.warning("campaign %d was interrupted by a restart; it waits for resume", cid)
+            control.history = _history(opts.db_path)
+            shown = campaign_view(store, control.blocking)
+            if shown is not None:
+                control.show(*shown)
             app = make_app(_service(opts, control, store, hub))
             runner = web.AppRunner(app, shutdown_timeout=2.0)
             await runner.setup()
@@ -287,10 +293,29 @@ def _service(opts: DaemonOptions, control: Control, store: Store, hub: EventHub)
     )
 
 
+def _history(db_path: str) -> Callable[[int], list[dict[str, Any]]]:
+    """A campaign's last stored poses, read on a connection of the caller's thread (the
+    engine's, when a campaign resumes); none when the read fails (said in the log)."""
+
+    def read(campaign_id: int) -> list[dict[str, Any]]:
+        try:
+            store = Store(db_path, readonly=True)
+            try:
+                return stored_poses(store, campaign_id)
+            finally:
+                store.close()
+        except (CellcalError, sqlite3.Error) as exc:
+            log.warning("campaign %d: its stored poses not read (%s)", campaign_id, exc)
+            return []
+
+    return read
+
+
 def _note_stopped(store: Store, control: Control) -> None:
-    """A campaign SIGTERM interrupted says so: the next service holds the queue for it."""
+    """A campaign SIGTERM interrupted, or the one held, says so: the next service holds
+    the queue for it (one only shown, from the database, is left alone)."""
     c = control.campaign
-    if c is None:
+    if c is None or ("started" not in c and c["id"] != control.blocking):
         return
     with contextlib.suppress(CellcalError):
         if store.campaign(int(c["id"])).status == "interrupted":

@@ -40,7 +40,7 @@ import numpy as np
 import sqlite_utils
 
 from cellcal.calib.geometry import Array
-from cellcal.daemon.store_results import AnalysisTables
+from cellcal.daemon.store_results import AnalysisTables, StatusReads
 from cellcal.daemon.store_schema import (
     COV_COLUMNS,
     MIGRATIONS,
@@ -104,8 +104,9 @@ class PoseData:
         return np.asarray(np.isfinite(self.mean[sensor]).all(axis=1))
 
 
-class Store(AnalysisTables):
-    """One campaign database file (the analysis's tables: :class:`AnalysisTables`)."""
+class Store(AnalysisTables, StatusReads):
+    """One campaign database file (the analysis's tables: :class:`AnalysisTables`; the
+    status's reads: :class:`StatusReads`)."""
 
     def __init__(self, path: str | Path, *, readonly: bool = False) -> None:
         self.path = str(path)

@@ -1,6 +1,7 @@
 """The analysis's tables of the campaign database: registrations, calibrations, fused
-positions and reports. A mixin of :class:`~cellcal.daemon.store.Store`, which owns the
-connection and the transactions; the schema is ``store_schema.py``'s."""
+positions and reports; and the reads of the service's status (a campaign's last stored
+poses). Mixins of :class:`~cellcal.daemon.store.Store`, which owns the connection and
+the transactions; the schema is ``store_schema.py``'s."""
 
 from __future__ import annotations
 
@@ -129,3 +130,75 @@ class AnalysisTables:
             (campaign_id,),
         ).fetchone()
         return None if row is None else dict(json.loads(row[0]))
+
+
+class StatusReads:
+    """What the service's status shows of a stored campaign (read only)."""
+
+    conn: sqlite3.Connection
+
+    def pose_count(self, campaign_id: int) -> int:
+        row = self.conn.execute(
+            "SELECT COUNT(*) FROM poses WHERE campaign_id = ?", (campaign_id,)
+        ).fetchone()
+        return int(row[0])
+
+    def stored_by_role(self, campaign_id: int) -> dict[str, int]:
+        rows = self.conn.execute(
+            "SELECT role, COUNT(*) FROM poses WHERE campaign_id = ? GROUP BY role ORDER BY role",
+            (campaign_id,),
+        )
+        return {str(role): int(n) for role, n in rows}
+
+    def last_event(self, campaign_id: int, kind: str) -> str | None:
+        row = self.conn.execute(
+            "SELECT message FROM events WHERE campaign_id = ? AND kind = ? ORDER BY id DESC",
+            (campaign_id, kind),
+        ).fetchone()
+        return None if row is None else str(row[0])
+
+    def last_poses(self, campaign_id: int, limit: int) -> list[dict[str, Any]]:
+        """The campaign's last ``limit`` stored poses, oldest first, with the event
+        stream's ``pose`` keys (``stored``: how many were stored with it; ``retries``: the
+        sensors' own and the poses measured again), unrounded (NULL: None)."""
+        total = self.pose_count(campaign_id)
+        rows = self.conn.execute(
+            """SELECT id, idx, role, region, target_x, target_y, target_z, planned_q_deg,
+            reached_q_deg, t_end - t_start FROM poses WHERE campaign_id = ?
+            ORDER BY id DESC LIMIT ?""",
+            (campaign_id, limit),
+        ).fetchall()
+        asked_again = dict(
+            self.conn.execute(
+                """SELECT pose_idx, COUNT(*) FROM events WHERE campaign_id = ?
+                AND kind = 'sensor-retry' GROUP BY pose_idx""",
+                (campaign_id,),
+            ).fetchall()
+        )
+        out = []
+        for k, (pid, idx, role, region, x, y, z, planned, reached, seconds) in enumerate(rows):
+            stats = self.conn.execute(
+                """SELECT sensor, n, mean_x, mean_y, mean_z, std_x, std_y, std_z, retries
+                FROM pose_stats WHERE pose_id = ? ORDER BY sensor""",
+                (pid,),
+            ).fetchall()
+            sensors = {
+                str(s[0]): {"n": int(s[1]), "mean_mm": list(s[2:5]), "std_mm": list(s[5:8])}
+                for s in stats
+            }
+            out.append(
+                {
+                    "campaign_id": campaign_id,
+                    "idx": int(idx),
+                    "role": role,
+                    "region": region,
+                    "stored": total - k,
+                    "target_mm": [x, y, z],
+                    "planned_q_deg": json.loads(planned),
+                    "reached_q_deg": json.loads(reached),
+                    "seconds": round(float(seconds), 3),
+                    "retries": sum(int(s[8]) for s in stats) + int(asked_again.get(idx, 0)),
+                    "sensors": sensors,
+                }
+            )
+        return out[::-1]

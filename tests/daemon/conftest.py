@@ -20,6 +20,7 @@ from typing import Any
 import pytest
 
 from cellcal.commands.service_client import call
+from tests.browser import shared_chromium  # noqa: F401  (the page tests' one browser)
 
 ROOT = Path(__file__).resolve().parents[2]
 TRACKER_CELL = ROOT / "config" / "mock-cell-tracker.toml"

@@ -19,7 +19,7 @@ import pytest
 from cellcal.commands.service_client import call
 from cellcal.daemon.page import FILES, host_allowed, parse_http
 from cellcal.errors import InputError
-from tests.browser import chromium, needs_chromium
+from tests.browser import needs_chromium
 
 ROOT = Path(__file__).resolve().parents[2]
 STATIC = ROOT / "cellcal" / "data" / "status"
@@ -68,7 +68,8 @@ def test_the_page_loads_nothing_from_outside() -> None:
 
 
 def _address() -> str:
-    return f"127.{random.randint(1, 254)}.{random.randint(1, 254)}.{random.randint(2, 254)}"
+    """A loopback address of 127.0.0.x (port 0 takes a free port on it)."""
+    return f"127.0.0.{random.randint(2, 254)}"
 
 
 def _get(url: str, path: str, method: str = "GET", **headers: str) -> http.client.HTTPResponse:
@@ -120,73 +121,169 @@ def _short_campaign() -> str:
 
 @needs_chromium
 def test_the_page_in_chromium_follows_a_campaign_to_its_errors(
-    folder: Path, daemon: Callable[..., Any], capsys: pytest.CaptureFixture[str]
+    folder: Path,
+    daemon: Callable[..., Any],
+    capsys: pytest.CaptureFixture[str],
+    shared_chromium: Any,
 ) -> None:
     d = daemon(folder, None, 0.03, ["--http", f"{_address()}:0"])
     d.start()
     url = _page_url(d)
-    browser = chromium(1280, 1500)
+    browser = shared_chromium
+    browser.set_window_size(1280, 1500)
     from selenium.webdriver.common.by import By
     from selenium.webdriver.support.ui import WebDriverWait
 
     shots = []
-    try:
-        browser.set_page_load_timeout(30)
-        browser.get(url)
-        wait = WebDriverWait(browser, 90, poll_frequency=0.1)
-        text = lambda i: browser.find_element(By.ID, i).text  # noqa: E731
-        wait.until(lambda _: text("link") == "live" and text("state") == "IDLE")
-        assert "cellcal campaign start" in text("command")
-        started = call(
-            d.sock,
-            "POST",
-            "/v1/campaigns",
-            {"config_toml": _short_campaign(), "config_name": str(TRACKER_CELL), "mock": True},
+    browser.get(url)
+    wait = WebDriverWait(browser, 90, poll_frequency=0.1)
+    text = lambda i: browser.find_element(By.ID, i).text  # noqa: E731
+    wait.until(lambda _: text("link") == "live" and text("state") == "IDLE")
+    assert "cellcal campaign start" in text("command")
+    started = call(
+        d.sock,
+        "POST",
+        "/v1/campaigns",
+        {"config_toml": _short_campaign(), "config_name": str(TRACKER_CELL), "mock": True},
+    )
+    cid, planned = started["campaign_id"], started["n_poses"]
+    progress = re.compile(rf"pose (\d+) of {planned}$")
+
+    def stored(_: Any) -> bool:
+        m = progress.match(text("progress"))
+        return text("state") == "RUNNING" and m is not None and int(m.group(1)) >= 3
+
+    wait.until(stored)
+    assert "cellcal campaign pause" in text("command")
+    assert text("phase").startswith("phase: pose ")
+    assert "calibration" in text("roles") and "validation" in text("roles")
+    assert text("campaign-id") == str(cid)
+    shots.append(folder / "status-page-running.png")
+    browser.save_screenshot(str(shots[-1]))
+    rows = browser.find_elements(By.CSS_SELECTOR, "#poses tbody tr")
+    assert rows and rows[0].find_elements(By.TAG_NAME, "td")[0].text.isdigit()
+    assert browser.find_elements(By.CSS_SELECTOR, "#plot polyline")
+    sensors = browser.find_elements(By.CSS_SELECTOR, "#sensors tbody tr")
+    assert [r.find_elements(By.TAG_NAME, "td")[0].text for r in sensors] == ["tracker"]
+
+    wait.until(lambda _: browser.find_element(By.ID, "end-box").is_displayed())
+    wait.until(lambda _: text("state") == "IDLE")
+    shots.append(folder / "status-page-complete.png")
+    browser.save_screenshot(str(shots[-1]))
+    assert text("progress") == f"pose {planned} of {planned}"
+    cells = [
+        [c.text for c in r.find_elements(By.CSS_SELECTOR, "th, td")]
+        for r in browser.find_elements(By.CSS_SELECTOR, "#end tbody tr")
+    ]
+    summary = call(d.sock, "GET", f"/v1/campaigns/{cid}")
+    assert summary["status"] == "complete"
+    assert cells[0][:2] == ["before calibration", f"{summary['rms_before_mm']:.4f}"]
+    assert cells[1][:2] == ["after calibration", f"{summary['rms_after_mm']:.4f}"]
+    assert text("end-message").startswith("complete: RMS ")
+    errors = [e for e in browser.get_log("browser") if e["level"] == "SEVERE"]
+    assert not errors, errors
+    assert d.stop() == 0
+    deadline = time.monotonic() + 30
+    while text("link") == "live" and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert text("link").startswith("unreachable")
+    assert text("command") == "systemctl status cellcal"
+    kept = Path(ROOT / ".pytest_cache" / "status-page")
+    kept.mkdir(parents=True, exist_ok=True)
+    with capsys.disabled():
+        for shot in shots:
+            shutil.copy(shot, kept / shot.name)
+            print(f"\n  status page screenshot: {kept / shot.name}")
+
+
+def _start(d: Any, seed: int) -> int:
+    body = {"config_toml": _short_campaign(), "config_name": str(TRACKER_CELL), "mock": True}
+    cid = call(d.sock, "POST", "/v1/campaigns", body | {"seed": seed})["campaign_id"]
+    assert isinstance(cid, int)
+    return cid
+
+
+@needs_chromium
+def test_the_page_shows_one_campaign_its_poses_and_a_keyed_plot(
+    folder: Path,
+    daemon: Callable[..., Any],
+    capsys: pytest.CaptureFixture[str],
+    shared_chromium: Any,
+) -> None:
+    """Campaign A aborted, B paused: the page loaded then names B in its headings, lists
+    and plots B's poses alone, and keys its plot; after a restart it shows B, held,
+    with the command that resumes it."""
+    from selenium.webdriver.common.by import By
+    from selenium.webdriver.support.ui import WebDriverWait
+
+    d = daemon(folder, None, 0.02, ["--http", f"{_address()}:0"])
+    d.start()
+    a = _start(d, 1)
+    d.until(lambda s: s["state"] == "running" and s["campaign"]["stored"] >= 6)
+    call(d.sock, "POST", "/v1/campaigns/current/abort", {})
+    d.until(lambda s: s["state"] == "idle" and "aborted" in s["reason"])
+    b = _start(d, 2)
+    d.until(lambda s: s["state"] == "running" and s["campaign"]["stored"] >= 3)
+    call(d.sock, "POST", "/v1/campaigns/current/pause", {})
+    d.until(lambda s: s["state"] == "paused")
+    stored_b = [i for (i,) in d.rows(f"SELECT idx FROM poses WHERE campaign_id = {b} ORDER BY id")]
+    assert d.rows(f"SELECT COUNT(*) FROM poses WHERE campaign_id = {a}")[0][0] >= 6
+
+    browser = shared_chromium
+    browser.set_window_size(1280, 1700)
+    browser.get_log("browser")  # what an earlier test left
+    wait = WebDriverWait(browser, 60, poll_frequency=0.1)
+    text = lambda i: browser.find_element(By.ID, i).text  # noqa: E731
+
+    def rows() -> list[Any]:
+        return browser.find_elements(By.CSS_SELECTOR, "#poses tbody tr")
+
+    def check_page(status: str) -> None:
+        wait.until(
+            lambda _: text("link") == "live" and text("campaign-id") == str(b),
+            f"the page never showed campaign {b}",
         )
-        cid, planned = started["campaign_id"], started["n_poses"]
-        progress = re.compile(rf"pose (\d+) of {planned}$")
-
-        def stored(_: Any) -> bool:
-            m = progress.match(text("progress"))
-            return text("state") == "RUNNING" and m is not None and int(m.group(1)) >= 3
-
-        wait.until(stored)
-        assert "cellcal campaign pause" in text("command")
-        assert text("phase").startswith("phase: pose ")
-        assert "calibration" in text("roles") and "validation" in text("roles")
-        assert text("campaign-id") == str(cid)
-        shots.append(folder / "status-page-running.png")
-        browser.save_screenshot(str(shots[-1]))
-        rows = browser.find_elements(By.CSS_SELECTOR, "#poses tbody tr")
-        assert rows and rows[0].find_elements(By.TAG_NAME, "td")[0].text.isdigit()
-        assert browser.find_elements(By.CSS_SELECTOR, "#plot polyline")
-        sensors = browser.find_elements(By.CSS_SELECTOR, "#sensors tbody tr")
-        assert [r.find_elements(By.TAG_NAME, "td")[0].text for r in sensors] == ["tracker"]
-
-        wait.until(lambda _: browser.find_element(By.ID, "end-box").is_displayed())
-        wait.until(lambda _: text("state") == "IDLE")
-        shots.append(folder / "status-page-complete.png")
-        browser.save_screenshot(str(shots[-1]))
-        assert text("progress") == f"pose {planned} of {planned}"
-        cells = [
-            [c.text for c in r.find_elements(By.CSS_SELECTOR, "th, td")]
-            for r in browser.find_elements(By.CSS_SELECTOR, "#end tbody tr")
-        ]
-        summary = call(d.sock, "GET", f"/v1/campaigns/{cid}")
-        assert summary["status"] == "complete"
-        assert cells[0][:2] == ["before calibration", f"{summary['rms_before_mm']:.4f}"]
-        assert cells[1][:2] == ["after calibration", f"{summary['rms_after_mm']:.4f}"]
-        assert text("end-message").startswith("complete: RMS ")
+        wait.until(
+            lambda _: len(rows()) == len(stored_b),
+            f"campaign {b} stored {len(stored_b)} poses; the page did not list them alone",
+        )
+        assert text("campaign-status") == status
+        assert f"campaign {b}" in text("poses-title")
+        assert f"campaign {b}" in text("plot-title")
+        assert f"campaign {b}, pose {stored_b[-1]}" in text("sensors-title")
+        shown = rows()
+        assert {r.get_attribute("data-campaign") for r in shown} == {str(b)}
+        assert [int(r.find_elements(By.TAG_NAME, "td")[0].text) for r in shown] == stored_b[::-1]
+        assert len(browser.find_elements(By.CSS_SELECTOR, "#plot > circle")) == len(stored_b)
+        legend = [t.text for t in browser.find_elements(By.CSS_SELECTOR, "#plot g.legend text")]
+        assert legend == ["tracker: 3-D σ (µm)", "time per pose (s)"]
+        assert "3-D norm √(σx² + σy² + σz²)" in text("plot-key")
+        assert "cellcal campaign watch" in text("plot-key")
+        # the σ listed is the service's (the last pose's, in µm)
+        last = call(d.sock, "GET", "/v1/status")["recent_poses"][-1]
+        sigma = 1000 * last["sensors"]["tracker"]["sigma_mm"]
+        assert shown[0].find_elements(By.TAG_NAME, "td")[-1].text == f"{sigma:.1f}"
+        assert not browser.find_element(By.ID, "end-box").is_displayed()  # A's end is not B's
+        assert f"cellcal campaign resume {b}" in text("held")
         errors = [e for e in browser.get_log("browser") if e["level"] == "SEVERE"]
         assert not errors, errors
-        assert d.stop() == 0
-        deadline = time.monotonic() + 30
-        while text("link") == "live" and time.monotonic() < deadline:
-            time.sleep(0.1)
-        assert text("link").startswith("unreachable")
-        assert text("command") == "systemctl status cellcal"
-    finally:
-        browser.quit()
+
+    browser.get(_page_url(d))
+    check_page("paused")
+    shots = [folder / "status-page-one-campaign.png"]
+    browser.save_screenshot(str(shots[-1]))
+
+    # A restart: the held campaign is still the page's, with what to do.
+    assert d.stop() == 0
+    d.start()
+    browser.get(_page_url(d))
+    check_page("interrupted")
+    assert text("state") == "PAUSED"
+    assert f"cellcal campaign resume {b}" in text("command")
+    assert f"{len(stored_b)} of " in text("held") and "interrupted" in text("held")
+    shots.append(folder / "status-page-after-restart.png")
+    browser.save_screenshot(str(shots[-1]))
+    assert d.stop() == 0
     kept = Path(ROOT / ".pytest_cache" / "status-page")
     kept.mkdir(parents=True, exist_ok=True)
     with capsys.disabled():

@@ -11,8 +11,10 @@
   const COLORS = ["#0969da", "#bf3989", "#1a7f37", "#9a6700", "#8250df"];
   const ACTIVE = ["running", "pausing", "aborting", "analysing"];
 
+  // One campaign is shown: the service's (the running one, else the one held, else the
+  // last one). Every pose listed and plotted, and the end shown, are that campaign's.
   let snap = null; // the last status
-  let poses = []; // the last stored poses, oldest first
+  let poses = []; // the campaign's last stored poses, oldest first
   let end = null; // the last campaign-end
   let live = false;
   let etaAt = null; // wall time (ms) the campaign should end
@@ -21,6 +23,8 @@
   const vec = (v, d, scale = 1) => (v ? v.map((x) => fix(x * scale, d)).join(", ") : "—");
   const norm = (v) => Math.sqrt(v.reduce((a, x) => a + x * x, 0));
   const clock = (ms) => new Date(ms).toLocaleTimeString();
+  const shownId = () => (snap && snap.campaign ? snap.campaign.id : null);
+  const HELD = ["paused", "interrupted"];
 
   function el(tag, text, cls) {
     const e = document.createElement(tag);
@@ -97,16 +101,46 @@
     $("devices").replaceChildren(...items);
   }
 
+  // The headings name the campaign shown.
+  function renderTitles() {
+    const id = shownId();
+    const of = id === null ? "no campaign yet" : `campaign ${id}`;
+    $("plot-title").textContent = `σ and time per pose, ${of}`;
+    $("poses-title").textContent = `Last poses of ${of}`;
+    const last = poses[poses.length - 1];
+    $("sensors-title").textContent = last
+      ? `Sensors at the last stored pose, campaign ${id}, pose ${last.idx}`
+      : `Sensors at the last stored pose, ${of}`;
+  }
+
+  // A campaign held (paused, or interrupted by a stop or a restart): what to do.
+  function heldNote(c) {
+    if (!HELD.includes(c.status) || ACTIVE.includes(snap.state)) return "";
+    const left = (c.planned || 0) - (c.stored || 0);
+    const why = c.status === "interrupted" ? "interrupted" : "paused";
+    return (
+      `${why} with ${c.stored} of ${c.planned} poses stored (kept): ` +
+      `cellcal campaign resume ${c.id} measures the ${left} left, each once; ` +
+      `or cellcal campaign abort ${c.id}`
+    );
+  }
+
   function renderCampaign() {
+    renderTitles();
     const c = snap && snap.campaign;
     if (!c) return;
     $("campaign-id").textContent = c.id;
+    $("campaign-status").textContent = c.status || "";
+    $("campaign-status").className = `cstatus ${c.status || ""}`;
     const planned = c.planned || 0;
     const stored = c.stored || 0;
     $("bar").style.width = planned ? `${(100 * stored) / planned}%` : "0";
     $("progress").textContent = planned ? `pose ${stored} of ${planned}` : "starting";
+    const note = heldNote(c);
+    $("held").textContent = note;
+    $("held").hidden = !note;
     $("roles").textContent = Object.entries(c.roles || {})
-      .map(([role, r]) => `${role} ${r.stored} of ${r.planned}`)
+      .map(([role, r]) => `${role} ${r.stored}${r.planned === undefined ? " stored" : ` of ${r.planned}`}`)
       .join("  ·  ");
     etaAt = c.eta_s !== null && c.eta_s !== undefined ? Date.now() + 1000 * c.eta_s : etaAt;
     const body = [
@@ -140,9 +174,12 @@
         : "";
   }
 
+  // The service's σ (sigma_mm: the 3-D norm of the per-axis standard deviations), in µm.
   function sigma(p, sensor) {
     const s = p.sensors[sensor];
-    return s && s.std_mm ? 1000 * norm(s.std_mm) : null;
+    if (!s) return null;
+    if (s.sigma_mm !== undefined) return s.sigma_mm === null ? null : 1000 * s.sigma_mm;
+    return s.std_mm ? 1000 * norm(s.std_mm) : null;
   }
 
   function sensorNames() {
@@ -151,12 +188,12 @@
 
   function renderPoses() {
     const names = sensorNames();
-    $("poses-sigma").textContent = `σ (µm): ${names.join(" / ") || "—"}`;
+    $("poses-sigma").textContent = `3-D σ (µm): ${names.join(" / ") || "—"}`;
     const rows = poses
       .slice()
       .reverse()
-      .map((p) =>
-        row([
+      .map((p) => {
+        const tr = row([
           `${p.idx}`,
           p.role,
           p.region,
@@ -164,8 +201,10 @@
           fix(p.seconds, 2),
           `${p.retries}`,
           names.map((n) => fix(sigma(p, n), 1)).join(" / "),
-        ]),
-      );
+        ]);
+        tr.dataset.campaign = p.campaign_id; // whose pose it is
+        return tr;
+      });
     $("poses").tBodies[0].replaceChildren(...rows);
     const last = poses[poses.length - 1];
     const sensors = last
@@ -174,6 +213,7 @@
         )
       : [];
     $("sensors").tBodies[0].replaceChildren(...sensors);
+    renderTitles();
     plot();
   }
 
@@ -190,13 +230,30 @@
     return e;
   }
 
+  // The key: a line per sensor's σ, the bars of the time, each with its unit.
+  function legend(names) {
+    const g = svg("g", { class: "legend" });
+    let x = 70;
+    names.forEach((name, k) => {
+      const color = COLORS[k % COLORS.length];
+      g.append(svg("line", { x1: x, x2: x + 24, y1: 11, y2: 11, stroke: color, "stroke-width": 2 }));
+      g.append(svg("circle", { cx: x + 12, cy: 11, r: 3, fill: color }));
+      const label = `${name}: 3-D σ (µm)`;
+      g.append(svg("text", { x: x + 30, y: 15 }, label));
+      x += 40 + 7 * label.length;
+    });
+    g.append(svg("rect", { x, y: 5, width: 12, height: 12, fill: "#8c959f" }));
+    g.append(svg("text", { x: x + 18, y: 15 }, "time per pose (s)"));
+    return g;
+  }
+
   // Two panels over the last poses: each sensor's σ (norm of its x, y, z σ), the seconds.
   function plot() {
     const out = $("plot");
-    const W = 900, L = 70, R = 130, PAD = 14;
+    const W = 900, L = 70, R = 130, PAD = 14, TOP = 24;
     const parts = [];
     if (!poses.length) {
-      out.replaceChildren(svg("text", { x: L, y: 40 }, "no pose stored yet"));
+      out.replaceChildren(svg("text", { x: L, y: 60 }, "no pose stored yet"));
       return;
     }
     const n = poses.length;
@@ -214,7 +271,8 @@
     const names = sensorNames();
     const sig = poses.map((p) => names.map((s) => sigma(p, s)));
     const smax = niceMax(Math.max(0, ...sig.flat().filter((v) => v !== null)));
-    const ys = panel(10, 140, "σ", smax, "µm");
+    parts.push(legend(names));
+    const ys = panel(TOP + 10, TOP + 140, "σ", smax, "µm");
     names.forEach((name, k) => {
       const color = COLORS[k % COLORS.length];
       const pts = sig.map((v, i) => (v[k] === null ? null : `${x(i)},${ys(v[k])}`)).filter(Boolean);
@@ -222,28 +280,30 @@
       sig.forEach((v, i) => {
         if (v[k] !== null) parts.push(svg("circle", { cx: x(i), cy: ys(v[k]), r: 3, fill: color }));
       });
-      parts.push(svg("text", { x: W - R + 10, y: 24 + 16 * k, fill: color }, name));
     });
     const tmax = niceMax(Math.max(0, ...poses.map((p) => p.seconds)));
-    const yt = panel(170, 275, "time", tmax, "s");
+    const yt = panel(TOP + 170, TOP + 275, "time", tmax, "s");
     const bw = Math.max(2, Math.min(18, (0.7 * (W - L - R)) / n));
     poses.forEach((p, i) => {
       const y = yt(p.seconds);
-      parts.push(svg("rect", { x: x(i) - bw / 2, y, width: bw, height: 275 - y, fill: "#8c959f" }));
+      parts.push(svg("rect", { x: x(i) - bw / 2, y, width: bw, height: TOP + 275 - y, fill: "#8c959f" }));
     });
     const step = Math.max(1, Math.ceil(n / 15));
     poses.forEach((p, i) => {
       if (i % step === 0 || i === n - 1) {
-        parts.push(svg("text", { x: x(i), y: 292, "text-anchor": "middle" }, `${p.idx}`));
+        parts.push(svg("text", { x: x(i), y: TOP + 292, "text-anchor": "middle" }, `${p.idx}`));
       }
     });
-    parts.push(svg("text", { x: W - R + 24, y: 292 }, "pose"));
+    parts.push(svg("text", { x: W - R + 24, y: TOP + 292 }, "pose"));
     out.replaceChildren(...parts);
   }
 
+  // The result of the campaign shown (another campaign's is not its): its validation
+  // errors, or why it was refused; a paused, interrupted or aborted one has none.
   function renderEnd() {
-    if (!end) return;
-    $("end-box").hidden = false;
+    const ended = end && ["complete", "refused"].includes(end.status);
+    $("end-box").hidden = !ended || end.campaign_id !== shownId();
+    if ($("end-box").hidden) return;
     $("end-id").textContent = end.campaign_id;
     const v = end.validation_mm;
     const body = v
@@ -269,15 +329,19 @@
   }
 
   function onStatus(s) {
+    const before = shownId();
     snap = s;
+    const id = shownId();
     if (s.recent_poses) {
-      poses = s.recent_poses.slice(-MAX_POSES);
+      // The campaign shown and its last poses (a new watcher, a campaign that starts).
+      poses = s.recent_poses.filter((p) => p.campaign_id === id).slice(-MAX_POSES);
+      renderPoses();
+    } else if (id !== before || poses.some((p) => p.campaign_id !== id)) {
+      poses = []; // another campaign is shown: none of the last one's poses
       renderPoses();
     }
-    if (s.last_end && (!end || end.campaign_id !== s.last_end.campaign_id)) {
-      end = s.last_end;
-      renderEnd();
-    }
+    if (s.last_end) end = s.last_end;
+    renderEnd();
     if (live) renderState();
     renderCampaign();
     tick();
@@ -290,7 +354,8 @@
     source.addEventListener("status", (e) => onStatus(JSON.parse(e.data)));
     source.addEventListener("pose", (e) => {
       const p = JSON.parse(e.data);
-      if (poses.length && poses[poses.length - 1].campaign_id !== p.campaign_id) poses = [];
+      if (p.campaign_id !== shownId()) return; // only the campaign shown
+      poses = poses.filter((q) => q.idx !== p.idx); // once, if a snapshot had it already
       poses.push(p);
       poses = poses.slice(-MAX_POSES);
       renderPoses();
