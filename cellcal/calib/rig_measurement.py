@@ -2,13 +2,18 @@
 the mean of a series (a pose's dwell) with its uncertainty.
 
 A series is a still target filmed 20 times. The first frame is searched whole with the
-detector. In each next frame the markers a camera saw are followed: their edges are
-measured where the last pose projects them, without the detector, and the last pose
-starts the fit. Where a followed marker is not found, the detector searches a window
-around the expected markers (with a margin), and failing that the whole image; a camera
+detector (the target located at half resolution, then searched in its window at full
+resolution: :class:`~cellcal.calib.marker_corners.MarkerFinder`). In each next frame the
+markers a camera saw are followed: their edges are measured where the last pose projects
+them, without the detector, and the last pose starts the fit. Where a followed marker is
+not found, the detector searches a window around the expected markers (with a margin),
+once a series for each camera: a marker lost again after that is left out of that frame
+and followed in the next (one at the limit of what can be measured costs no detector
+run a frame). Where a camera loses every marker, the whole image is searched; a camera
 whose whole image showed no marker is not searched again while the target holds still;
-a fit from the last pose that leaves a large residual is started afresh. A target that moved
-is found again, not lost.
+a fit from the last pose that leaves a large residual is started afresh. A target that
+moved is found again, not lost. :meth:`TargetMeter.reset` forgets everything: a set
+measured after it gives the numbers it gives alone.
 
 The mean's covariance is given two ways: propagated (the frames' covariances averaged
 and divided by n, plus the detector's floor :data:`CORNER_FLOOR_PX`, which does not
@@ -32,7 +37,7 @@ from cellcal.calib.marker_corners import (
     Window,
     marker_corners_many,
 )
-from cellcal.calib.target_pose import TargetPose, measure_target
+from cellcal.calib.target_pose import TargetPose, measure_target, target_corners
 from cellcal.errors import InputError, MeasurementError
 
 #: Margin around the predicted markers of a search window, px.
@@ -71,17 +76,28 @@ class TargetMeter:
         self.rig = rig
         self.target = target
         self.min_cameras = min_cameras
-        self._finder = MarkerFinder(target.dictionary, frozenset(m.id for m in target.markers))
+        self._corners = target_corners(target)
+        every = np.concatenate(list(self._corners.values()))
+        extent = {
+            m.id: (
+                m.size,
+                float(np.linalg.norm(every - self._corners[m.id].mean(axis=0), axis=1).max()),
+            )
+            for m in target.markers
+        }
+        self._finder = MarkerFinder(target.dictionary, frozenset(extent), extent)
+        self._forget()
+
+    def _forget(self) -> None:
         self._last: TargetPose | None = None
         self._seen: dict[str, list[int]] = {}
         self._blind: set[str] = set()  # cameras whose last whole search found nothing
-        self._corners = {m.id: m.corners() for m in target.markers}
+        self._searched: set[str] = set()  # cameras searched in a window since then
 
     def reset(self) -> None:
-        """Forget the last pose: the next frame is searched whole (a new robot pose)."""
-        self._last = None
-        self._seen = {}
-        self._blind = set()
+        """Forget the last pose: the next frame is searched whole (a new robot pose), and
+        measured as if it were the first (the same images give the same numbers)."""
+        self._forget()
 
     def measure(self, images: Mapping[str, Image]) -> TargetPose:
         """The target in one set of images (camera name → image)."""
@@ -101,10 +117,10 @@ class TargetMeter:
                 # the target moved: fit again from each camera's own estimate, and look
                 # again everywhere next time
                 self._blind.clear()
+                self._searched.clear()
                 pose = measure_target(self.rig, self.target, views, min_cameras=self.min_cameras)
         except MeasurementError:
-            self._last = None
-            self._blind.clear()
+            self._forget()
             raise
         self._last = pose
         return pose
@@ -129,10 +145,11 @@ class TargetMeter:
     def _expected(self, cam_name: str) -> tuple[list[int], Array] | None:
         """The markers this camera saw in the last frame and where the last pose puts
         their corners now, (m, 4, 2) px; None without a last pose."""
-        if self._last is None or not self._seen.get(cam_name):
+        pose = self._last
+        if pose is None or not self._seen.get(cam_name):
             return None
         cam = self.rig.camera(cam_name)
-        T = self._last.T_rig_target
+        T = pose.T_rig_target
         ids = self._seen[cam_name]
         pts = np.concatenate([self._corners[i] for i in ids]) @ T[:3, :3].T + T[:3, 3]
         return ids, cam.project(pts).reshape(-1, 4, 2)
@@ -142,32 +159,41 @@ class TargetMeter:
         they are not all found, detect in a window around them, and where nothing is
         found there either, in the whole image. A camera whose whole image showed no
         marker is not searched again while the target holds still (a target hidden
-        from one camera costs that camera one search per series)."""
+        from one camera costs that camera one search per series), nor is one that
+        loses a marker again once a window search has been made (a marker at the limit
+        of what can be measured: left out of that frame, followed again in the next)."""
         expected = {n: e for n in images if (e := self._expected(n)) is not None}
         names = list(expected)
         followed = self._finder.follow_many(
             [images[n] for n in names], [expected[n] for n in names]
         )
         found = dict(zip(names, followed, strict=True))
+        others = [n for n in images if n not in expected]
+        whole = [n for n in others if self._last is None or n not in self._blind]
+        searched = self._finder.find_many([images[n] for n in whole], [None] * len(whole))
+        for name in others:
+            found[name] = searched[whole.index(name)] if name in whole else []
+            if not found[name]:
+                self._blind.add(name)
+            self._seen[name] = [m.id for m in found[name]]
         for name, image in images.items():
             if name not in expected:
-                if self._last is None or name not in self._blind:
-                    found[name] = self._finder.find(image)
-                    if not found[name]:
-                        self._blind.add(name)
-                else:
-                    found[name] = []
                 continue
             ids, corners = expected[name]
-            if len(found[name]) < len(ids):
-                near = self._finder.find(image, _around(corners))
-                if not near and not found[name]:
-                    near = self._finder.find(image)  # the target moved out of its window
-                    self._blind.clear()
-                if len(near) > len(found[name]):
-                    found[name] = near
-        for name, markers in found.items():
-            self._seen[name] = [m.id for m in markers]
+            if len(found[name]) == len(ids):
+                continue
+            if found[name] and name in self._searched:
+                continue  # lost again: left out of this frame, still followed
+            self._searched.add(name)
+            near = self._finder.find(image, _around(corners))
+            if not near and not found[name]:
+                near = self._finder.find(image)  # the target moved out of its window
+                self._blind.clear()
+                if not near:
+                    self._blind.add(name)
+            if len(near) > len(found[name]):
+                found[name] = near
+            self._seen[name] = [m.id for m in found[name]]
         return found
 
 

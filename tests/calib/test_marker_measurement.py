@@ -191,13 +191,13 @@ def test_a_series_is_followed_and_averaged() -> None:
     sets = [renderer.frames(clean, rng) for _ in range(20)]
     meter = TargetMeter(rig, target)
     calls = {"find": 0}
-    original = meter._finder.find
+    original = meter._finder._detect
 
     def counting(*args: object, **kwargs: object) -> list:
         calls["find"] += 1
         return original(*args, **kwargs)  # type: ignore[arg-type]
 
-    meter._finder.find = counting  # type: ignore[method-assign]
+    meter._finder._detect = counting  # type: ignore[method-assign]
     mean, poses = meter.series(sets)
     assert mean.n == 20 and not mean.failures
     assert np.linalg.norm(mean.xyz_mm - T[:3, 3]) < 0.03
@@ -244,14 +244,14 @@ def test_a_camera_that_sees_no_marker_is_searched_once_per_still_target() -> Non
 
     meter = TargetMeter(rig, target)
     searched: list[int] = []
-    original = meter._finder.find
+    original = meter._finder._detect
 
     def counting(image: np.ndarray, window: object = None) -> list:
         if image is blank:
             searched.append(1)
         return original(image, window)  # type: ignore[arg-type]
 
-    meter._finder.find = counting  # type: ignore[method-assign]
+    meter._finder._detect = counting  # type: ignore[method-assign]
     mean, poses = meter.series([frames() for _ in range(6)])
     assert mean.n == 6 and all(hidden not in p.cameras for p in poses)
     assert len(searched) == 1
