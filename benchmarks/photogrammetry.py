@@ -34,7 +34,8 @@ Printed per scene: the reference point's 3-D error of the series mean (RMS over 
 for each pipeline and the accuracy ratios; cellcal's mean squared Mahalanobis distance
 per coordinate; sets per second for each and the ratios (each series timed ``--repeat``
 times, the pipelines in turn, the least kept: the machine is shared), and cellcal's rate
-measuring each set on its own (reset before each, as ``rig measure --sets`` does).
+measuring each set on its own as ``rig measure --sets`` does (``measure_next``: no mean,
+each set's own numbers, followed from the set before while the target is still there).
 
 Then, on the bundled scene's series, the same measured with a calibrated rig instead of
 the perfect one, as a cell would: a 7×5 ChArUco board (60 mm squares) rendered in 20
@@ -74,7 +75,7 @@ from cellcal.mocks.rig_scene import board_poses, dome_target, four_camera_rig, v
 from cellcal.mocks.texture_scenes import oblique_rig, plate_target, target_poses
 
 BOARD = Board("DICT_4X4_50", (7, 5), 60.0, 45.0)
-#: cellcal measuring each set on its own (reset before each), as ``rig measure --sets`` does
+#: cellcal measuring each set on its own, as ``rig measure --sets`` does (measure_next)
 ALONE = "cellcal set by set"
 Sets = list[dict[str, Image]]
 
@@ -325,9 +326,9 @@ def compare(
                 mean, _ = meter.series(sets)
                 best["cellcal"] = min(best["cellcal"], time.perf_counter() - t0)
                 t0 = time.perf_counter()
+                meter.reset()
                 for s in sets:
-                    meter.reset()
-                    meter.measure(s)
+                    meter.measure_next(s)
                 best[ALONE] = min(best[ALONE], time.perf_counter() - t0)
                 for name, peer in (("OpenCV whole-frame", whole), ("OpenCV windowed", windowed)):
                     t0 = time.perf_counter()

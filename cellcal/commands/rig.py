@@ -150,7 +150,6 @@ def measure(
     skipped: list[str] = []
     unreadable_all: list[tuple[str, Unreadable]] = []
     for folder in folders:
-        meter.reset()  # sets may be of different poses: each is measured on its own
         images, unreadable = read_set(folder, sizes)
         for u in unreadable:
             click.echo(
@@ -166,7 +165,7 @@ def measure(
                     if unreadable
                     else f"no image of the rig's cameras ({', '.join(sizes)}; <camera>.png)"
                 )
-            pose = meter.measure(images)
+            pose = meter.measure_next(images)  # followed from the last set if still there
         except MeasurementError as exc:
             skipped.append(folder.name)
             line: dict[str, Any] = {"set": folder.name, "error": str(exc), "unreadable": bad}

@@ -262,3 +262,38 @@ def test_a_camera_that_sees_no_marker_is_searched_once_per_still_target() -> Non
     meter.measure({**renderer.frames(renderer.clean(moved), rng), hidden: blank})
     meter.measure({**renderer.frames(renderer.clean(moved), rng), hidden: blank})
     assert len(searched) == 3  # the target moved: searched again (then not)
+
+
+def test_a_batch_of_sets_follows_the_target_while_it_stays() -> None:
+    """`rig measure --sets` (``measure_next``): sets of one pose are followed from the
+    set before (the detector runs on the first set only) and each keeps its own numbers,
+    within a frame's noise of a fresh search; a set of another pose is measured afresh,
+    to the same numbers as a meter that never saw the sets before."""
+    from cellcal.calib.rig_measurement import TargetMeter
+
+    rig, target, renderer, centre = _cube_scene()
+    rng = np.random.default_rng(23)
+    T1 = _facing_pose(rng, centre)
+    T2 = T1.copy()
+    T2[:3, 3] += [60.0, -30.0, 20.0]
+    first = [renderer.frames(renderer.clean(T1), rng) for _ in range(4)]
+    second = renderer.frames(renderer.clean(T2), rng)
+    meter = TargetMeter(rig, target)
+    calls = {"find": 0}
+    original = meter._finder._detect
+
+    def counting(*args: object, **kwargs: object) -> list:
+        calls["find"] += 1
+        return original(*args, **kwargs)  # type: ignore[arg-type]
+
+    meter._finder._detect = counting  # type: ignore[method-assign]
+    followed = [meter.measure_next(s) for s in first]
+    assert calls["find"] == len(rig.cameras)  # the first set only
+    for s, pose in zip(first, followed, strict=True):
+        fresh = TargetMeter(rig, target).measure(s)
+        assert np.linalg.norm(pose.xyz_mm - fresh.xyz_mm) < 3 * np.sqrt(np.trace(fresh.cov_mm2))
+        assert np.linalg.norm(pose.xyz_mm - T1[:3, 3]) < 0.1
+    moved = meter.measure_next(second)
+    alone = TargetMeter(rig, target).measure(second)
+    np.testing.assert_array_equal(moved.xyz_mm, alone.xyz_mm)
+    assert np.linalg.norm(moved.xyz_mm - T2[:3, 3]) < 0.1
