@@ -11,9 +11,13 @@ origin is rebuilt from what is written and must agree to 1e-12.
 In: Pinocchio parses the URDF; the serial chain of revolute joints from the root to the
 end frame (``tool0``, else ``flange``, else the last joint's link) becomes a modified-DH
 table by the common normals of consecutive joint axes at the zero readings, with
-Hayati's β where consecutive axes are parallel; the end frame's origin becomes the
-model's ``[tool]`` offset. The result is checked against Pinocchio's own kinematics of
-the file at random readings, and refused when they differ.
+Hayati's β where consecutive axes are parallel. The end frame is the model's flange
+frame, orientation included (the last row's θ, and scale −1 where its z is against the
+last axis), so that a target offset read back names the point it named; an end frame no
+DH table can end on (tilted off the last axis, or its origin off it) is said in one
+warning line, the model then ending on the nearest frame that one can, with the end
+frame's origin as the model's ``[tool]`` offset. The result is checked against
+Pinocchio's own kinematics of the file at random readings, and refused when they differ.
 """
 
 from __future__ import annotations
@@ -30,9 +34,10 @@ from typing import Any
 
 import numpy as np
 
-from cellcal.calib.geometry import Array, invert
+from cellcal.calib.geometry import Array, invert, so3_log
 from cellcal.calib.kinematics import target_kinematics
 from cellcal.calib.robot_model import PARALLEL_AXES_DEG, Joint, RobotModel
+from cellcal.config import Warn, warn_on_stderr
 from cellcal.errors import FileFormatError, InputError
 from cellcal.textfiles import read_text
 
@@ -157,6 +162,11 @@ def to_urdf(model: RobotModel, tool_mm: Array, T_sensor_base: Array | None = Non
 ON_AXIS_MM = 1e-6
 #: The imported model must reproduce the URDF's own positions this closely (mm).
 AGREE_MM = 1e-6
+#: ... and the end frame's axes this closely (largest difference of a matrix element).
+AGREE_ROTATION = 1e-9
+#: An end frame turned off the flange frame a DH model ends on by no more than this
+#: (rad) is that flange frame (a file's rounded π/2 leaves 5e-12).
+FLANGE_RAD = 1e-9
 END_FRAMES = ("tool0", "flange")
 
 
@@ -214,16 +224,44 @@ def _next_frame(
     return foot_i, _unit(gap)
 
 
+def _swing(z_from: Array, z_to: Array, v: Array) -> Array:
+    """``v`` turned by the least rotation that takes unit ``z_from`` to unit ``z_to``
+    (about their common normal; at most 90° here)."""
+    c = np.cross(z_from, z_to)
+    s, cos = float(np.linalg.norm(c)), float(np.dot(z_from, z_to))
+    if s == 0.0:
+        return v
+    k = c / s
+    out: Array = v * cos + np.cross(k, v) * s + k * float(np.dot(k, v)) * (1.0 - cos)
+    return out
+
+
 def mdh_from_axes(
-    points: Array, axes: Array, end: Array, limits: list[tuple[float, float]], name: str
+    points: Array,
+    axes: Array,
+    end: Array,
+    limits: list[tuple[float, float]],
+    name: str,
+    end_axes: Array | None = None,
 ) -> RobotModel:
     """A modified-DH model from joint axes at the zero readings (points on them and unit
     directions, N×3, base frame, mm) and the end frame's origin (mm): rows by common
     normals (Hayati's β between axes within 1° of parallel), the end frame's origin as
-    the ``[tool]`` offset."""
+    the ``[tool]`` offset.
+
+    ``end_axes`` (3×3, columns x y z, base frame): the end frame's orientation at the
+    zero readings. The last frame (the model's flange frame) is then that frame turned
+    the least that puts its z on the last joint's axis, its origin the end frame's
+    origin's foot on that axis: the end frame itself when its z is along the axis and
+    its origin on it. A z against the axis makes the last joint's scale −1 (its frame's
+    z is the file's axis reversed; the joint still turns by its reading about the
+    file's axis). Without ``end_axes``, the last frame's x is that of the row's twist."""
     n = len(axes)
     z = [_unit(np.asarray(v, dtype=np.float64)) for v in axes]
     p = [np.asarray(v, dtype=np.float64) for v in points]
+    last_scale = 1.0
+    if end_axes is not None and float(np.dot(end_axes[:, 2], z[-1])) < 0.0:
+        z[-1], last_scale = -z[-1], -1.0
     o, R = np.zeros(3), np.eye(3)
     joints = []
     for i in range(n):
@@ -243,6 +281,9 @@ def mdh_from_axes(
             o_i, x_i = _next_frame(foot, z[i], x_twisted, p[i + 1], z[i + 1])
         else:
             o_i, x_i = foot + np.dot(end - foot, z[i]) * z[i], x_twisted
+            if end_axes is not None:
+                x_end = _swing(_unit(end_axes[:, 2]), z[i], end_axes[:, 0])
+                x_i = _unit(x_end - np.dot(x_end, z[i]) * z[i])
         lo, hi = limits[i]
         joints.append(
             Joint(
@@ -253,6 +294,7 @@ def mdh_from_axes(
                 beta=beta,
                 q_min=lo,
                 q_max=hi,
+                scale=last_scale if i == n - 1 else 1.0,
             )
         )
         o, R = o_i, _frame(z[i], x_i)
@@ -293,7 +335,7 @@ def _read(f: Any) -> str:
     return bytes(f.read()).decode("utf-8", "replace")
 
 
-def model_from_urdf(path: str | Path) -> RobotModel:
+def model_from_urdf(path: str | Path, *, warn: Warn | None = warn_on_stderr) -> RobotModel:
     """A robot model from a URDF file (see the module's notes); refused, one line, when
     the file is not a URDF, the chain is not of revolute joints, or the result does not
     reproduce the file's own kinematics."""
@@ -320,6 +362,7 @@ def model_from_urdf(path: str | Path) -> RobotModel:
     end_name = next((f for f in END_FRAMES if f in names), None)
     fid = pm.getFrameId(end_name) if end_name is not None else None
     last = pm.frames[fid].parentJoint if fid is not None else pm.njoints - 1
+    end_label = repr(end_name if end_name is not None else _child_link(root, pm.names[last]))
     chain: list[int] = []
     j = int(last)
     while j > 0:
@@ -337,8 +380,9 @@ def model_from_urdf(path: str | Path) -> RobotModel:
             )
     d = pm.createData()
 
-    def positions(readings: Array) -> Array:
-        out = []
+    def placements(readings: Array) -> tuple[Array, Array]:
+        """The end frame's origins (N×3, mm) and axes (N×3×3) by Pinocchio."""
+        out, turn = [], []
         for row in readings:
             q = pin.neutral(pm)
             for joint, angle in zip(chain, row, strict=True):
@@ -346,7 +390,8 @@ def model_from_urdf(path: str | Path) -> RobotModel:
             pin.framesForwardKinematics(pm, d, q)
             place = d.oMf[fid] if fid is not None else d.oMi[last]
             out.append(np.array(place.translation) * 1000.0)
-        return np.array(out)
+            turn.append(np.array(place.rotation))
+        return np.array(out), np.array(turn)
 
     q0 = pin.neutral(pm)
     for joint in chain:
@@ -368,18 +413,68 @@ def model_from_urdf(path: str | Path) -> RobotModel:
             )
         else:
             limits.append((-math.inf, math.inf))
-    end = positions(np.zeros((1, len(chain))))[0]
-    model = mdh_from_axes(np.array(points), np.array(axes), end, limits, pm.name or p.stem)
+    ends, end_axes = placements(np.zeros((1, len(chain))))
+    model = mdh_from_axes(
+        np.array(points), np.array(axes), ends[0], limits, pm.name or p.stem, end_axes[0]
+    )
+    # The end frame in the model's flange frame: a turn (identity but for a frame a DH
+    # table cannot end on) and an origin (model.tool: zero but for one off the last axis).
+    k0 = target_kinematics(model, np.zeros((1, len(chain))), model.tool, jacobian=False)
+    turn = k0.R_flange[0].T @ end_axes[0]
     # The model must be the file's robot: compare at random readings within the limits.
     rng = np.random.default_rng(0)
     lo = np.array([max(a, -math.pi) for a, _ in limits])
     hi = np.array([min(b, math.pi) for _, b in limits])
     q = rng.uniform(lo, hi, (50, len(chain)))
-    ours = target_kinematics(model, q, model.tool, jacobian=False).p
-    worst = float(np.abs(ours - positions(q)).max())
+    k = target_kinematics(model, q, model.tool, jacobian=False)
+    theirs, their_axes = placements(q)
+    worst = float(np.abs(k.p - theirs).max())
     if worst > AGREE_MM:
         raise InputError(
             f"{p}: the DH model derived from it is {worst:.3g} mm off the file's own "
             "kinematics; its chain has no DH form cellcal can use"
         )
+    worst = float(np.abs(k.R_flange @ turn - their_axes).max())
+    if worst > AGREE_ROTATION:
+        raise InputError(
+            f"{p}: the DH model derived from it turns the end frame {worst:.3g} rad off "
+            "the file's own kinematics; its chain has no DH form cellcal can use"
+        )
+    line = _flange_warning(p, end_label, model, turn)
+    if line is not None and warn is not None:
+        warn(line)
     return model
+
+
+def _child_link(root: ET.Element, joint: str) -> str:
+    """The child link of the joint named ``joint`` (its name if the file has none)."""
+    for j in root.iter("joint"):
+        child = j.find("child")
+        if j.get("name") == joint and child is not None and child.get("link"):
+            return str(child.get("link"))
+    return joint
+
+
+def _flange_warning(p: Path, end: str, model: RobotModel, turn: Array) -> str | None:
+    """One line when the file's end frame is not the model's flange frame: turned off it
+    (``turn``: the end frame's axes in the flange frame) or its origin off the last
+    joint's axis (``model.tool``); None when it is the flange frame."""
+    w = so3_log(turn)
+    angle = float(np.linalg.norm(w))
+    off = float(np.linalg.norm(model.tool))
+    if angle <= FLANGE_RAD and off <= ON_AXIS_MM:
+        return None
+    n = model.dof
+    what = []
+    if angle > FLANGE_RAD:
+        axis = ", ".join(f"{round(float(v), 4) + 0.0:g}" for v in w / angle)
+        what.append(f"is turned {math.degrees(angle):.6g}° about ({axis})")
+    if off > ON_AXIS_MM:
+        what.append(f"has its origin {off:.6g} mm off joint {n}'s axis")
+    t = ", ".join(f"{round(float(v), 6) + 0.0:g}" for v in model.tool)
+    return (
+        f"{p}: its end frame {end} {' and '.join(what)}, relative to the flange frame "
+        f"a DH model ends on (z along joint {n}'s axis, origin on it); cellcal's model "
+        f"cannot carry that, so target_offset_mm and [tool] are in that flange frame, not "
+        f"in {end}: a point at t in {end} is at ({t}) mm + R·t there, R that turn"
+    )
