@@ -40,10 +40,14 @@ import cv2
 import numpy as np
 from photogrammetry import OpenCVPipeline, opencv_rig  # the same directory
 
-from cellcal.calib.board_corners import CornerDetection, CornerMeter, board_points, detect_corners
-from cellcal.calib.camera_rig import Board, Rig, Target
+from cellcal.calib.board_corners import CornerMeter, detect_corners
+from cellcal.calib.camera_rig import Rig, Target
 from cellcal.calib.geometry import Array
-from cellcal.calib.rig_calibration import RigCalibrationOptions, calibrate_rig, triangulate
+from cellcal.calib.rig_calibration import (
+    RigCalibrationOptions,
+    board_length_errors,
+    calibrate_rig,
+)
 from cellcal.calib.rig_measurement import TargetMeter
 from cellcal.calib.rigid_solvers import svd_rotation
 from cellcal.mocks.texture_render import (
@@ -62,25 +66,6 @@ from cellcal.mocks.texture_scenes import (
 )
 
 Images = dict[str, Array]
-
-
-def holdout_lengths(board: Board, rig: Rig, views: list[dict[str, CornerDetection]]) -> Array:
-    """Measured minus known distance between every two corners of each view, triangulated
-    from every camera that saw both (mm)."""
-    pts = board_points(board)
-    out = []
-    for det in views:
-        seen: dict[int, list[tuple[object, Array]]] = {}
-        for name, d in det.items():
-            for i, px in zip(d.ids, d.pixels, strict=True):
-                seen.setdefault(int(i), []).append((rig.camera(name), px))
-        ids = sorted(i for i, s in seen.items() if len(s) >= 2)
-        X = np.array([triangulate(*zip(*seen[i], strict=True)) for i in ids]).reshape(-1, 3)
-        iu, ju = np.triu_indices(len(ids), k=1)
-        measured = np.linalg.norm(X[iu] - X[ju], axis=1)
-        known = np.linalg.norm(pts[ids][iu] - pts[ids][ju], axis=1)
-        out.append(measured - known)
-    return np.concatenate(out)
 
 
 def aligned_errors(measured: list[Array], truth: list[Array]) -> Array:
@@ -177,9 +162,9 @@ def main() -> None:
         f"suspect cameras: {list(cal.suspect_cameras) or 'none'}"
     )
     print(f"  OpenCV (calibrateCamera + stereoCalibrate): {t2 - t1:.1f} s")
-    ours_len = holdout_lengths(board, cal.rig, ours_det)
-    peer_len = holdout_lengths(board, peer, peer_det)
-    floor_len = holdout_lengths(board, truth_rig, ours_det)
+    ours_len = board_length_errors(board, cal.rig, ours_det)
+    peer_len = board_length_errors(board, peer, peer_det)
+    floor_len = board_length_errors(board, truth_rig, ours_det)
     print(f"  held-out board lengths ({len(ours_len)}), each rig from its own corners:")
     print(f"    cellcal:           {stat(ours_len)} (goal <= 0.02 mm RMS)")
     print(f"    OpenCV:            {stat(peer_len)}")

@@ -68,6 +68,7 @@ __all__ = [
     "RigCalibrationOptions",
     "ScaleBar",
     "ScaleCheck",
+    "board_length_errors",
     "calibrate_rig",
     "detect_corners",
     "grey8",
@@ -356,19 +357,7 @@ def _holdout(
     )
     obs = _observations(det, held, names, pts)
     res = rig_bundle.adjust(state, obs, free, fix_cameras=True, outlier_sigma=opt.outlier_sigma)
-    errors = []
-    for v in held:
-        seen: dict[int, list[tuple[Camera, Array]]] = {}
-        for n, d in det[v].items():
-            for i, px in zip(d.ids, d.pixels, strict=True):
-                seen.setdefault(int(i), []).append((rig.camera(n), px))
-        ids = sorted(i for i, s in seen.items() if len(s) >= 2)
-        X = np.array([triangulate(*zip(*seen[i], strict=True)) for i in ids]).reshape(-1, 3)
-        iu, ju = np.triu_indices(len(ids), k=1)
-        measured = np.linalg.norm(X[iu] - X[ju], axis=1)
-        known = np.linalg.norm(pts[ids][iu] - pts[ids][ju], axis=1)
-        errors.append(measured - known)
-    err = np.concatenate(errors)
+    err = board_length_errors(board, rig, [det[v] for v in held])
     return HoldoutCheck(
         views=tuple(held_names),
         corners=int(res.inliers.sum()),
@@ -377,3 +366,26 @@ def _holdout(
         length_rms_mm=float(np.sqrt(np.mean(err**2))) if len(err) else float("nan"),
         length_max_mm=float(np.abs(err).max()) if len(err) else float("nan"),
     )
+
+
+def board_length_errors(
+    board: Board, rig: Rig, views: Sequence[Mapping[str, CornerDetection]]
+) -> Array:
+    """Measured minus known distance (mm) between every two of a view's board corners,
+    each triangulated from every camera of ``rig`` that saw it (VDI/VDE 2634-1 style),
+    for each view's detections (camera name → corners)."""
+    pts = board_points(board)
+    errors = [np.zeros(0)]
+    for det in views:
+        seen: dict[int, list[tuple[Camera, Array]]] = {}
+        for n, d in det.items():
+            for i, px in zip(d.ids, d.pixels, strict=True):
+                seen.setdefault(int(i), []).append((rig.camera(n), px))
+        ids = sorted(i for i, s in seen.items() if len(s) >= 2)
+        X = np.array([triangulate(*zip(*seen[i], strict=True)) for i in ids]).reshape(-1, 3)
+        iu, ju = np.triu_indices(len(ids), k=1)
+        measured = np.linalg.norm(X[iu] - X[ju], axis=1)
+        known = np.linalg.norm(pts[ids][iu] - pts[ids][ju], axis=1)
+        errors.append(measured - known)
+    out: Array = np.concatenate(errors)
+    return out
