@@ -78,6 +78,7 @@ bench: $(STAMP)
 	$(BIN)/python benchmarks/photogrammetry.py
 	$(BIN)/python benchmarks/rig_calibration.py
 	$(BIN)/python benchmarks/service.py
+	$(BIN)/python benchmarks/startup.py
 
 clean:
 	rm -rf $(VENV) .pytest_cache .mypy_cache .ruff_cache .hypothesis

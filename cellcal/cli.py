@@ -9,36 +9,135 @@ and keeps its traceback.
 
 from __future__ import annotations
 
+import importlib
 import logging
 import sys
 
 import click
 
 from cellcal import __version__
-from cellcal.commands.calibrate import calibrate
-from cellcal.commands.campaign import campaign
-from cellcal.commands.compensate import compensate_command
-from cellcal.commands.daemon import daemon
-from cellcal.commands.export import export
-from cellcal.commands.iso9283 import iso9283
-from cellcal.commands.mock import mock
-from cellcal.commands.models import models
-from cellcal.commands.plan import plan
-from cellcal.commands.predict import predict
-from cellcal.commands.register import register
-from cellcal.commands.report import report
-from cellcal.commands.rig import rig
-from cellcal.commands.rig_capture import mock_cameras, rig_capture
-from cellcal.commands.run import run
-from cellcal.commands.service import service
-from cellcal.commands.tracker import tracker
 from cellcal.errors import AcceptanceError, UserError
 
 EXIT_USER_ERROR = 2
 EXIT_REFUSED = 3
 
 
-@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+#: Every subcommand: where it lives, and its one-line help (the first sentence of its
+#: docstring, shown by ``cellcal --help`` without importing it; a test keeps the two
+#: equal). A subcommand's module is imported only when it runs, so that ``--version``
+#: and ``--help`` do not load numpy, OpenCV, Pinocchio or matplotlib.
+COMMANDS: dict[str, tuple[str, str]] = {
+    "calibrate": (
+        "cellcal.commands.calibrate:calibrate",
+        "Identify the kinematic errors from measured target positions.",
+    ),
+    "campaign": (
+        "cellcal.commands.campaign:campaign",
+        "Start, control and watch campaigns in the cell service; list a database's.",
+    ),
+    "compensate": (
+        "cellcal.commands.compensate:compensate_command",
+        "Joint targets that bring the real robot's target to intended points.",
+    ),
+    "daemon": (
+        "cellcal.commands.daemon:daemon",
+        "The cell service: holds the devices, runs queued campaigns, answers the "
+        "``cellcal campaign`` commands on its control socket.",
+    ),
+    "export": (
+        "cellcal.commands.export:export",
+        "Write a robot model in another program's format.",
+    ),
+    "iso9283": (
+        "cellcal.commands.iso9283:iso9283",
+        "ISO 9283 pose accuracy (AP) and repeatability (RP) at the standard's five points of "
+        "the campaign's cube: with the nominal model's joints, then the calibrated model's.",
+    ),
+    "mock": (
+        "cellcal.commands.mock:mock",
+        "Serve the simulated cell's devices over their real wire protocols.",
+    ),
+    "models": (
+        "cellcal.commands.models:models",
+        "List the built-in robot models (use the name with --model).",
+    ),
+    "plan": (
+        "cellcal.commands.plan:plan",
+        "Every pose of the campaign's plan, reachable or not and why, the condition number "
+        "of the calibration poses and the parameters they identify, and the cell time it "
+        "takes, and the error a calibration from these poses is expected to leave in the "
+        "cube and the validation regions (in units of the sensor's noise); nothing connects "
+        "or moves.",
+    ),
+    "predict": (
+        "cellcal.commands.predict:predict",
+        "Positions of the target (mm) for joint readings.",
+    ),
+    "register": (
+        "cellcal.commands.register:register",
+        "Fit T_dst_src from common points matched by name.",
+    ),
+    "report": (
+        "cellcal.commands.report:report",
+        "Write a campaign's report folder: index.html (the report: self-contained, figures "
+        "inline), summary.json, model.toml, poses.csv, measurements-<sensor>.csv (the "
+        "calibrate format), validation-<sensor>.csv.",
+    ),
+    "rig": (
+        "cellcal.commands.rig:rig",
+        "The photogrammetry rig: calibrate it from ChArUco views, measure the target.",
+    ),
+    "run": (
+        "cellcal.commands.run:run",
+        "Run a whole campaign: plan, acquire, store, register, calibrate, validate, report.",
+    ),
+    "service": ("cellcal.commands.service:service", "The systemd service of this installation."),
+    "tracker": (
+        "cellcal.commands.tracker:tracker",
+        "Connect to a tracker, identify it, initialise it and measure its target.",
+    ),
+}
+#: Subcommands that live in another module than their group's: group → (name, where).
+EXTRA = {
+    "rig": ("capture", "cellcal.commands.rig_capture:rig_capture"),
+    "mock": ("cameras", "cellcal.commands.rig_capture:mock_cameras"),
+}
+
+
+def _load(where: str) -> click.Command:
+    module, _, attribute = where.partition(":")
+    command = getattr(importlib.import_module(module), attribute)
+    assert isinstance(command, click.Command)
+    return command
+
+
+class LazyGroup(click.Group):
+    """A group whose subcommands are imported when they run (:data:`COMMANDS`)."""
+
+    def list_commands(self, ctx: click.Context) -> list[str]:
+        return sorted(COMMANDS)
+
+    def get_command(self, ctx: click.Context, cmd_name: str) -> click.Command | None:
+        if cmd_name not in COMMANDS:
+            return None
+        command = _load(COMMANDS[cmd_name][0])
+        if cmd_name in EXTRA and isinstance(command, click.Group):
+            name, where = EXTRA[cmd_name]
+            if name not in command.commands:
+                command.add_command(_load(where), name)
+        return command
+
+    def format_commands(self, ctx: click.Context, formatter: click.HelpFormatter) -> None:
+        limit = formatter.width - 6 - max(len(name) for name in COMMANDS)
+        rows = [
+            (name, click.Command(name, help=COMMANDS[name][1]).get_short_help_str(limit))
+            for name in self.list_commands(ctx)
+        ]
+        with formatter.section("Commands"):
+            formatter.write_dl(rows)
+
+
+@click.group(cls=LazyGroup, context_settings={"help_option_names": ["-h", "--help"]})
 @click.version_option(__version__, "--version", prog_name="cellcal")
 @click.option(
     "-v", "--verbose", count=True, help="Log device retries (-v) and events (-vv) on stderr."
@@ -52,29 +151,6 @@ def cli(verbose: int) -> None:
     """
     level = {0: logging.ERROR, 1: logging.WARNING}.get(verbose, logging.INFO)
     logging.basicConfig(level=level, format="cellcal: %(name)s: %(message)s", force=True)
-
-
-for command in (
-    run,
-    register,
-    calibrate,
-    predict,
-    models,
-    tracker,
-    mock,
-    report,
-    campaign,
-    rig,
-    daemon,
-    service,
-    compensate_command,
-    iso9283,
-    export,
-    plan,
-):
-    cli.add_command(command)
-rig.add_command(rig_capture)
-mock.add_command(mock_cameras)
 
 
 def main(argv: list[str] | None = None) -> None:

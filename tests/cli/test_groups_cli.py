@@ -152,3 +152,41 @@ def test_a_reversed_and_coupled_model_file(capsys, tmp_path):
     joints.write_text("q1,q2,q3,q4,q5,q6\n10,20,10,40,50,60\n")  # the angles themselves
     code, plain, err = run(capsys, "predict", "--model", "kuka-kr5-arc", "--joints", joints)
     assert coupled.splitlines()[1].split(",")[6:] == plain.splitlines()[1].split(",")[6:]
+
+
+def test_the_command_list_is_lazy_and_its_help_lines_are_the_commands_own() -> None:
+    """`cellcal --help` lists every subcommand from cellcal.cli's table without importing
+    it: each line equals the command's own first sentence, however narrow the terminal;
+    and `--version` and `--help` load none of numpy, OpenCV, scipy, matplotlib or
+    Pinocchio (measured in a fresh interpreter)."""
+    import subprocess
+    import sys
+
+    import click
+
+    from cellcal.cli import COMMANDS, LazyGroup, cli
+
+    ctx = click.Context(cli)
+    group = cli
+    assert isinstance(group, LazyGroup)
+    for name, (_, line) in COMMANDS.items():
+        real = group.get_command(ctx, name)
+        assert real is not None
+        for limit in (30, 45, 80, 400):
+            assert click.Command(name, help=line).get_short_help_str(limit) == (
+                real.get_short_help_str(limit)
+            ), name
+    heavy = ("numpy", "cv2", "scipy", "matplotlib", "pinocchio", "aiohttp")
+    probe = (
+        "import sys\nfrom cellcal.cli import main\n"
+        "try:\n    main(sys.argv[1:])\nexcept SystemExit:\n    pass\n"
+        f"print(sorted(m for m in {heavy!r} if m in sys.modules))"
+    )
+    for args in (["--version"], ["--help"], ["rig", "--help"]):
+        out = subprocess.run(
+            [sys.executable, "-c", probe, *args], capture_output=True, text=True, timeout=60
+        ).stdout.splitlines()[-1]
+        if args[0] == "rig":
+            assert "cv2" in out  # the group itself is loaded when it runs
+        else:
+            assert out == "[]", (args, out)
