@@ -38,12 +38,18 @@ $(TOOLS): $(STAMP)
 
 T4 := --src cellcal/data/paper_table4_station1.csv --dst cellcal/data/paper_table4_station2.csv
 
+# The demo writes outside the checkout: into the user's data directory (make demo DEMO=DIR
+# elsewhere), as cellcal's own defaults do.
+DEMO ?= $(or $(XDG_DATA_HOME),$(HOME)/.local/share)/cellcal/demo
+
 demo: $(STAMP) $(ARAVIS)
 	@echo "== cellcal demo: a whole campaign on the bundled simulated cell (config/mock-cell.toml):"
 	@echo "   KR 5 arc with seeded kinematic errors, laser tracker + photogrammetry rig, the paper's"
 	@echo "   80-pose cube with 7 s dwell and 20 samples per pose, on a simulated clock."
-	$(BIN)/cellcal run --mock --db demo.db --report demo-report
-	@echo "== the report: open demo-report/index.html in a browser (offline, self-contained)"
+	@echo "   It writes into $(DEMO)/ (DEMO=DIR: elsewhere)."
+	@mkdir -p "$(DEMO)"
+	$(BIN)/cellcal run --mock --db "$(DEMO)/demo.db" --report "$(DEMO)/report"
+	@echo "== the report: open $(DEMO)/report/index.html in a browser (offline, self-contained)"
 
 demo-registration: $(STAMP)
 	@echo "== the paper's Table 4 (one laser tracker at two stations, 5 common points)"

@@ -11,7 +11,9 @@ model declares and no other, so ``sensor.0.move_timeout_s`` is refused for a tra
 
 from __future__ import annotations
 
+import contextlib
 import json
+import os
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -121,8 +123,30 @@ class CampaignConfig(Strict):
         return self
 
 
+def data_dir() -> Path:
+    """Where cellcal writes what neither the command line nor the configuration places
+    (the campaign database, the service's reports beside it): the service's systemd
+    ``StateDirectory`` (``$STATE_DIRECTORY``, /var/lib/cellcal) when it runs in a unit
+    that sets one, else ``$XDG_DATA_HOME/cellcal`` (an absolute ``XDG_DATA_HOME``), else
+    ``~/.local/share/cellcal``. Never beside the configuration or the checkout."""
+    state = os.environ.get("STATE_DIRECTORY", "").split(":")[0]
+    if state and Path(state).is_absolute():
+        return Path(state)
+    xdg = os.environ.get("XDG_DATA_HOME", "")
+    if xdg and Path(xdg).is_absolute():
+        return Path(xdg) / "cellcal"
+    return Path.home() / ".local" / "share" / "cellcal"
+
+
+def default_database() -> str:
+    """The database of a configuration without ``storage.database``: ``cellcal.db`` in
+    :func:`data_dir`."""
+    return str(data_dir() / "cellcal.db")
+
+
 class StorageConfig(Strict):
-    database: str = "cellcal.db"
+    #: absent: :func:`default_database`; relative: to the configuration file's folder
+    database: str = Field(default_factory=default_database)
 
 
 class SimulatedFaults(Strict):
@@ -432,16 +456,24 @@ def load_config(
     path: str | Path, *, relative_paths: bool = True, warn: Warn | None = warn_on_stderr
 ) -> CellConfig:
     """Read and validate a cell configuration file; relative paths in it are taken
-    relative to its folder (``relative_paths=False``: the database's is left as written,
-    for the bundled cell, whose database belongs in the working folder). Keys of earlier
-    versions are read as today's, one line each through ``warn`` (stderr)."""
+    relative to its folder, made absolute (the folder with symlinks resolved, as
+    ``cellcal campaign start --config`` names the file to the service), so the same
+    file gives the same paths whatever the working folder (``relative_paths=False``:
+    the database's is left as written). Keys of earlier versions are read as today's,
+    one line each through ``warn`` (stderr). A file without ``storage.database`` gets
+    :func:`default_database`, whose folder is made."""
     p = Path(path)
     try:
         data = read_toml(p)
     except FileFormatError as exc:
         raise ConfigError(str(exc)) from None
     config = config_from_dict(data, str(p), warn=warn)
-    return relative_to(config, p.parent, database=relative_paths)
+    if "database" not in config.storage.model_fields_set:
+        # the default database's folder (the user's data directory) is made here, once
+        # a command's configuration relies on it
+        with contextlib.suppress(OSError):  # said by the command that opens it
+            Path(config.storage.database).parent.mkdir(parents=True, exist_ok=True)
+    return relative_to(config, p.resolve().parent, database=relative_paths)
 
 
 def relative_to(config: CellConfig, folder: Path, *, database: bool = True) -> CellConfig:

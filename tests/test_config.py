@@ -92,10 +92,10 @@ def test_relative_paths_resolve_against_the_config_folder(tmp_path):
     )
     text = bundled.read_text().replace('model = "kuka-kr5-arc"', 'model = "robot.toml"', 1)
     assert 'model = "robot.toml"' in text
-    (folder / "cell.toml").write_text(text)
+    (folder / "cell.toml").write_text(text + '\n[storage]\ndatabase = "cellcal.db"\n')
     config = load_config(folder / "cell.toml")
-    assert config.robot.model == str(folder / "robot.toml")
-    assert config.storage.database == str(folder / "cellcal.db")
+    assert config.robot.model == str(folder.resolve() / "robot.toml")
+    assert config.storage.database == str(folder.resolve() / "cellcal.db")
 
 
 # ------------------------------------------------------------ keys of earlier versions

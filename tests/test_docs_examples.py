@@ -106,6 +106,8 @@ def test_examples_run_literally(doc: Path, tmp_path: Path) -> None:
     shim = _scratch(tmp_path)
     env = {**os.environ, "PATH": f"{shim}:{os.environ.get('PATH', '')}"}
     env.pop("CELLCAL_SOCKET", None)
+    env.pop("STATE_DIRECTORY", None)
+    env["XDG_DATA_HOME"] = str(tmp_path / ".data")  # the default database's folder
     for step in todo:
         command = step.command.replace(".venv/bin/cellcal", "cellcal")
         res = subprocess.run(

@@ -96,6 +96,10 @@ def start(
             body["config_toml"] = p.read_text(encoding="utf-8")
         except (OSError, UnicodeDecodeError) as exc:
             raise InputError(f"{config_path}: cannot read ({exc})") from None
+        # The file's real path goes with its text: the service takes the relative paths
+        # in it (rig_file, target_file, a robot model file) against this file's folder,
+        # as load_config does for the service's own file, so the very file the service
+        # runs compares equal from any working folder.
         body["config_name"] = str(p.resolve())
     path = socket_path(sock)
     answer = call(path, "POST", "/v1/campaigns", body)
@@ -121,8 +125,9 @@ def status(sock: str | None, as_json: bool) -> None:
     click.echo(f"{snap['state']}: {snap['reason']}")
     c = snap.get("campaign")  # the running one, else the one held, else the last one
     if c:
-        active = snap["state"] in ("running", "pausing", "aborting", "analysing")
-        eta = c.get("eta_s") if active else None
+        # a countdown only while the campaign goes on (not pausing, paused or aborting)
+        going = snap["state"] == "running" and c.get("status") != "paused"
+        eta = c.get("eta_s") if going else None
         status = f" ({c['status']})" if c.get("status") else ""
         click.echo(
             f"campaign {c['id']}{status}: {c.get('stored', 0)} of {c.get('planned', 0)} poses "

@@ -4,19 +4,21 @@ from __future__ import annotations
 
 import signal
 import sys
-import threading
 from importlib import resources
 from pathlib import Path
 from types import FrameType
 from typing import Any
 
 import click
+import numpy as np
 
+from cellcal.calib.calibration_result import CalibrationResult
 from cellcal.commands.calibrate import at_nominal_text, echo_points
 from cellcal.commands.output import SEED, TIME_SCALE, print_json
-from cellcal.config import CellConfig, load_config
+from cellcal.config import CellConfig, default_database, load_config
 from cellcal.daemon.analysis import PAPER, CampaignSummary
 from cellcal.daemon.campaign import CampaignOutcome, resume_campaign, start_campaign
+from cellcal.daemon.engine import StopRequest
 from cellcal.daemon.records import CampaignEnded, CampaignStarted, PoseStored, Record
 from cellcal.daemon.report import write_report
 from cellcal.daemon.store import Store
@@ -93,7 +95,29 @@ def cell_config(config_path: str | None, mock: bool) -> tuple[CellConfig, str]:
     raise InputError("give --config FILE, or --mock for the bundled simulated cell")
 
 
-def _print_summary(out: CampaignOutcome) -> None:
+def _corrections(c: CalibrationResult) -> str:
+    """The largest identified kinematic correction of each unit, with its uncertainty."""
+    parts = []
+    for unit, digits in (("mm", 3), ("deg", 4)):
+        found = [p for p in c.parameters if p.identified and p.kind != "tool" and p.unit == unit]
+        if found:
+            top = max(found, key=lambda p: abs(p.value))
+            sign = "°" if unit == "deg" else " mm"
+            parts.append(
+                f"{len(found)} {'angles' if unit == 'deg' else 'lengths'}, largest {top.name} "
+                f"{top.value:+.{digits}f} ± {top.std:.{digits}f}{sign}"
+            )
+    return "; ".join(parts) or "none"
+
+
+def _xyz(v: Any, digits: int) -> str:
+    return "(" + ", ".join(f"{float(x):.{digits}f}" for x in v) + ")"
+
+
+def _print_summary(out: CampaignOutcome, folder: str | None, residuals: bool) -> None:
+    """What was measured, the headline figures with their uncertainty, the validation
+    before and after, warnings, where the details are; every pose's residual only with
+    ``residuals`` (always in the report and in --json)."""
     s: CampaignSummary | None = out.summary
     plan = out.plan
     sensors = ", ".join(x.name for x in out.config.sensor)
@@ -109,31 +133,44 @@ def _print_summary(out: CampaignOutcome) -> None:
         )
     if s is None:
         return
-    click.echo("registration to the robot base, RMS with nominal / calibrated geometry:")
-    for r in s.registrations:
-        click.echo(
-            f"  {r.sensor:<10}{r.rms_nominal_mm:9.4f} mm /{r.rms_calibrated_mm:8.4f} mm"
-            f"  ({r.n} poses)"
-        )
     c = s.calibration
+    agree = {a.sensor: a for a in s.agreements}
     click.echo(
-        f"calibration from {s.reference}: {len(c.identified)} parameters identified; "
-        f"condition number {c.condition_number:.3g}"
+        "registration to the robot base, RMS at the calibration poses, nominal → calibrated:"
     )
-    for w in c.warnings:
-        click.echo(f"  warning: {w}")
+    for r in s.registrations:
+        if r.sensor == s.reference:
+            rot = float(np.degrees(np.max(c.frame_std[:3])))
+            frame = f"± {np.max(c.frame_std[3:]):.3f} mm, ± {rot:.4f}° (1σ)"
+            note = f"the reference; its frame {frame}"
+        elif r.sensor in agree:
+            a = agree[r.sensor]
+            note = f"against {s.reference} {a.rms_mm:.4f} mm RMS, χ²/dof {a.chi2_per_dof:.2f}"
+        else:
+            note = ""
+        click.echo(
+            f"  {r.sensor:<10}{r.rms_nominal_mm:8.4f} → {r.rms_calibrated_mm:.4f} mm"
+            f"  ({r.n} poses{'; ' + note if note else ''})"
+        )
+    click.echo(
+        f"calibration from {s.reference}: {len(c.identified)} parameters identified, "
+        f"σ0 {c.sigma0:.2f}, condition number {c.condition_number:.3g}"
+    )
+    click.echo(f"  corrections: {_corrections(c)}")
+    click.echo(f"  target offset {_xyz(c.tool, 3)} ± {_xyz(c.tool_std, 3)} mm")
     click.echo(f"  left at nominal: {at_nominal_text(c)}")
     outside = ", ".join(r.region for r in s.regions if r.region != "cube") or "none"
-    click.echo(f"position error at the validation poses ({s.reference}; outside: {outside}), mm:")
-    click.echo(f"  {'':<26}{'mean':>11}{'RMS':>11}{'max':>11}{'p95':>11}")
-    rows = [("inside the cube", s.inside), ("outside the cube", s.outside)]
-    for label, region in rows:
-        if region is None:
-            continue
-        for stage, st in (("before", region.before), ("after", region.after)):
-            first = label if stage == "before" else ""
-            numbers = "".join(f"{v:11.4f}" for v in (st.mean, st.rms, st.max, st.p95))
-            click.echo(f"  {first:<18}{stage:<8}{numbers}")
+    click.echo(
+        f"validation ({s.reference}; outside: {outside}), RMS / max, "
+        "before → after calibration, mm:"
+    )
+    for label, region in (("inside the cube", s.inside), ("outside the cube", s.outside)):
+        if region is not None:
+            b, f = region.before, region.after
+            click.echo(
+                f"  {label:<17}{f'({b.n} poses)':<12}{b.rms:.4f} / {b.max:.4f} → "
+                f"{f.rms:.4f} / {f.max:.4f}"
+            )
     click.echo(
         f"  all {s.n_validation} poses: RMS {s.validation_before.rms:.4f} → "
         f"{s.validation_after.rms:.4f} mm, {s.improvement_pct:.1f} % reduction"
@@ -143,8 +180,23 @@ def _print_summary(out: CampaignOutcome) -> None:
         f"({PAPER['other_method_mm']:.3f} mm with another registration method), "
         f"{PAPER['cl_outside_mm']:.3f} mm outside it"
     )
-    echo_points(s.points, f"{s.reference} at the calibration poses (by plan index)")
+    for w in (*c.warnings, *s.warnings):
+        click.echo(f"warning: {w}")
+    outliers = [f"{p.name} (z {p.z:.1f})" for p in s.points if p.outlier]
+    flagged = f"outliers: pose {', '.join(outliers)}" if outliers else "no outlier"
+    click.echo(
+        f"{s.reference} residual at the {len(s.points)} calibration poses: RMS "
+        f"{c.rms_after:.4f} mm, max {c.max_after:.4f} mm; {flagged}"
+        + ("" if residuals else " (each pose: --residuals, or the report)")
+    )
+    if residuals:
+        echo_points(s.points, f"{s.reference} at the calibration poses (by plan index)")
     click.echo(f"database: {out.db_path} (campaign {out.campaign_id})")
+    if folder is not None:
+        click.echo(f"report: {Path(folder) / 'index.html'}")
+    else:
+        where = f"--db {out.db_path} --campaign {out.campaign_id}"
+        click.echo(f"the report, every figure: cellcal report {where} --out DIR")
 
 
 @click.command()
@@ -170,6 +222,11 @@ def _print_summary(out: CampaignOutcome) -> None:
     help="Analyse and store the result even if an acceptance check fails (recorded).",
 )
 @click.option("--report", "report_dir", help="Write the campaign's report folder here at the end.")
+@click.option(
+    "--residuals",
+    is_flag=True,
+    help="Also list the reference sensor's residual at every calibration pose.",
+)
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout.")
 def run(
     config_path: str | None,
@@ -180,6 +237,7 @@ def run(
     resume_id: int | None,
     accept: bool,
     report_dir: str | None,
+    residuals: bool,
     as_json: bool,
 ) -> None:
     """Run a whole campaign: plan, acquire, store, register, calibrate, validate, report.
@@ -187,16 +245,21 @@ def run(
     Every sample is stored before the analysis; a result that fails an acceptance check
     (the target does not follow the robot, units, implausible corrections) exits 3 and
     leaves the campaign stored with status "refused" (--resume ID --accept analyses it
-    anyway)."""
+    anyway). Ctrl-C or SIGTERM stops at the next safe point: the campaign is stored
+    "interrupted", exit 130 with the command that resumes it. The text output is a
+    summary; --residuals adds every calibration pose's residual (the report and --json
+    have them)."""
     if report_dir is not None and Path(report_dir).exists() and not Path(report_dir).is_dir():
         raise InputError(f"--report {report_dir}: exists and is not a folder")
     if db_path is not None and not Path(db_path).resolve().parent.is_dir():
         raise InputError(f"--db {db_path}: folder {Path(db_path).parent} does not exist")
-    stop = threading.Event()
+    stop = StopRequest()
 
     def on_signal(signum: int, frame: FrameType | None) -> None:
-        stop.set()
-        click.echo(f"cellcal: {signal.Signals(signum).name}: finishing cleanly…", err=True)
+        name = signal.Signals(signum).name
+        again = " again" if stop.is_set() else ""
+        click.echo(f"cellcal: {name}{again}: finishing cleanly…", err=True)
+        stop.request(name)
 
     previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
     progress = BarProgress() if sys.stderr.isatty() and not as_json else LineProgress()
@@ -204,10 +267,11 @@ def run(
         if resume_id is not None:
             if config_path or mock or seed is not None:
                 raise InputError(
-                    "--resume takes only --db, --time-scale, --accept, --report and --json"
+                    "--resume takes only --db, --time-scale, --accept, --report, --residuals "
+                    "and --json"
                 )
             outcome = resume_campaign(
-                db_path or "cellcal.db",
+                db_path or default_database(),
                 resume_id,
                 time_scale=time_scale,
                 stop=stop,
@@ -235,8 +299,9 @@ def run(
         for signum, handler in previous.items():
             signal.signal(signum, handler)
     if outcome.summary is None:
+        why = f" ({stop.reason})" if stop.reason else ""
         click.echo(
-            f"cellcal: campaign {outcome.campaign_id} interrupted with "
+            f"cellcal: campaign {outcome.campaign_id} interrupted{why} with "
             f"{outcome.acquisition.stored} of {len(outcome.plan.poses)} poses stored; "
             "resume with: cellcal run --resume "
             f"{outcome.campaign_id} --db {outcome.db_path}",
@@ -268,6 +333,4 @@ def run(
         }
         print_json(doc)
     else:
-        _print_summary(outcome)
-        if folder is not None:
-            click.echo(f"report: {folder}")
+        _print_summary(outcome, folder, residuals)

@@ -5,8 +5,10 @@ the command that makes it."""
 
 from __future__ import annotations
 
+import contextlib
 import grp
 import pwd
+import stat
 import sys
 from pathlib import Path
 
@@ -18,6 +20,13 @@ from cellcal.errors import CampaignError, InputError
 
 DEFAULT_CONFIG = "/etc/cellcal/cell.toml"
 UNIT_DIR = "/etc/systemd/system"
+#: Where systemctl looks for units by name.
+SEARCH_PATH = (
+    "/etc/systemd/system",
+    "/run/systemd/system",
+    "/lib/systemd/system",
+    "/usr/lib/systemd/system",
+)
 
 
 @click.group()
@@ -50,6 +59,7 @@ def install(
     prefix = Path(venv).resolve() if venv else Path(sys.prefix)
     if not (prefix / "bin" / "cellcal").is_file():
         raise InputError(f"--venv {prefix}: no bin/cellcal there (give cellcal's venv)")
+    _reachable(prefix, user)
     text = render(prefix, config, user)
     checked = verify(text)
     if not checked.ok:
@@ -71,11 +81,66 @@ def install(
         except FileNotFoundError:
             raise InputError(f"{unit_dir}: no such folder (is systemd installed?)") from None
     click.echo(f"{target}: {'unchanged' if unchanged else 'written'} ({checked.message})")
-    click.echo(f"operators join group {user}: sudo usermod -aG {user} NAME (then log in again)")
+    if pwd.getpwnam(user).pw_uid == 0:
+        click.echo(f"the service runs as {user}: operators reach its socket with sudo")
+    else:
+        click.echo(f"operators join group {user}: sudo usermod -aG {user} NAME (then log in again)")
+    # systemctl finds a unit outside its search path only when given the file's path
+    where = Path(unit_dir).resolve()
+    unit = UNIT_NAME if str(where) in SEARCH_PATH else str(where / UNIT_NAME)
     click.echo("to enable and start the service:")
-    click.echo(f"  sudo systemctl daemon-reload && sudo systemctl enable {UNIT_NAME}")
+    click.echo(f"  sudo systemctl daemon-reload && sudo systemctl enable {unit}")
     click.echo(f"  sudo systemctl start {UNIT_NAME}")
     return 0
+
+
+def _reachable(prefix: Path, user: str) -> None:
+    """The service's user must be able to run the venv's cellcal and its interpreter:
+    every folder on their paths searchable and the files executable for that user (by
+    the owner, group or other bits; root needs one x bit on a file). A user that does
+    not exist yet is not checked here (``_user_exists`` names the command)."""
+    try:
+        who = pwd.getpwnam(user)
+    except KeyError:
+        return
+    groups = {who.pw_gid} | {g.gr_gid for g in grp.getgrall() if user in g.gr_mem}
+    exe = prefix / "bin" / "cellcal"
+    paths = [exe]
+    with contextlib.suppress(OSError, UnicodeDecodeError):
+        first = exe.read_bytes()[:512].split(b"\n", 1)[0].decode()
+        if first.startswith("#!") and first[2:].strip():
+            paths.append(Path(first[2:].split()[0]))
+    for path in [*paths, *(p.resolve() for p in paths)]:
+        blocked = _blocked(path, who.pw_uid, groups)
+        if blocked is not None:
+            raise InputError(
+                f"--venv {prefix}: user {user} cannot execute {path} ({blocked} is not "
+                f"{'executable' if blocked == path else 'searchable'} for {user}); "
+                "put the venv where the service's user can reach it (e.g. /opt/cellcal)"
+            )
+
+
+def _blocked(path: Path, uid: int, groups: set[int]) -> Path | None:
+    """The first folder on ``path`` (or the file itself) that ``uid`` cannot search or
+    execute, going down from /."""
+    for p in [*reversed(path.parents), path]:
+        try:
+            st = p.stat()
+        except OSError:
+            return p
+        if uid == 0:
+            if p == path and not st.st_mode & 0o111:
+                return p
+            continue
+        if st.st_uid == uid:
+            bit = stat.S_IXUSR
+        elif st.st_gid in groups:
+            bit = stat.S_IXGRP
+        else:
+            bit = stat.S_IXOTH
+        if not st.st_mode & bit:
+            return p
+    return None
 
 
 def _user_exists(user: str) -> None:

@@ -19,7 +19,7 @@ from cellcal.clock import Clock, SimulatedClock, WallClock
 from cellcal.config import CellConfig, config_from_dict, upgrade_stored
 from cellcal.daemon.analysis import CampaignSummary, analyse
 from cellcal.daemon.devices import Devices, build_devices
-from cellcal.daemon.engine import Acquisition, PhaseWatcher, acquire
+from cellcal.daemon.engine import Acquisition, PhaseWatcher, StopRequest, acquire
 from cellcal.daemon.locks import RunLock, robot_claim
 from cellcal.daemon.plan import CALIBRATION, VALIDATION, Plan, make_plan, plan_identifiability
 from cellcal.daemon.records import (
@@ -200,6 +200,8 @@ def _run(
         status = held.halted()
         verb = "stopped" if status == "interrupted" else status
         message = f"{verb} after {n} poses"
+        if isinstance(stop, StopRequest) and stop.reason:
+            message += f" ({stop.reason})"
         stream.emit(CampaignEvent(campaign_id, status, message))
         stream.emit(CampaignEnded(campaign_id, status, n, total, message))
         return CampaignOutcome(campaign_id, store.path, config, plan, acquisition, None)

@@ -19,6 +19,7 @@ the one held, else the last one; a campaign that starts replaces it and its pose
 
 from __future__ import annotations
 
+import logging
 import threading
 import time
 from collections import deque
@@ -31,6 +32,8 @@ import numpy as np
 from cellcal.daemon.plan import PlannedPose
 from cellcal.daemon.records import CampaignEnded, CampaignEvent, CampaignStarted, PoseStored, Record
 from cellcal.errors import UserError
+
+log = logging.getLogger("cellcal.control")
 
 STATES = ("idle", "running", "pausing", "paused", "aborting", "analysing", "stopping")
 #: Device states.
@@ -402,6 +405,7 @@ class Control:
                 self.reason = f"campaign {cid}: aborting"
                 self.stop.set()
                 self._changed()
+                log.info("campaign %d: abort requested; the robot is stopped at once", cid)
                 return self.state, cid
             target = campaign_id if campaign_id is not None else self.blocking
             if target is None:
@@ -416,6 +420,7 @@ class Control:
             if self.campaign is not None and self.campaign["id"] == target:
                 self.campaign.update(status="aborted", phase="aborted")
             self._changed()
+            log.info("campaign %d aborted (it was %s)", target, status)
             return "aborted", target
 
     def recovered(self, campaign_id: int) -> None:
@@ -429,14 +434,14 @@ class Control:
             )
             self._changed()
 
-    def shutdown(self) -> None:
-        """SIGTERM: stop at the next safe point."""
+    def shutdown(self, why: str = "SIGTERM") -> None:
+        """SIGTERM or SIGINT (``why``, the signal's name): stop at the next safe point."""
         with self._lock:
             self.shutting_down = True
             self.closing.set()
             self.intent = "interrupted"
             self.state = "stopping"
-            self.reason = "stopping (SIGTERM)"
+            self.reason = f"stopping ({why})"
             self.stop.set()
             self._changed()
             self._lock.notify_all()

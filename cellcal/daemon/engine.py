@@ -11,14 +11,18 @@ pose with its raw samples (the store, a critical subscriber, writes it in one
 transaction before the next move). Poses already stored (a resumed campaign) are
 skipped. A stop request (Ctrl-C, SIGTERM, the service) acts at once during the dwell
 and between steps: the pose under way is abandoned unstored, so the campaign stays
-resumable and loses nothing. A hold request (the service's deferred pause) lets the pose
-under way finish and be stored, then stops. The devices are left open: whoever built
-them closes them. Whoever watches the engine's progress (the service's heartbeat and
-status page) is told each phase as it begins: ``move``, ``dwell``, ``sample``.
+resumable and loses nothing. A device that fails once a stop was asked for ends the
+acquisition as interrupted, not as a device fault: the pose is abandoned, not measured
+again, and the failure is logged (stopping may be what made it fail). A hold request
+(the service's deferred pause) lets the pose under way finish and be stored, then
+stops. The devices are left open: whoever built them closes them. Whoever watches the
+engine's progress (the service's heartbeat and status page) is told each phase as it
+begins: ``move``, ``dwell``, ``sample``.
 """
 
 from __future__ import annotations
 
+import logging
 import threading
 from collections.abc import Callable, Collection, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -32,6 +36,8 @@ from cellcal.daemon.records import CampaignEvent, PoseStored, RecordStream
 from cellcal.drivers.base import PositionSensor, Robot, Series
 from cellcal.errors import DeviceError, NoTargetError
 
+log = logging.getLogger("cellcal.engine")
+
 #: A reached joint position further than this from the plan (rad) is refused.
 IN_POSITION_TOL = 1e-3
 #: A sensor that fails at a pose (after its own driver's retries) is asked again this often.
@@ -43,6 +49,19 @@ PhaseWatcher = Callable[[str, PlannedPose, float], None]
 
 def _unwatched(phase: str, pose: PlannedPose, t: float) -> None:
     """No one watches the phases."""
+
+
+class StopRequest(threading.Event):
+    """A stop event that remembers why it was set (a signal's name, for the records)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.reason = ""
+
+    def request(self, reason: str) -> None:
+        if not self.is_set():
+            self.reason = reason
+        self.set()
 
 
 @dataclass(frozen=True)
@@ -110,6 +129,10 @@ def acquire(
                     phase=watch,
                 )
             except DeviceError as exc:
+                if stop.is_set():
+                    log.info("pose %d abandoned on the stop request: %s", pose.idx, exc)
+                    interrupted = True
+                    break
                 event = CampaignEvent(campaign_id, "device-error", str(exc), pose.idx, clock.now())
                 stream.emit(event)
                 raise
@@ -119,7 +142,10 @@ def acquire(
             stream.emit(record)
             stored_now += 1
     if interrupted:
-        robot.stop()
+        try:
+            robot.stop()
+        except DeviceError as exc:  # the interrupt stays one; the operator is told
+            log.warning("%s: not stopped after the interrupt: %s", robot.name, exc)
     return Acquisition(len(done) + stored_now, stored_now, interrupted, clock.now() - t0)
 
 
@@ -176,6 +202,10 @@ def _visit(
         ]
         if not faults:
             break
+        if stop.is_set():
+            # Stopping: the pose is abandoned rather than measured again.
+            log.info("pose %d abandoned on the stop request: %s", pose.idx, faults[0])
+            return None
         if attempt == SAMPLE_RETRIES:
             raise faults[0]
         # The pose is still where it should be: measure it again, once or twice.

@@ -47,6 +47,14 @@ class IsoOutcome:
     campaign_id: int
     db_path: str
     results: dict[str, tuple[PointResult, ...]]
+    #: what the report needs to say what the test was and to recompute its positions:
+    #: the cycles, the nominal model (the cell's robot), the calibrated model given, the
+    #: reference sensor and its frame in the calibrated model (4×4, mm)
+    cycles: int = 0
+    nominal_model: str = ""
+    calibrated_model: str = ""
+    reference_sensor: str = ""
+    T_sensor_base: Array | None = None
 
     def to_dict(self) -> dict[str, Any]:
         def point(r: PointResult) -> dict[str, Any]:
@@ -64,6 +72,12 @@ class IsoOutcome:
 
         return {
             "campaign_id": self.campaign_id,
+            "test": "ISO 9283 pose accuracy and repeatability",
+            "cycles": self.cycles,
+            "nominal_model": self.nominal_model,
+            "calibrated_model": self.calibrated_model,
+            "reference_sensor": self.reference_sensor,
+            "T_sensor_base": None if self.T_sensor_base is None else self.T_sensor_base.tolist(),
             "iso9283": {
                 stage: {"joints_from": STAGES[stage], "points": [point(r) for r in rs]}
                 for stage, rs in self.results.items()
@@ -159,7 +173,16 @@ def run_iso9283(
                     raise CampaignError(f"ISO 9283 test {message}")
                 points = np.array([p.target_mm for p in plan.poses[:5]])
                 results = _results(store, cid, reference, calibrated.T_sensor_base, cycles, points)
-                outcome = IsoOutcome(cid, db_path, results)
+                outcome = IsoOutcome(
+                    cid,
+                    db_path,
+                    results,
+                    cycles=cycles,
+                    nominal_model=config.robot.model,
+                    calibrated_model=_spec_text(model_spec),
+                    reference_sensor=reference,
+                    T_sensor_base=np.asarray(calibrated.T_sensor_base, dtype=np.float64),
+                )
                 store.add_report(cid, outcome.to_dict())
                 stream.emit(CampaignEnded(cid, "complete", acq.stored, total, "complete"))
                 return outcome
@@ -167,6 +190,12 @@ def run_iso9283(
                 store.close()
         finally:
             devices.close()
+
+
+def _spec_text(spec: str) -> str:
+    """A model given as a file, by its absolute path (the report says which)."""
+    path = Path(spec)
+    return str(path.resolve()) if path.is_file() else spec
 
 
 def _results(

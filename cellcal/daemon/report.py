@@ -22,6 +22,7 @@ from typing import Any
 
 import numpy as np
 
+from cellcal.calib.geometry import apply, invert
 from cellcal.daemon.analysis import mean_sigma
 from cellcal.daemon.plan import CALIBRATION, VALIDATION
 from cellcal.daemon.report_data import report_data
@@ -146,10 +147,80 @@ def plan_text(config_json: str) -> str:
     return "the cube's grid"
 
 
-def _timeline(store: Store, campaign_id: int) -> tuple[float, dict[str, str]]:
-    """The campaign's dwell (s), and the page's rows about what it did: its plan, when it
-    was created and its poses stored (UTC), its acquisition time on the campaign's clock
-    (simulated seconds in mock mode)."""
+#: The roles of an ISO 9283 test's poses (``iso_campaign.BEFORE``, ``AFTER``).
+ISO_STAGES = ("iso-before", "iso-after")
+
+
+def is_iso_test(store: Store, campaign_id: int, summary: dict[str, Any] | None) -> bool:
+    """An ISO 9283 test (``cellcal iso9283``), not a calibration campaign: its summary
+    says so, or (interrupted) its first event does."""
+    if summary is not None and "iso9283" in summary:
+        return True
+    row = store.conn.execute(
+        "SELECT 1 FROM events WHERE campaign_id = ? AND kind = 'iso9283' LIMIT 1", (campaign_id,)
+    ).fetchone()
+    return row is not None
+
+
+def iso_plan_text(summary: dict[str, Any] | None, n_poses: int) -> str:
+    """What an ISO 9283 test's poses were."""
+    s = summary or {}
+    cycles = s.get("cycles") or n_poses // (5 * len(ISO_STAGES))
+    nominal = s.get("nominal_model") or "the nominal model"
+    calibrated = s.get("calibrated_model") or "the calibrated model"
+    return (
+        f"ISO 9283 AP/RP test: the standard's five points P1…P5, {cycles} cycles with the "
+        f"joints of the nominal model ({nominal}), then {cycles} with those of the "
+        f"calibrated model ({calibrated})"
+    )
+
+
+def iso_csv(
+    store: Store, campaign_id: int, data: PoseData, sensor: str, summary: dict[str, Any] | None
+) -> str:
+    """An ISO 9283 test's visits as one sensor measured them, one row per point and cycle,
+    readable by ``cellcal calibrate`` (``name``, ``q1..qN``, ``x,y,z``, ``sx,sy,sz``: the
+    sensor's mean in its frame) with ``stage``, ``point``, ``cycle``, the commanded
+    position ``commanded_x,_y,_z`` (mm, robot base frame) and, for the reference sensor,
+    the attained position ``attained_x,_y,_z`` (the mean brought into the calibrated
+    model's base frame: what AP and RP are computed from)."""
+    s = summary or {}
+    T = s.get("T_sensor_base")
+    attained = None
+    if T is not None and sensor == s.get("reference_sensor"):
+        attained = apply(invert(np.array(T, dtype=np.float64)), data.mean[sensor])
+    targets = {
+        int(i): (x, y, z)
+        for i, x, y, z in store.conn.execute(
+            "SELECT idx, target_x, target_y, target_z FROM poses WHERE campaign_id = ?",
+            (campaign_id,),
+        )
+    }
+    per_stage = max(store.campaign(campaign_id).n_poses // len(ISO_STAGES), 1)
+    dof = data.q.shape[1]
+    head = ["name", "stage", "point", "cycle", "commanded_x", "commanded_y", "commanded_z"]
+    head += [*(f"q{i}" for i in range(1, dof + 1)), "x", "y", "z", "sx", "sy", "sz"]
+    if attained is not None:
+        head += ["attained_x", "attained_y", "attained_z"]
+    lines = [",".join(head)]
+    mean, sig = data.mean[sensor], mean_sigma(data, sensor)
+    for k, idx in enumerate(data.idx):
+        if not np.isfinite(mean[k]).all():
+            continue
+        cycle = (int(idx) % per_stage) // 5 + 1
+        row = [str(int(idx)), data.role[k], data.region[k], str(cycle)]
+        row += [_number(v) if v is not None else "" for v in targets[int(idx)]]
+        row += [_number(v) for v in [*np.degrees(data.q[k]), *mean[k], *sig[k]]]
+        if attained is not None:
+            row += [_number(v) for v in attained[k]]
+        lines.append(",".join(row))
+    return "\n".join(lines) + "\n"
+
+
+def _timeline(store: Store, campaign_id: int, iso: bool) -> tuple[float, dict[str, str]]:
+    """The campaign's dwell (s), and the page's rows about what it did: its plan (an ISO
+    9283 test: its cube), when it was created and its poses stored (UTC), its acquisition
+    time on the campaign's clock (simulated seconds in mock mode)."""
     created, dwell, config_json = store.conn.execute(
         "SELECT created, dwell_s, config_json FROM campaigns WHERE id = ?", (campaign_id,)
     ).fetchone()
@@ -165,12 +236,19 @@ def _timeline(store: Store, campaign_id: int) -> tuple[float, dict[str, str]]:
     out = {"created": str(created)}
     c = json.loads(config_json).get("campaign", {})
     with contextlib.suppress(KeyError, TypeError, ValueError):
-        grid = "×".join(str(int(k)) for k in c["grid"])
         centre = ", ".join(f"{float(v):g}" for v in c["cube_centre_mm"])
-        out["plan"] = (
-            f"{grid} cube of {float(c['cube_edge_mm']):g} mm at ({centre}) mm, wrist turned "
-            f"up to {float(c['orientation_variation_deg']):g}° per pose"
-        )
+        edge = float(c["cube_edge_mm"])
+        if iso:
+            out["ISO 9283 test cube"] = (
+                f"{edge:g} mm edge at ({centre}) mm; P1 its centre, P2…P5 on its diagonal "
+                "plane x = y; flange at its home orientation"
+            )
+        else:
+            grid = "×".join(str(int(k)) for k in c["grid"])
+            out["plan"] = (
+                f"{grid} cube of {edge:g} mm at ({centre}) mm, wrist turned "
+                f"up to {float(c['orientation_variation_deg']):g}° per pose"
+            )
     out["poses stored per role"] = ", ".join(f"{r}: {n}" for r, n in roles) or "none"
     if first is not None:
         out["first pose stored"] = str(first)
@@ -225,17 +303,24 @@ def write_report(
         "mock": row.mock,
         "plan": plan_text(row.config_json),
     }
+    iso = is_iso_test(store, cid, summary)
+    if iso:
+        facts["plan"] = iso_plan_text(summary, row.n_poses)
     files: dict[str, str] = {
         "summary.json": json.dumps({**facts, "summary": summary}, indent=2) + "\n",
         "poses.csv": poses_csv(data),
     }
     for sensor in sorted(data.mean):
+        if iso:  # every visit; there are no calibration or validation poses
+            files[f"measurements-{sensor}.csv"] = iso_csv(store, cid, data, sensor, summary)
+            continue
         files[f"measurements-{sensor}.csv"] = measurements_csv(data, sensor, CALIBRATION)
         files[f"validation-{sensor}.csv"] = measurements_csv(data, sensor, VALIDATION)
     if model is not None:
         files["model.toml"] = str(model[0])
-    dwell_s, timeline = _timeline(store, cid)
-    data_for_page = report_data(store, cid, {**facts, "dwell_s": dwell_s}, methods=methods)
+    dwell_s, timeline = _timeline(store, cid, iso)
+    page_facts = {**facts, "dwell_s": dwell_s, "iso9283": iso}
+    data_for_page = report_data(store, cid, page_facts, methods=methods and not iso)
     files["index.html"] = report_html(data_for_page, timeline)
     for name, text in files.items():
         write_atomically(folder / name, text)

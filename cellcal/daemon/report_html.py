@@ -35,7 +35,9 @@ def _mm(v: float | None, digits: int = 4) -> str:
     return "—" if v is None or not math.isfinite(v) else f"{v:.{digits}f}"
 
 
-def _table(head: Sequence[str], rows: Sequence[Sequence[object]], left: int = 1) -> str:
+def _table(
+    head: Sequence[str], rows: Sequence[Sequence[object]], left: int = 1, ident: str = ""
+) -> str:
     def cell(tag: str, k: int, v: object) -> str:
         cls = ' class="l"' if k < left else ""
         return f"<{tag}{cls}>{_e(v)}</{tag}>"
@@ -45,7 +47,8 @@ def _table(head: Sequence[str], rows: Sequence[Sequence[object]], left: int = 1)
         "<tr>" + "".join(cell("td", k, v) for k, v in enumerate(r)) + "</tr>" for r in rows
     )
     head_row = f"<tr>{h}</tr>" if any(head) else ""
-    return f"<table>{head_row}{body}</table>"
+    tag = f'<table id="{_e(ident)}">' if ident else "<table>"
+    return f"{tag}{head_row}{body}</table>"
 
 
 def _figure(svg: str, caption: str, ident: str) -> str:
@@ -324,7 +327,7 @@ def _campaign(d: ReportData, timeline: dict[str, Any]) -> str:
         ["robot model", f["model"]],
         ["sensors", ", ".join(f["sensors"])],
         ["mode", "mock (simulated cell)" if f["mock"] else "real devices"],
-        ["calibration poses", f.get("plan", "")],
+        ["test poses" if f.get("iso9283") else "calibration poses", f.get("plan", "")],
         ["poses planned / stored", f"{f['n_poses']} / {f['poses_stored']}"],
         ["samples per pose", f["samples_per_pose"]],
         ["dwell", f"{f['dwell_s']:g} s"],
@@ -332,7 +335,7 @@ def _campaign(d: ReportData, timeline: dict[str, Any]) -> str:
         ["sensor retries", ", ".join(f"{s}: {n}" for s, n in sorted(d.retries.items())) or "none"],
         ["events", ", ".join(f"{k}: {n}" for k, n in sorted(kinds.items())) or "none"],
     ]
-    parts = ["<h2>What the campaign did</h2>", _table(["", ""], rows)]
+    parts = ["<h2>What the campaign did</h2>", _table(["", ""], rows, ident="campaign")]
     parts.append("<p>Devices: " + _e("; ".join(devices) or "not recorded") + "</p>")
     shown = [e for e in d.events if e[1] != "device"][:200]
     if shown:
@@ -346,37 +349,86 @@ def _campaign(d: ReportData, timeline: dict[str, Any]) -> str:
     return "".join(parts)
 
 
-def _iso9283(iso: dict[str, Any]) -> str:
-    """An ISO 9283 test: AP and RP of each point, before and after calibration."""
+def _xyz(v: Sequence[float]) -> list[str]:
+    return [_mm(float(x)) for x in v]
+
+
+def _iso9283(s: dict[str, Any]) -> str:
+    """An ISO 9283 test: AP and RP of each point before and after calibration, then per
+    stage the commanded points, barycentres, AP components, l̄, S_l and RP."""
+    iso = s["iso9283"]
     stages = list(iso)
     points = [p["point"] for p in iso[stages[0]]["points"]]
     rows = []
     for k, name in enumerate(points):
         row: list[object] = [name]
-        row += [_mm(iso[s]["points"][k]["ap_mm"]) for s in stages]
-        row += [_mm(iso[s]["points"][k]["rp_mm"]) for s in stages]
+        row += [_mm(iso[st]["points"][k]["ap_mm"]) for st in stages]
+        row += [_mm(iso[st]["points"][k]["rp_mm"]) for st in stages]
         rows.append(row)
-    head = ["point", *(f"AP {s}" for s in stages), *(f"RP {s}" for s in stages)]
-    sources = "; ".join(f"{s}: joints from the {iso[s]['joints_from']}" for s in stages)
+    head = ["point", *(f"AP {st}" for st in stages), *(f"RP {st}" for st in stages)]
+    sources = "; ".join(f"{st}: joints from the {iso[st]['joints_from']}" for st in stages)
     n = iso[stages[0]]["points"][0]["n"]
+    reference = s.get("reference_sensor")
+    parts = [
+        "<h2>ISO 9283 pose accuracy (AP) and repeatability (RP), mm</h2>",
+        f"<p>{n} cycles through the standard's five points P1…P5; {_e(sources)}. "
+        "Attained positions: the "
+        + (f"{_e(reference)}'s" if reference else "reference sensor's")
+        + " mean at each visit, in the calibrated model's base frame. AP = ‖x̄ − c‖ "
+        "(x̄ the barycentre of the attained positions, c the commanded point), "
+        "RP = l̄ + 3·S_l (ISO 9283, 7.2.1 and 7.2.2); position only. Every visit (stage, "
+        "point, cycle, commanded point, joints, the sensor's mean and the attained "
+        "position) is in measurements-&lt;sensor&gt;.csv, at full precision.</p>",
+        _table(head, rows, ident="iso-summary"),
+        "<h3>Commanded points (robot base frame, mm)</h3>",
+        _table(
+            ["point", "x", "y", "z"],
+            [[p["point"], *_xyz(p["commanded_mm"])] for p in iso[stages[0]]["points"]],
+            ident="iso-commanded",
+        ),
+    ]
+    for st in stages:
+        parts.append(
+            f"<h3>{_e(st)}: joints from the {_e(iso[st]['joints_from'])} "
+            f"(barycentre x̄ and AP components x̄ − c, mm)</h3>"
+        )
+        detail = [
+            [
+                p["point"],
+                *_xyz(p["barycentre_mm"]),
+                *_xyz(p["ap_xyz_mm"]),
+                _mm(p["ap_mm"]),
+                _mm(p["l_mean_mm"]),
+                _mm(p["s_l_mm"]),
+                _mm(p["rp_mm"]),
+                p["n"],
+            ]
+            for p in iso[st]["points"]
+        ]
+        head = ["point", "x̄", "ȳ", "z̄", "APx", "APy", "APz", "AP", "l̄", "S_l", "RP", "n"]
+        parts.append(_table(head, detail, ident=st))
+    return "".join(parts)
+
+
+def _intro(d: ReportData) -> tuple[str, str]:
+    """The page's title and first line: what the campaign is."""
+    f = d.facts
+    where = f"{_e(', '.join(f['sensors']))}; database {_e(f['database'])}."
+    if not f.get("iso9283"):
+        return f"cellcal campaign {d.campaign_id}", f"<p>{_e(f['model'])}, {where}</p>"
     return (
-        "<h2>ISO 9283 pose accuracy (AP) and repeatability (RP), mm</h2>"
-        f"<p>{n} cycles through the standard's five points of the cube's diagonal plane; "
-        f"{_e(sources)}. Positions in the calibrated model's base frame.</p>" + _table(head, rows)
+        f"cellcal ISO 9283 test (campaign {d.campaign_id})",
+        f"<p>{_e(f['plan'])}. Sensors {where}</p>",
     )
 
 
 def report_html(d: ReportData, timeline: dict[str, Any]) -> str:
     """The whole page."""
     salt = f"c{d.campaign_id}"
-    title = f"cellcal campaign {d.campaign_id}"
-    parts = [
-        f"<h1>{_e(title)}</h1>",
-        f"<p>{_e(d.facts['model'])}, {_e(', '.join(d.facts['sensors']))}; "
-        f"database {_e(d.facts['database'])}.</p>",
-    ]
+    title, intro = _intro(d)
+    parts = [f"<h1>{_e(title)}</h1>", intro]
     if d.summary is not None and "iso9283" in d.summary:
-        parts.append(_iso9283(d.summary["iso9283"]))
+        parts.append(_iso9283(d.summary))
     elif d.summary is None or d.model is None:
         parts.append(
             '<p class="verdict bad">No analysis is stored for this campaign '

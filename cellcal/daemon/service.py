@@ -8,8 +8,10 @@ Start-up: lock the database, open it, mark a campaign found ``running`` or ``pau
 ``interrupted`` (the previous service died under it) and hold the queue until an
 operator resumes or aborts it, show that campaign (else the last one) as the database
 has it, listen, ``READY=1``; the devices connect in the engine
-thread meanwhile (their states in ``STATUS=``). SIGTERM: ``STOPPING=1``, the pose under
-way is abandoned, the robot stopped, the campaign ``interrupted``, exit 0. SIGHUP: the
+thread meanwhile (their states in ``STATUS=``). SIGTERM, or SIGINT (Ctrl-C in the
+foreground; the twins' processes ignore it and are stopped by the service), each logged
+by its name: ``STOPPING=1``, the pose under way is abandoned, the robot stopped, the
+campaign ``interrupted``, exit 0. SIGHUP: the
 configuration is read again when no campaign runs (else when it ends).
 """
 
@@ -220,8 +222,9 @@ async def serve(opts: DaemonOptions) -> int:
             worker = Worker(control, opts.config, nominal, opts.db_path, clock, mock=opts.mock)
             worker.start()
             stopped = asyncio.Event()
-            loop.add_signal_handler(signal.SIGTERM, _on_term, control, notifier, stopped)
-            loop.add_signal_handler(signal.SIGINT, _on_term, control, notifier, stopped)
+            for signum in (signal.SIGTERM, signal.SIGINT):
+                args = (signum, control, notifier, stopped)
+                loop.add_signal_handler(signum, _on_term, *args)
             loop.add_signal_handler(signal.SIGHUP, _on_hup, opts, svc, worker, notifier)
             tasks = [asyncio.create_task(_status_updates(notifier, control, changed))]
             interval = notifier.watchdog_interval_s
@@ -239,7 +242,7 @@ async def serve(opts: DaemonOptions) -> int:
             code = 0
             if not stopped.is_set():  # the engine thread ended by itself: a bug
                 log.error("the engine thread stopped: %s", worker.failure)
-                control.shutdown()
+                control.shutdown("the engine thread stopped")
                 code = 1
             await asyncio.wait({dead}, timeout=STOP_GRACE_S)
             if not dead.done():
@@ -326,10 +329,15 @@ def _note_stopped(store: Store, control: Control) -> None:
             )
 
 
-def _on_term(control: Control, notifier: Notifier, stopped: asyncio.Event) -> None:
-    log.info("SIGTERM: stopping at the next safe point")
+def _on_term(signum: int, control: Control, notifier: Notifier, stopped: asyncio.Event) -> None:
+    """SIGTERM (systemd) or SIGINT (Ctrl-C in the foreground): the same stop, exit 0."""
+    name = signal.Signals(signum).name
+    if stopped.is_set():
+        log.info("%s: already stopping", name)
+        return
+    log.info("%s: stopping at the next safe point", name)
     notifier.stopping("stopping: the robot is stopped, the campaign kept resumable")
-    control.shutdown()
+    control.shutdown(name)
     stopped.set()
 
 

@@ -55,13 +55,24 @@ def render(venv: Path, config: Path, user: str) -> str:
         "user": user,
         "protect_home": "read-only" if home else "yes",
     }
-    text = template()
+    text = _rendered_header(template(), venv, config, user)
     for key in FIELDS:
         text = text.replace("${" + key + "}", values[key])
     left = re.findall(r"\$\{(\w+)\}", text)
     if left:
         raise CampaignError(f"the unit template has unknown fields: {', '.join(left)}")
     return text
+
+
+def _rendered_header(text: str, venv: Path, config: Path, user: str) -> str:
+    """The template's opening comment (about the template and its fields) replaced by
+    one about this rendered copy."""
+    body = text[text.index("[Unit]") :]
+    return (
+        "# The cell service's systemd unit, rendered by `cellcal service install` from the\n"
+        f"# bundled template for venv {venv}, configuration {config}, user {user}\n"
+        "# (see docs/service.md). After editing it: sudo systemctl daemon-reload.\n" + body
+    )
 
 
 def verify(text: str, tool: str | None = None) -> Verification:

@@ -128,6 +128,9 @@ class Worker(threading.Thread):
                 noise_stream=self.connections,
             )
         except CellcalError as exc:
+            if c.shutting_down:  # stopping: a device that did not connect is no news
+                log.info("devices: not connected, the service stops (%s)", exc)
+                return False
             message = str(exc)
             self._mark_fault(message)
             wait = BACKOFF_S[min(self.connections, len(BACKOFF_S) - 1)]

@@ -17,7 +17,12 @@ a child process (``spawn``: the campaign's threads are not forked):
   namespace as ``/proc/<child>/fd/<n>``), or with the reason it could not;
 * it serves until told to stop, or until the campaign's process is gone (its end of the
   pipe closes): a killed campaign leaves no camera behind. Tests may have it stop one
-  camera (fault injection).
+  camera (fault injection);
+* it ignores SIGINT: a Ctrl-C on a terminal goes to the whole foreground process group,
+  the child included, and the child is the campaign's to stop (after the pose under way,
+  which it serves to the end). SIGINT is blocked in the starting thread while the child
+  starts, so the child inherits it blocked and sets it ignored before anything else can
+  take it: no ``KeyboardInterrupt`` at any moment of its life.
 """
 
 from __future__ import annotations
@@ -25,6 +30,8 @@ from __future__ import annotations
 import contextlib
 import logging
 import multiprocessing
+import signal
+from collections.abc import Iterator
 from multiprocessing.connection import Connection
 from multiprocessing.process import BaseProcess
 from typing import TYPE_CHECKING, Any
@@ -143,7 +150,8 @@ def serve_in_process(
         daemon=True,
     )
     try:
-        process.start()
+        with _interrupt_blocked():
+            process.start()
     except OSError as exc:
         unwatch()
         raise DeviceError(f"camera twin: cannot start its process ({exc})") from None
@@ -169,10 +177,31 @@ def serve_in_process(
     return RunningTwin(payload, child)
 
 
+@contextlib.contextmanager
+def _interrupt_blocked() -> Iterator[None]:
+    """SIGINT blocked in this thread while a child starts: the child inherits the mask
+    and unblocks it once it ignores SIGINT (:func:`_ignore_interrupts`). A SIGINT meant
+    for this process is not lost meanwhile: another thread takes it, or it waits here
+    until the mask is restored."""
+    previous = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, previous)
+
+
+def _ignore_interrupts() -> None:
+    """The child: SIGINT ignored (one pending since its start is dropped), then unblocked."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
+
+
 def _child_main(
     options: CameraRigOptions, truth: RigTruth, shared: Any, marked: Any, pipe: Connection
 ) -> None:
-    """The child: serve the rig's cameras until told to stop or orphaned."""
+    """The child: serve the rig's cameras until told to stop or orphaned; a Ctrl-C on
+    the terminal is its parent's to act on."""
+    _ignore_interrupts()
     from cellcal.mocks.gige_cameras import GigECameraTwin
     from cellcal.mocks.rig_twin import RigScene, serve_gige
 

@@ -5,12 +5,18 @@ for a user that does not exist."""
 
 from __future__ import annotations
 
+import contextlib
+import grp
+import os
+import pwd
 import shutil
 import sys
+import tempfile
 from pathlib import Path
 
 import pytest
 
+from cellcal.commands.service import _blocked
 from cellcal.daemon.unitfile import render, template, verify
 from tests.cli.test_calibrate_cli import run
 
@@ -81,8 +87,11 @@ def test_install_writes_once_and_never_replaces_silently(
     unit = tmp_path / "cellcal.service"
     assert unit.read_text() == render(VENV, CONFIG, "root")
     assert "written" in out
-    assert "sudo systemctl daemon-reload && sudo systemctl enable cellcal.service" in out
+    # the unit is outside systemd's search path: enable it by its path, where it went
+    unit_path = tmp_path.resolve() / "cellcal.service"
+    assert f"sudo systemctl daemon-reload && sudo systemctl enable {unit_path}\n" in out
     assert "sudo systemctl start cellcal.service" in out
+    assert "usermod" not in out and "-aG root" not in out  # no group advice for root
     assert "unchanged" in run(capsys, *args)[1]
     unit.write_text(unit.read_text() + "# edited by hand\n")
     code, out, err = run(capsys, *args)
@@ -108,3 +117,67 @@ def test_install_refuses_what_it_cannot_use(
         code, _, err = run(capsys, *base, "--config", CONFIG, "--user", "no-such-cellcal-user")
         assert code == 2 and "sudo useradd --system --user-group" in err
     assert not list(p for p in tmp_path.iterdir() if p.suffix == ".service")
+
+
+def test_the_rendered_header_is_about_the_rendered_unit() -> None:
+    text = render(Path("/opt/cellcal"), Path("/etc/cellcal/cell.toml"), "cellcal")
+    header = text[: text.index("[Unit]")]
+    assert "are filled in" not in header and "${" not in header
+    assert "rendered by `cellcal service install`" in header
+    assert "/opt/cellcal" in header and "/etc/cellcal/cell.toml" in header
+    assert "user cellcal" in header
+    assert all(line.startswith("# ") for line in header.splitlines())
+
+
+def _other_user() -> pwd.struct_passwd:
+    """A user other than root and us whose group has its name (as the unit needs)."""
+    for u in pwd.getpwall():
+        if u.pw_uid in (0, os.getuid()):
+            continue
+        with contextlib.suppress(KeyError):
+            if grp.getgrnam(u.pw_name).gr_gid == u.pw_gid:
+                return u
+    pytest.skip("no system user with a group of its name")
+
+
+def test_a_venv_the_services_user_cannot_execute_is_refused(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
+    user = _other_user().pw_name
+    locked = tmp_path / "locked"
+    (locked / "venv" / "bin").mkdir(parents=True)
+    exe = locked / "venv" / "bin" / "cellcal"
+    exe.write_text("#!/usr/bin/env python3\n")
+    exe.chmod(0o755)
+    locked.chmod(0o700)
+    args = ["service", "install", "--config", CONFIG, "--user", user, "--venv", locked / "venv"]
+    for extra in (["--unit-dir", tmp_path], ["--dry-run"]):
+        code, out, err = run(capsys, *args, *extra)
+        assert code == 2 and len(err.strip().splitlines()) == 1, err
+        assert f"user {user} cannot execute {exe}" in err and str(locked / "venv") in err
+        assert "not searchable" in err and out == ""
+    assert not (tmp_path / "cellcal.service").exists()
+
+
+def test_every_folder_on_the_path_is_checked_for_that_users_x_bit(tmp_path: Path) -> None:
+    top = Path(tempfile.mkdtemp(prefix="cellcal-x-"))  # under /tmp, 0700, ours
+    try:
+        exe = top / "bin" / "cellcal"
+        exe.parent.mkdir()
+        exe.write_text("")
+        exe.chmod(0o750)
+        st = top.stat()
+        other, group = st.st_uid + 4242, st.st_gid
+        assert _blocked(exe, other, {group + 4242}) == top  # other: no x on top
+        top.chmod(0o710)
+        assert _blocked(exe, other, {group}) is None  # the group's bits
+        assert _blocked(exe, other, {group + 4242}) == top
+        top.chmod(0o711)
+        assert _blocked(exe, other, {group + 4242}) == exe  # a file other cannot run
+        exe.chmod(0o755)
+        assert _blocked(exe, other, {group + 4242}) is None
+        assert _blocked(exe, st.st_uid, set()) is None  # the owner
+        exe.chmod(0o644)
+        assert _blocked(exe, 0, set()) == exe  # root needs one x bit on a file
+    finally:
+        shutil.rmtree(top)

@@ -80,8 +80,11 @@ class Daemon:
         time_scale: float,
         extra: Sequence[str] = (),
         config: Path = TRACKER_CELL,
+        new_session: bool = False,
     ) -> None:
         self.folder = folder
+        # a session of its own: its process group stands for a terminal's foreground group
+        self.new_session = new_session
         self.extra = list(extra)
         self.config = config
         self.db = folder / "c.db"
@@ -98,7 +101,14 @@ class Daemon:
         cmd += ["--db", str(self.db), "--socket", self.sock, "--time-scale", str(self.time_scale)]
         cmd += self.extra
         self.log = open(self.folder / "daemon.log", "a")  # noqa: SIM115
-        self.proc = subprocess.Popen(cmd, stdout=self.log, stderr=self.log, text=True, env=env)
+        self.proc = subprocess.Popen(
+            cmd,
+            stdout=self.log,
+            stderr=self.log,
+            text=True,
+            env=env,
+            start_new_session=self.new_session,
+        )
         self.until(lambda s: all(d["state"] == "ready" for d in s["devices"].values()), 90)
 
     def status(self) -> dict[str, Any]:

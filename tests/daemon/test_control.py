@@ -107,3 +107,12 @@ def test_the_flusher_sends_at_once_after_a_quiet_spell_then_in_batches() -> None
     outbox.append(("status", {"idx": 4}))
     flusher.wake()
     assert len(loop.soon) == 2  # quiet again: at once
+
+
+def test_the_stop_names_its_signal() -> None:
+    """A service stopped by Ctrl-C says SIGINT in its status, by systemd SIGTERM."""
+    for name in ("SIGINT", "SIGTERM"):
+        c = Control(["robot"], lambda k, d: None)
+        c.shutdown(name)
+        assert c.state == "stopping" and c.reason == f"stopping ({name})"
+        assert c.intent == "interrupted"

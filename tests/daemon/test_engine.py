@@ -228,6 +228,58 @@ def test_a_failing_sensor_is_asked_again_and_the_event_kept(tmp_path):
     devices.close()
 
 
+def _rig_fails_after_stop(devices, stop, on_call: int) -> dict[str, int]:
+    """From its ``on_call``-th measurement the rig fails, as cameras whose process a
+    Ctrl-C ended would, and the stop request comes at the same time; its calls."""
+    rig = next(s.sensor for s in devices.sensors if s.sensor.name == "rig")
+    original = rig.measure
+    calls = {"n": 0}
+
+    def failing(n, rate):
+        calls["n"] += 1
+        if calls["n"] >= on_call:
+            stop.set()
+            raise DeviceError("rig: no camera gave a frame")
+        return original(n, rate)
+
+    rig.measure = failing
+    return calls
+
+
+def test_a_sensor_failing_once_a_stop_was_asked_is_an_interrupt_not_a_device_fault(tmp_path):
+    clock = SimulatedClock()
+    plan, devices, store, cid = _setup(tmp_path, clock)
+    stop = threading.Event()
+    calls = _rig_fails_after_stop(devices, stop, 4)
+    out = _acquire(store, cid, plan, devices, clock, stop=stop)
+    assert out.interrupted and out.stored == 3  # the pose under way abandoned, unstored
+    assert calls["n"] == 4  # not measured again: the operator asked to stop
+    assert store.events(cid) == []  # neither a sensor-retry nor a device-error
+    assert store.completed_indices(cid) == {0, 1, 2}
+    devices.close()
+
+
+def test_a_move_failing_once_a_stop_was_asked_is_an_interrupt(tmp_path):
+    clock = SimulatedClock()
+    plan, devices, store, cid = _setup(tmp_path, clock)
+    stop = threading.Event()
+    original = devices.robot.move_joints
+    calls = {"n": 0}
+
+    def flaky(q, speed):
+        calls["n"] += 1
+        if calls["n"] == 3:
+            stop.set()
+            raise DeviceError("robot: connection reset")
+        original(q, speed)
+
+    devices.robot.move_joints = flaky
+    out = _acquire(store, cid, plan, devices, clock, stop=stop)
+    assert out.interrupted and out.stored == 2
+    assert store.events(cid) == []
+    devices.close()
+
+
 def test_a_sensor_that_does_not_see_its_target_leaves_the_pose_to_the_others(tmp_path):
     clock = SimulatedClock()
     plan, devices, store, cid = _setup(tmp_path, clock)

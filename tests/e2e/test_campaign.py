@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import signal
 import sqlite3
 import subprocess
@@ -93,9 +94,54 @@ def test_run_json_contract(tmp_path):
     assert doc["samples_per_pose"] == 20 and doc["sensors"] == ["tracker"]
     assert doc["rms_after_mm"] < doc["rms_before_mm"] / 10
     assert doc["clock_seconds"] >= doc["n_poses"] * 7  # the 7 s dwell, on the clock
-    human = _cli("run", "--mock", "--config", TRACKER_CELL, "--db", tmp_path / "c.db")
-    assert human.returncode == 0
-    assert "campaign 2 complete" in human.stdout and "inside the cube" in human.stdout
+
+
+def test_run_prints_a_summary_and_each_residual_on_request(tmp_path):
+    """The text output is a summary that fits a screen: the headline figures with their
+    uncertainty and where the details are; each calibration pose's residual only with
+    --residuals (and in the report and --json)."""
+    db = tmp_path / "c.db"
+    human = _cli("run", "--mock", "--config", TRACKER_CELL, "--db", db)
+    assert human.returncode == 0, human.stderr
+    out = human.stdout
+    lines = out.splitlines()
+    assert len(lines) <= 20, out
+    assert lines[0].startswith("simulated KR 5 arc cell: campaign 1 complete: 128 poses")
+    for said in (
+        "registration to the robot base",
+        "21 parameters identified, σ0 ",
+        "target offset (25.0",
+        "left at nominal: theta1, d1, theta6, d6, a6, alpha6 (not identifiable)",
+        "inside the cube",
+        "outside the cube",
+        "% reduction",
+        "tracker residual at the 80 calibration poses: RMS 0.00",
+        "(each pose: --residuals, or the report)",
+        f"database: {db} (campaign 1)",
+        f"cellcal report --db {db} --campaign 1 --out DIR",
+    ):
+        assert said in out, (said, out)
+    # the registration's RMS with the nominal geometry, then with the calibrated one
+    assert re.search(r"^  tracker +0\.2\d{3} → 0\.00\d{2} mm  \(80 poses; the reference", out, re.M)
+    assert out.count(" ± ") >= 3, out  # the frame, the largest corrections, the offset
+    assert "by plan index" not in out
+
+    detailed = _cli(
+        "run",
+        "--mock",
+        "--config",
+        TRACKER_CELL,
+        "--db",
+        db,
+        "--residuals",
+        "--report",
+        tmp_path / "r",
+    )
+    assert detailed.returncode == 0, detailed.stderr
+    rows = detailed.stdout.split("(by plan index)")[1].splitlines()[2:]
+    assert sum(r.startswith("  ") and len(r.split()) >= 6 for r in rows) == 80, detailed.stdout
+    assert f"report: {tmp_path / 'r' / 'index.html'}" in detailed.stdout
+    assert (tmp_path / "r" / "index.html").is_file()
 
 
 def test_run_user_errors(tmp_path):

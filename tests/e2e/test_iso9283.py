@@ -4,39 +4,55 @@ with the calibrated model's, through the real drivers, and stores every sample."
 
 from __future__ import annotations
 
+import csv
+import html
 import json
+import re
 import sqlite3
 
 import numpy as np
 import pytest
 
 from cellcal.calib.iso9283 import iso_points
+from cellcal.measurementfiles import read_measurements
 from tests.conftest import TRACKER_CELL
 from tests.e2e.calibrated import calibrated_campaign, cli
 
 pytestmark = pytest.mark.timeout(300)
 
 
-def test_accuracy_improves_repeatability_stays_and_every_sample_is_stored(tmp_path):
+CYCLES = 6
+
+
+@pytest.fixture(scope="module")
+def iso_test(tmp_path_factory):
+    """One calibrated campaign (the shared fixture) and one ISO 9283 test after it, for
+    every test of this module: the configuration, the campaign's outcome, the test's
+    JSON output, its database and its folder."""
+    tmp_path = tmp_path_factory.mktemp("iso9283")
     config, _, outcome, model_path = calibrated_campaign(tmp_path)
-    model = str(model_path)
     iso_db = str(tmp_path / "iso.db")
-    cycles = 6
     run = cli(
         "iso9283",
         "--mock",
         "--config",
         str(TRACKER_CELL),
         "--model",
-        model,
+        str(model_path),
         "--db",
         iso_db,
         "--cycles",
-        str(cycles),
+        str(CYCLES),
         "--json",
     )
     assert run.returncode == 0, run.stderr
-    out = json.loads(run.stdout)["iso9283"]
+    return config, outcome, json.loads(run.stdout), iso_db, tmp_path
+
+
+def test_accuracy_improves_repeatability_stays_and_every_sample_is_stored(iso_test):
+    config, outcome, result, iso_db, _ = iso_test
+    cycles = CYCLES
+    out = result["iso9283"]
     before, after = out["iso-before"]["points"], out["iso-after"]["points"]
     points = iso_points(np.array(config.campaign.cube_centre_mm), config.campaign.cube_edge_mm)
     for stage in (before, after):
@@ -64,10 +80,87 @@ def test_accuracy_improves_repeatability_stays_and_every_sample_is_stored(tmp_pa
         assert roles == {"iso-before": 5 * cycles, "iso-after": 5 * cycles}
     finally:
         conn.close()
-    # The report shows the test.
-    run = cli("report", "--db", iso_db, "--out", str(tmp_path / "iso-report"))
+
+
+def _cells(page: str, ident: str) -> list[list[str]]:
+    """The rows of the page's table ``ident``, as the text of their cells."""
+    table = re.search(rf'<table id="{ident}">(.*?)</table>', page, re.S)
+    assert table, ident
+    return [
+        [html.unescape(c) for c in re.findall(r"<t[dh][^>]*>(.*?)</t[dh]>", row)]
+        for row in re.findall(r"<tr>(.*?)</tr>", table.group(1))
+    ]
+
+
+def test_the_report_is_the_iso_tests_with_its_numbers_and_its_samples(iso_test):
+    """The report names the test (not a calibration on the cube's grid), shows the
+    commanded points, barycentres and AP components equal to the stored summary, and
+    its CSV holds every visit, readable by ``cellcal calibrate``."""
+    _, _, result, iso_db, tmp_path = iso_test
+    out = tmp_path / "iso-report"
+    run = cli("report", "--db", iso_db, "--out", str(out), "--json")
     assert run.returncode == 0, run.stderr
-    assert "ISO 9283 pose accuracy" in (tmp_path / "iso-report" / "index.html").read_text()
+    files = json.loads(run.stdout)["files"]
+    assert "measurements-tracker.csv" in files and "validation-tracker.csv" not in files
+    summary = json.loads((out / "summary.json").read_text())
+    iso = summary["summary"]["iso9283"]
+    assert iso == result["iso9283"]
+    model = summary["summary"]["calibrated_model"]
+    assert model.endswith("model.toml") and summary["summary"]["cycles"] == CYCLES
+    plan = summary["plan"]
+    assert plan.startswith("ISO 9283 AP/RP test: the standard's five points")
+    assert f"{CYCLES} cycles" in plan and "kuka-kr5-arc" in plan and model in plan
+    assert "cube" not in plan
+
+    page = (out / "index.html").read_text()
+    text = html.unescape(re.sub(r"<[^>]+>", " ", page))
+    assert "<title>cellcal ISO 9283 test (campaign 1)</title>" in page
+    assert "cube's grid" not in text and "calibration poses" not in text
+    assert "4 × 4 × 5" not in text and "4×4×5" not in text
+    (poses,) = [r for r in _cells(page, "campaign") if r[0] == "test poses"]
+    assert poses[1] == plan and "cube" not in poses[1]
+    points = iso["iso-before"]["points"]
+    commanded = _cells(page, "iso-commanded")
+    assert commanded[0] == ["point", "x", "y", "z"]
+    assert commanded[1:] == [[p["point"], *(f"{v:.4f}" for v in p["commanded_mm"])] for p in points]
+    summary_rows = _cells(page, "iso-summary")
+    assert summary_rows[0] == [
+        "point",
+        "AP iso-before",
+        "AP iso-after",
+        "RP iso-before",
+        "RP iso-after",
+    ]
+    for stage in ("iso-before", "iso-after"):
+        rows = _cells(page, stage)
+        assert rows[0][:8] == ["point", "x̄", "ȳ", "z̄", "APx", "APy", "APz", "AP"]
+        for row, p in zip(rows[1:], iso[stage]["points"], strict=True):
+            numbers = [*p["barycentre_mm"], *p["ap_xyz_mm"], p["ap_mm"], p["l_mean_mm"]]
+            numbers += [p["s_l_mm"], p["rp_mm"]]
+            assert row == [p["point"], *(f"{v:.4f}" for v in numbers), str(CYCLES)]
+    for row, b, a in zip(summary_rows[1:], points, iso["iso-after"]["points"], strict=True):
+        assert row == [
+            b["point"],
+            *(f"{v:.4f}" for v in (b["ap_mm"], a["ap_mm"], b["rp_mm"], a["rp_mm"])),
+        ]
+
+    # Every visit, readable by calibrate's reader and by any CSV reader.
+    csv_path = out / "measurements-tracker.csv"
+    data = read_measurements(csv_path, 6)
+    assert len(data.q) == 2 * 5 * CYCLES and data.sigma is not None
+    with csv_path.open(newline="") as f:
+        rows = list(csv.DictReader(f))
+    for stage in ("iso-before", "iso-after"):
+        for p in iso[stage]["points"]:
+            visits = [r for r in rows if r["stage"] == stage and r["point"] == p["point"]]
+            assert sorted(int(r["cycle"]) for r in visits) == list(range(1, CYCLES + 1))
+            for r in visits:
+                c = [float(r[f"commanded_{a}"]) for a in "xyz"]
+                np.testing.assert_allclose(c, p["commanded_mm"], rtol=0, atol=1e-9)
+            attained = np.array([[float(r[f"attained_{a}"]) for a in "xyz"] for r in visits])
+            np.testing.assert_allclose(attained.mean(axis=0), p["barycentre_mm"], atol=1e-9)
+            ap = attained.mean(axis=0) - np.array(p["commanded_mm"])
+            np.testing.assert_allclose(ap, p["ap_xyz_mm"], atol=1e-9)
 
 
 def test_a_nominal_model_and_too_few_cycles_are_refused(tmp_path):
