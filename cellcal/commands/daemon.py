@@ -13,7 +13,7 @@ import click
 from cellcal.commands.output import TIME_SCALE
 from cellcal.commands.run import bundled_mock_cell
 from cellcal.commands.service_client import socket_path
-from cellcal.config import default_database, load_config
+from cellcal.config import load_config
 from cellcal.daemon.page import parse_http
 from cellcal.daemon.service import DaemonOptions, serve
 from cellcal.errors import InputError
@@ -115,13 +115,6 @@ def daemon(
     db = db_path or config.storage.database
     Path(db).parent.mkdir(parents=True, exist_ok=True)
     _logging()
-    default = " (the default: neither --db nor storage.database names one)"
-    logging.getLogger("cellcal.service").info(
-        "database %s%s; reports in %s",
-        Path(db).resolve(),
-        default if Path(db) == Path(default_database()) else "",
-        Path(db).resolve().parent / "reports",
-    )
     opts = DaemonOptions(
         config=config,
         config_path=str(Path(config_path).resolve()) if config_path else None,

@@ -32,7 +32,7 @@ from typing import Any
 from aiohttp import web
 
 from cellcal.clock import Clock, SimulatedClock, WallClock
-from cellcal.config import CellConfig, load_config
+from cellcal.config import CellConfig, default_database, load_config
 from cellcal.daemon.api import EventHub, Service, campaign_view, make_app, stored_poses
 from cellcal.daemon.control import Control
 from cellcal.daemon.locks import RunLock, robot_claim
@@ -231,8 +231,16 @@ async def serve(opts: DaemonOptions) -> int:
             if interval is not None:
                 limit = 2 * interval
                 tasks.append(asyncio.create_task(_watchdog(notifier, control, interval, limit)))
-            where = (opts.socket_path, opts.db_path, os.getpid())
-            log.info("listening on %s (database %s, pid %d)", *where)
+            db = Path(opts.db_path)
+            default = db == Path(default_database()).resolve()
+            log.info(
+                "listening on %s (pid %d); database %s%s; reports in %s",
+                opts.socket_path,
+                os.getpid(),
+                db,
+                " (the default: neither --db nor storage.database names one)" if default else "",
+                db.parent / "reports",
+            )
             if svc.http:
                 log.info("status page: %s", svc.http)
             notifier.ready(status_line(control))
