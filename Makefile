@@ -70,8 +70,10 @@ UR_CLIENT := $(VENV)/ur-rtde-client/rtde/rtde.py
 $(UR_CLIENT): | $(STAMP)
 	@$(BIN)/python tests/mocks/ur_official_client.py $(VENV)/ur-rtde-client
 
+# Every core, a test file's tests on one worker (they share module fixtures); the 20
+# slowest tests are listed at the end.
 unit: $(STAMP) $(UR_CLIENT) $(ARAVIS) $(TOOLS)
-	$(BIN)/pytest -q
+	$(BIN)/pytest -q -n auto --dist loadfile --durations=20
 
 test: lint types unit
 
