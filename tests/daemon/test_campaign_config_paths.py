@@ -17,6 +17,7 @@ from pathlib import Path
 import pytest
 
 from cellcal.commands.service_client import call
+from cellcal.errors import CellcalError
 
 ROOT = Path(__file__).resolve().parents[2]
 CONFIG = ROOT / "config"
@@ -45,6 +46,18 @@ def _cli(cwd: Path, *args: str) -> subprocess.CompletedProcess[str]:
     )
 
 
+def _answers(sock: str) -> bool:
+    """Whether a service answers its status call on ``sock`` (not yet: the socket is
+    missing, refuses, or the call fails while it starts)."""
+    if not Path(sock).exists():
+        return False
+    try:
+        call(sock, "GET", "/v1/status")
+    except (OSError, CellcalError):
+        return False
+    return True
+
+
 @pytest.fixture
 def service(folder: Path) -> Iterator[tuple[Path, str]]:
     """A --mock service started in the cell's folder with ``--config mock-cell.toml``
@@ -56,14 +69,10 @@ def service(folder: Path) -> Iterator[tuple[Path, str]]:
     with open(folder / "daemon.log", "w") as log:
         proc = subprocess.Popen(cmd, cwd=cell, stdout=log, stderr=log, text=True)
     try:
-        for _ in range(1200):
+        deadline = time.monotonic() + 60.0
+        while not _answers(sock):  # waits for the listening socket, never a fixed time
             assert proc.poll() is None, (folder / "daemon.log").read_text()[-3000:]
-            if Path(sock).exists():
-                try:
-                    call(sock, "GET", "/v1/status")
-                    break
-                except Exception:
-                    pass
+            assert time.monotonic() < deadline, "the service never answered on its socket"
             time.sleep(0.05)
         yield cell, sock
     finally:
