@@ -37,8 +37,8 @@ from cellcal.calib.marker_corners import (
     MarkerFinder,
     MarkerImage,
     Window,
-    marker_corners_many,
 )
+from cellcal.calib.marker_lines import marker_corners_many
 from cellcal.calib.target_pose import TargetPose, measure_target, target_corners
 from cellcal.errors import InputError, MeasurementError
 

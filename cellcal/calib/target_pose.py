@@ -32,7 +32,7 @@ from numpy.typing import NDArray
 
 from cellcal.calib.camera_rig import Rig, Target
 from cellcal.calib.geometry import Array, invert, skew, so3_exp
-from cellcal.calib.marker_corners import MarkerCorners
+from cellcal.calib.marker_lines import MarkerCorners
 from cellcal.errors import MeasurementError
 
 #: Least robust scale of the corner residuals, px (keeps perfect data from being cut).
@@ -229,7 +229,7 @@ def measure_target(
     start: Array | None = None,
 ) -> TargetPose:
     """The target's pose from the marker corners each camera found (normalised
-    coordinates, :func:`~cellcal.calib.marker_corners.marker_corners`).
+    coordinates, :func:`~cellcal.calib.marker_lines.marker_corners`).
 
     ``start`` (a previous pose) skips the per-camera start. Raises
     :class:`MeasurementError` when fewer than ``min_cameras`` cameras see the target.

@@ -10,7 +10,8 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from cellcal.calib.camera_rig import Camera, Marker, Rig, Target
-from cellcal.calib.marker_corners import MarkerFinder, Window, grey_levels, marker_corners
+from cellcal.calib.marker_corners import MarkerFinder, Window, grey_levels
+from cellcal.calib.marker_lines import marker_corners
 from cellcal.calib.target_pose import measure_target
 from cellcal.errors import InputError, MeasurementError
 from cellcal.mocks.camera_render import Optics, SceneRenderer

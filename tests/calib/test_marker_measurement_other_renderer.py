@@ -11,7 +11,8 @@ import pytest
 
 from cellcal.calib import marker_corners as mc
 from cellcal.calib.camera_rig import Rig, Target
-from cellcal.calib.marker_corners import MarkerFinder, marker_corners
+from cellcal.calib.marker_corners import MarkerFinder
+from cellcal.calib.marker_lines import marker_corners
 from cellcal.calib.rig_measurement import TargetMeter
 from cellcal.mocks import texture_render as tex
 from cellcal.mocks.texture_scenes import oblique_rig, plate_target, target_poses
