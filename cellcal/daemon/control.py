@@ -18,7 +18,8 @@ the one held, else the last one; a campaign that starts replaces it and its pose
 
 Size (about 520 lines, over the 500 of the house's rule): the state machine and the
 campaign shown on the status page share one lock and one snapshot; the next split takes
-the record-to-event formatting (``_event`` and the pose rows) into a module of its own.
+the records turned into events (``record``, ``event_data`` and the unit helpers) into a
+module of its own.
 """
 
 from __future__ import annotations
