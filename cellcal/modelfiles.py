@@ -215,6 +215,7 @@ def calibrated_document(
             "rms_after_mm": result.rms_after,
             "max_after_mm": result.max_after,
             "condition_number": result.condition_number,
+            "condition_number_equal_weights": result.condition_number_equal_weights,
             "identified": list(result.identified),
             "unidentifiable": list(result.unidentifiable),
             "correlated": [list(c) for c in result.identifiability.correlated],

@@ -10,7 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from cellcal.calib.error_model import Groups, State, predict
+from cellcal.calib.error_model import Groups, ParameterSpec, State, predict
 from cellcal.calib.geometry import Array
 from cellcal.calib.identifiability import Identifiability
 from cellcal.calib.robot_model import RobotModel
@@ -73,6 +73,16 @@ class CalibrationResult:
     frames_std: Array | None = None
     tool_rotations: Array | None = None
     orientation_residuals: Array | None = None
+    #: the a-posteriori covariance σ₀²(JᵀJ)⁻¹ (internal units: mm, rad) of the parameters
+    #: ``covariance_specs`` (the identified ones, sensor frames included), and the points
+    #: (sensor frame, one per session) the frames' rotations turn about in it
+    covariance: Array | None = None
+    covariance_specs: tuple[ParameterSpec, ...] = ()
+    pivots: Array | None = None
+    #: the condition number with every coordinate weighted alike (what ``cellcal plan``
+    #: computes before anything is measured); ``condition_number`` is the fit's own,
+    #: each coordinate weighted by 1/σ of its measurement
+    condition_number_equal_weights: float = float("nan")
 
     @property
     def targets(self) -> tuple[str, ...]:
@@ -115,7 +125,7 @@ class CalibrationResult:
             tools,
             frames[:, :3, :3],
             frames[:, :3, 3],
-            np.zeros((len(frames), 3)),
+            self.pivots if self.pivots is not None else np.zeros((len(frames), 3)),
             self.tool_rotations,
         )
 

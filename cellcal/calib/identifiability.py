@@ -138,6 +138,13 @@ def analyse(
     return _conditioned(Js, specs, chosen, tuple(float(r) for r in remaining), (), pinned)
 
 
+def condition_number(J: Array, columns: Sequence[int]) -> float:
+    """The condition number of the (M×P) Jacobian ``J``'s ``columns``, each scaled to unit
+    length (as :func:`analyse` reports it)."""
+    S = np.linalg.svd(_unit_columns(J)[:, list(columns)], compute_uv=False)
+    return float(S[0] / S[-1]) if len(S) and S[-1] > 0 else float("inf")
+
+
 def _conditioned(
     Js: Array,
     specs: tuple[ParameterSpec, ...],

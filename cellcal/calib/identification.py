@@ -38,7 +38,7 @@ from cellcal.calib.error_model import (
     predict,
 )
 from cellcal.calib.geometry import Array, skew, so3_log, wrap_deg
-from cellcal.calib.identifiability import analyse, weakly_determined
+from cellcal.calib.identifiability import analyse, condition_number, weakly_determined
 from cellcal.calib.kinematics import target_kinematics
 from cellcal.calib.observations import (
     Data,
@@ -336,6 +336,10 @@ def calibrate(
             "spread them over a larger volume"
         )
 
+    # the same poses' condition number with every coordinate weighted alike, as the plan
+    # computes it before anything is measured (positions only)
+    equal = data.jacobian(baseline, specs)[:, :3, :].reshape(-1, len(specs))
+    cond_equal = condition_number(equal, ident.identified)
     full = data.residuals(state)
     residuals = full[:, :3]
     dof = equations - P
@@ -406,6 +410,10 @@ def calibrate(
         frames_std=frame_std,
         tool_rotations=state.tool_rotations,
         orientation_residuals=None if not six else full[:, 3:],
+        covariance=cov,
+        covariance_specs=sel,
+        pivots=state.pivots,
+        condition_number_equal_weights=cond_equal,
     )
 
 

@@ -153,8 +153,10 @@ def _print_summary(out: CampaignOutcome, folder: str | None, residuals: bool) ->
             f"  ({r.n} poses{'; ' + note if note else ''})"
         )
     click.echo(
-        f"calibration from {s.reference}: {len(c.identified)} parameters identified, "
-        f"σ0 {c.sigma0:.2f}, condition number {c.condition_number:.3g}"
+        f"calibration from {s.reference}: {len(c.identified)} of {len(c.parameters)} "
+        f"parameters of the robot and target offset identified (the sensor frame besides), "
+        f"σ0 {c.sigma0:.2f}, condition number {c.condition_number:.3g} "
+        f"({c.condition_number_equal_weights:.4g} with equal weights, as `plan` computes it)"
     )
     click.echo(f"  corrections: {_corrections(c)}")
     click.echo(f"  target offset {_xyz(c.tool, 3)} ± {_xyz(c.tool_std, 3)} mm")
@@ -175,6 +177,12 @@ def _print_summary(out: CampaignOutcome, folder: str | None, residuals: bool) ->
         f"  all {s.n_validation} poses: RMS {s.validation_before.rms:.4f} → "
         f"{s.validation_after.rms:.4f} mm, {s.improvement_pct:.1f} % reduction"
     )
+    if s.spread is not None:
+        click.echo(
+            f"  another campaign would give {s.spread.low:.4f}–{s.spread.high:.4f} mm after "
+            f"(90 % of {s.spread.draws} repeats drawn from the fit's covariance and the "
+            "poses' noise)"
+        )
     click.echo(
         f"the paper, after calibration: {PAPER['cl_inside_mm']:.3f} mm in the calibrated region "
         f"({PAPER['other_method_mm']:.3f} mm with another registration method), "

@@ -18,6 +18,7 @@ from typing import Any
 
 import numpy as np
 
+from cellcal import __version__
 from cellcal.calib.acceptance import ACCURACY_CLASS_MM, CHECK_REGISTRATION, check_data
 from cellcal.calib.error_model import predict
 from cellcal.calib.fusion import Estimate, carried, fuse, in_base
@@ -25,6 +26,7 @@ from cellcal.calib.geometry import Array
 from cellcal.calib.identification import CalibrationResult, calibrate, fit_frames
 from cellcal.calib.kinematics import target_kinematics
 from cellcal.calib.outliers import PointResidual, point_residuals
+from cellcal.calib.repeat_spread import RepeatSpread, repeat_spread
 from cellcal.calib.robot_model import RobotModel
 from cellcal.calib.validation import ErrorStats
 from cellcal.daemon.plan import CALIBRATION, VALIDATION
@@ -96,6 +98,9 @@ class CampaignSummary:
     #: poses fused (at least one sensor measured them)
     n_fused: int = 0
     warnings: tuple[str, ...] = ()
+    #: the validation RMS after calibration another campaign would give (None: no
+    #: covariance)
+    spread: RepeatSpread | None = None
 
     @property
     def improvement_pct(self) -> float:
@@ -121,6 +126,8 @@ class CampaignSummary:
             "rms_before_mm": self.validation_before.rms,
             "rms_after_mm": self.validation_after.rms,
             "improvement_pct": self.improvement_pct,
+            "rms_after_spread": None if self.spread is None else self.spread.as_dict(),
+            "cellcal_version": __version__,
             "validation_before": stats(self.validation_before),
             "validation_after": stats(self.validation_after),
             "inside": region(self.inside),
@@ -145,6 +152,7 @@ class CampaignSummary:
                 "fit_rms_before_mm": c.rms_before,
                 "fit_rms_after_mm": c.rms_after,
                 "condition_number": c.condition_number,
+                "condition_number_equal_weights": c.condition_number_equal_weights,
                 "sigma0": c.sigma0,
                 "identified": list(c.identified),
                 "unidentifiable": list(c.unidentifiable),
@@ -278,6 +286,15 @@ def analyse(
         reference,
     )
     fused = [fuse(list(e.values())) if e else None for e in estimates]
+    after = ErrorStats.of(e_after)
+    spread = repeat_spread(result, data.q[val], sigma(reference, val), after.rms)
+    if spread is not None and spread.above:
+        warnings.append(
+            f"the validation RMS after calibration, {after.rms:.4f} mm, is above what the "
+            f"fit's own uncertainty explains (199 of 200 repeats below {spread.alarm:.4f} "
+            "mm): an error the model does not hold (temperature, compliance, a loose "
+            "target) or validation poses unlike the calibration's"
+        )
     summary = CampaignSummary(
         campaign_id=campaign_id,
         reference=reference,
@@ -286,7 +303,7 @@ def analyse(
         registrations=tuple(registrations),
         calibration=result,
         validation_before=ErrorStats.of(e_before),
-        validation_after=ErrorStats.of(e_after),
+        validation_after=after,
         inside=inside,
         outside=outside,
         regions=regions,
@@ -294,6 +311,7 @@ def analyse(
         agreements=_agreements(estimates, reference),
         n_fused=sum(f is not None for f in fused),
         warnings=tuple(warnings),
+        spread=spread,
     )
     # All results of one analysis in one transaction: a crash leaves none or all.
     with store.transaction():

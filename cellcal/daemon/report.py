@@ -22,6 +22,7 @@ from typing import Any
 
 import numpy as np
 
+from cellcal import __version__
 from cellcal.calib.geometry import apply, invert
 from cellcal.daemon.analysis import mean_sigma
 from cellcal.daemon.plan import CALIBRATION, VALIDATION
@@ -302,6 +303,10 @@ def write_report(
         "samples_per_pose": row.samples_per_pose,
         "mock": row.mock,
         "plan": plan_text(row.config_json),
+        "cellcal_version": __version__,
+        "acquired_with": store.conn.execute(
+            "SELECT cellcal_version FROM campaigns WHERE id = ?", (cid,)
+        ).fetchone()[0],
     }
     iso = is_iso_test(store, cid, summary)
     if iso:

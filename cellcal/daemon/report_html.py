@@ -66,7 +66,29 @@ def _headline(d: ReportData) -> str:
         f'<p class="verdict" id="headline">Position error at {s["n_validation_poses"]} '
         "validation poses: "
         f"RMS {_mm(s['rms_before_mm'])} mm before, <b>{_mm(s['rms_after_mm'])} mm after</b> "
-        f"calibration ({s['improvement_pct']:.1f} % lower).</p>"
+        f"calibration ({s['improvement_pct']:.1f} % lower).{_spread(s)}</p>"
+    )
+
+
+def _equal_weights(fit: dict[str, Any]) -> str:
+    c = fit.get("condition_number_equal_weights")
+    if c is None or not math.isfinite(float(c)):
+        return ""
+    return (
+        f" weighted by each coordinate's σ ({float(c):.4g} with equal weights, as "
+        "<code>cellcal plan</code> computes it)"
+    )
+
+
+def _spread(s: dict[str, Any]) -> str:
+    """What another campaign would give, from the fit's uncertainty (older reports lack it)."""
+    r = s.get("rms_after_spread")
+    if not r:
+        return ""
+    return (
+        f" Another campaign on this cell would give {_mm(r['low_mm'])}–{_mm(r['high_mm'])} mm "
+        f"after (90 % of {r['draws']} repeats drawn from the fit's covariance and the "
+        "poses' noise)."
     )
 
 
@@ -226,7 +248,7 @@ def _parameters(d: ReportData, salt: str) -> str:
         f"<p>Reference sensor {_e(d.summary['reference_sensor'] if d.summary else '')}; "
         f"{fit['n_points']} poses; fit RMS {_mm(fit['rms_before_mm'])} mm before, "
         f"{_mm(fit['rms_after_mm'])} mm after; σ₀ {fit['sigma0']:.3g}; condition number "
-        f"{fit['condition_number']:.4g}.</p>",
+        f"{fit['condition_number']:.4g}{_equal_weights(fit)}.</p>",
         _table(
             ["parameter", "kind", "error (value for the tool)", "σ", "unit", "status"], rows, left=2
         ),
@@ -318,6 +340,12 @@ def _methods(d: ReportData, salt: str) -> str:
     )
 
 
+def _versions(f: dict[str, Any]) -> str:
+    """The cellcal that made this report and the one that acquired the campaign."""
+    acquired = f.get("acquired_with") or "an older cellcal (not recorded)"
+    return f"report by {f.get('cellcal_version')}; campaign acquired by {acquired}"
+
+
 def _campaign(d: ReportData, timeline: dict[str, Any]) -> str:
     f = d.facts
     kinds = Counter(k for _, k, _, _ in d.events)
@@ -327,6 +355,7 @@ def _campaign(d: ReportData, timeline: dict[str, Any]) -> str:
         ["robot model", f["model"]],
         ["sensors", ", ".join(f["sensors"])],
         ["mode", "mock (simulated cell)" if f["mock"] else "real devices"],
+        ["cellcal", _versions(f)],
         ["test poses" if f.get("iso9283") else "calibration poses", f.get("plan", "")],
         ["poses planned / stored", f"{f['n_poses']} / {f['poses_stored']}"],
         ["samples per pose", f["samples_per_pose"]],

@@ -39,6 +39,7 @@ from urllib.parse import quote
 import numpy as np
 import sqlite_utils
 
+from cellcal import __version__
 from cellcal.calib.geometry import Array
 from cellcal.daemon.store_results import AnalysisTables, StatusReads
 from cellcal.daemon.store_schema import (
@@ -186,7 +187,7 @@ class Store(AnalysisTables, StatusReads):
             cur = self.conn.execute(
                 """INSERT INTO campaigns (created, status, mock, seed, time_scale, model,
                 sensors, n_poses, samples_per_pose, dwell_s, plan_digest, config_path,
-                config_json) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)""",
+                config_json, cellcal_version) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)""",
                 (
                     utc_now(),
                     status,
@@ -201,6 +202,7 @@ class Store(AnalysisTables, StatusReads):
                     plan_digest,
                     config_path,
                     config_json,
+                    __version__,
                 ),
             )
             return int(cur.lastrowid or 0)

@@ -12,6 +12,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from cellcal import __version__
 from cellcal.calib.geometry import Array
 from cellcal.daemon.store_schema import COV_COLUMNS, UPPER, utc_now
 
@@ -75,7 +76,7 @@ class AnalysisTables:
             self.conn.execute(
                 """INSERT INTO calibrations (campaign_id, sensor, created, n_points,
                 rms_before_mm, rms_after_mm, condition_number, identified, unidentifiable,
-                model_toml) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?)""",
+                model_toml, cellcal_version) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)""",
                 (
                     campaign_id,
                     sensor,
@@ -87,6 +88,7 @@ class AnalysisTables:
                     json.dumps(list(identified)),
                     json.dumps(list(unidentifiable)),
                     model_toml,
+                    __version__,
                 ),
             )
 

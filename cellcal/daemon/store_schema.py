@@ -3,7 +3,9 @@
 The version is SQLite's ``user_version``: schema 1 holds the acquisition (``campaigns``,
 ``poses``, ``samples``, ``events``), schema 2 adds the analysis (``registrations``,
 ``calibrations``, ``reports``), schema 3 adds each sample's covariance and orientation,
-the covariance of each pose's mean, and the fused positions (``fused``).
+the covariance of each pose's mean, and the fused positions (``fused``), schema 4 the
+cellcal version that created each campaign and made each calibration
+(``cellcal_version``; NULL in rows an older cellcal wrote).
 :data:`MIGRATIONS` [v] brings a file from version v to v + 1; ``cellcal.daemon.store``
 runs them when it opens an older file. The core tables
 and columns are public (``docs/database.md``) and are never renamed.
@@ -19,7 +21,7 @@ import sqlite_utils
 
 from cellcal.calib.geometry import Array
 
-SCHEMA_VERSION = 3
+SCHEMA_VERSION = 4
 
 #: A symmetric 3×3 covariance (mm²) as six columns.
 COV_COLUMNS = ("cov_xx", "cov_xy", "cov_xz", "cov_yy", "cov_yz", "cov_zz")
@@ -185,8 +187,16 @@ def _schema_3(db: sqlite_utils.Database) -> None:
     db.execute("CREATE INDEX fused_pose ON fused (pose_id)")
 
 
+def _schema_4(db: sqlite_utils.Database) -> None:
+    # which cellcal acquired a campaign and which analysed it: a report is only as good
+    # as the code that made it
+    db.execute("ALTER TABLE campaigns ADD COLUMN cellcal_version TEXT")
+    db.execute("ALTER TABLE calibrations ADD COLUMN cellcal_version TEXT")
+
+
 MIGRATIONS: tuple[Callable[[sqlite_utils.Database], None], ...] = (
     _schema_1,
     _schema_2,
     _schema_3,
+    _schema_4,
 )

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import sqlite_utils
 
+from cellcal import __version__
 from cellcal.daemon.store import MIGRATIONS, SCHEMA_VERSION, Store, StoreError
 from cellcal.drivers.base import Series
 from cellcal.errors import CampaignError
@@ -165,6 +166,11 @@ def test_a_schema_2_file_reads_read_only_and_migrates_keeping_its_samples(tmp_pa
     assert data.measured("rig").tolist() == [False]
     rows = store.conn.execute("SELECT z, cov_xx, ori_w FROM samples ORDER BY id").fetchall()
     assert rows == [(3.0, None, None), (5.0, None, None)]
+    # an old campaign says it does not know which cellcal acquired it; a new one does
+    assert store.conn.execute("SELECT cellcal_version FROM campaigns").fetchall() == [(None,)]
+    cid = _campaign(store)
+    version = store.conn.execute("SELECT cellcal_version FROM campaigns WHERE id = ?", (cid,))
+    assert version.fetchone() == (__version__,)
 
 
 def test_covariances_and_orientations_round_trip(tmp_path):

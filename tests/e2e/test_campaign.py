@@ -23,6 +23,8 @@ from cellcal.mocks.simulated_cell import SimulatedCell
 from cellcal.modelfiles import load_model
 from tests.conftest import TRACKER_CELL, tracker_cell
 
+pytestmark = [pytest.mark.twin, pytest.mark.slow]
+
 
 def test_mock_campaign_recovers_the_injected_errors(tmp_path):
     config = tracker_cell()
@@ -109,7 +111,10 @@ def test_run_prints_a_summary_and_each_residual_on_request(tmp_path):
     assert lines[0].startswith("simulated KR 5 arc cell: campaign 1 complete: 128 poses")
     for said in (
         "registration to the robot base",
-        "21 parameters identified, σ0 ",
+        "21 of 27 parameters of the robot and target offset identified (the sensor frame "
+        "besides), σ0 ",
+        "with equal weights, as `plan` computes it)",
+        "another campaign would give 0.0",
         "target offset (25.0",
         "left at nominal: theta1, d1, theta6, d6, a6, alpha6 (not identifiable)",
         "inside the cube",

@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from cellcal import __version__
 from cellcal.config import load_config
 from cellcal.daemon.campaign import start_campaign
 from cellcal.daemon.report import write_report
@@ -22,7 +23,7 @@ from tests.browser import chromium, needs_chromium
 
 ROOT = Path(__file__).parents[2]
 
-pytestmark = pytest.mark.timeout(600)
+pytestmark = [pytest.mark.twin, pytest.mark.slow, pytest.mark.browser, pytest.mark.timeout(600)]
 
 
 @pytest.fixture(scope="module")
@@ -71,6 +72,16 @@ def test_the_reports_numbers_are_the_analysis_numbers(campaign):
     assert float(np.sqrt(np.mean(rig.distance_mm**2))) == pytest.approx(stored["rms_mm"], rel=1e-6)
     cond = d.singular_values[0] / d.singular_values[-1]
     assert cond == pytest.approx(s["calibration"]["condition_number"], rel=1e-3)
+    # the plan's figure (equal weights) is there too, and lower: the tracker's σ differs
+    # by axis
+    equal = s["calibration"]["condition_number_equal_weights"]
+    assert 1.0 < equal < s["calibration"]["condition_number"]
+    # the headline's range: the measured RMS is one draw of it
+    spread = s["rms_after_spread"]
+    assert spread["low_mm"] < spread["median_mm"] < spread["high_mm"] < spread["alarm_mm"]
+    assert spread["measured_mm"] == s["rms_after_mm"]
+    assert spread["measured_mm"] < spread["alarm_mm"]
+    assert s["cellcal_version"] == __version__
     by = {m.method: m for m in d.methods}
     assert tuple(by) == METHODS
     # Least squares methods agree; three points and the paper's lines do worse.
@@ -138,11 +149,14 @@ def test_the_report_page_renders_in_chromium(campaign, capsys):
         headline = browser.find_element(By.ID, "headline").text
         assert f"RMS {summary['rms_before_mm']:.4f} mm before" in headline
         assert f"{summary['rms_after_mm']:.4f} mm after" in headline
+        spread = summary["rms_after_spread"]
+        assert f"would give {spread['low_mm']:.4f}–{spread['high_mm']:.4f} mm" in headline
         body = browser.find_element(By.TAG_NAME, "body").text
         assert "0.200" in body and "Table 3" in body  # beside the paper's figures
         assert "mock mode" in body  # and says what a simulated campaign's numbers mean
         assert "cellcal mock-tracker, serial SIM-0001" in body
         assert "the cube's grid, 3 × 3 × 3 points" in body  # how the poses were chosen
+        assert f"report by {__version__}; campaign acquired by {__version__}" in body
         errors = [e for e in browser.get_log("browser") if e["level"] == "SEVERE"]
         assert not errors, errors
         height = browser.execute_script("return document.body.scrollHeight")
