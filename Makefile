@@ -4,7 +4,7 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: demo demo-registration test lint types unit bench clean
+.PHONY: demo demo-registration test check lint types unit bench clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -70,12 +70,19 @@ UR_CLIENT := $(VENV)/ur-rtde-client/rtde/rtde.py
 $(UR_CLIENT): | $(STAMP)
 	@$(BIN)/python tests/mocks/ur_official_client.py $(VENV)/ur-rtde-client
 
-# Every core, a test file's tests on one worker (they share module fixtures); the 20
-# slowest tests are listed at the end.
+# Every core; a test file's tests on one worker (they share module fixtures), except the
+# files tests/conftest.py names in SPREAD, whose tests go out one by one; the slow tests
+# first (marker slow). The 20 slowest are listed at the end.
+PARALLEL := -n auto --dist loadfile --no-loadscope-reorder
 unit: $(STAMP) $(UR_CLIENT) $(ARAVIS) $(TOOLS)
-	$(BIN)/pytest -q -n auto --dist loadfile --durations=20
+	$(BIN)/pytest -q $(PARALLEL) --durations=20
 
 test: lint types unit
+
+# The quick check while changing code (about a minute): lint, types and the tests that
+# need no device twin, service or browser.
+check: lint types
+	$(BIN)/pytest -q $(PARALLEL) -m "not twin and not browser" --durations=10
 
 bench: $(STAMP)
 	$(BIN)/python -m pip install --quiet -e '.[bench]'

@@ -1,10 +1,19 @@
 """Shared fixtures: the paper's Table 4 points, a random rigid problem factory, and the
 bundled simulated cell without its camera rig (campaigns in seconds, for the tests that
-are not about the rig)."""
+are not about the rig); and how the parallel run (`make unit`, `make check`) hands the
+tests to its workers.
+
+Markers (pyproject.toml): ``twin`` — the test starts device twins, the service or the
+camera rig's processes (sockets, pseudo-terminals, network namespaces); ``browser`` — it
+drives headless Chromium; ``slow`` — it takes seconds to tens of seconds. ``make check``
+runs what is neither twin nor browser. No test reaches the network: what the network
+brings (UR's RTDE client) is fetched by ``make`` beforehand, and the tests that use it
+skip without it."""
 
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -18,6 +27,41 @@ DATA = ROOT / "cellcal" / "data"
 TRACKER_CELL = ROOT / "config" / "mock-cell-tracker.toml"
 TABLE4_SRC = DATA / "paper_table4_station1.csv"
 TABLE4_DST = DATA / "paper_table4_station2.csv"
+
+
+#: Test files whose tests are independent of each other (no module fixture, no fixed
+#: address): the parallel run hands out each of their tests to whichever worker is free.
+#: Every other file's tests run on one worker, one after the other (they share module
+#: fixtures, and some bind fixed addresses).
+SPREAD = frozenset(
+    {
+        "tests/test_docs_examples.py",
+        "tests/e2e/test_campaign.py",
+        "tests/daemon/test_service.py",
+        "tests/drivers/test_photogrammetry_sensor.py",
+        "tests/daemon/test_shown_campaign.py",
+    }
+)
+
+
+def pytest_xdist_make_scheduler(config: pytest.Config, log: Any) -> Any:
+    """``--dist loadfile``: by file, except the SPREAD files' tests one by one. Work goes
+    out in collection order with ``--no-loadscope-reorder`` (see below)."""
+    if config.getvalue("dist") != "loadfile":
+        return None
+    from xdist.scheduler import LoadScopeScheduling
+
+    class FileOrTest(LoadScopeScheduling):  # type: ignore[misc]
+        def _split_scope(self, nodeid: str) -> str:
+            path = nodeid.split("::", 1)[0]
+            return nodeid if path in SPREAD else path
+
+    return FileOrTest(config, log)
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """The slow tests first, so that the workers of the parallel run finish together."""
+    items.sort(key=lambda item: item.get_closest_marker("slow") is None)
 
 
 def tracker_cell() -> CellConfig:

@@ -27,7 +27,7 @@ from cellcal.modelfiles import load_model
 from tests.drivers import test_sensor_contract
 from tests.drivers.families import bundled_cells, cell_for
 
-pytestmark = pytest.mark.timeout(60)
+pytestmark = [pytest.mark.twin, pytest.mark.timeout(60)]
 
 # ---------------------------------------------------------------- module 1: the driver
 

@@ -26,6 +26,8 @@ from pathlib import Path
 
 import pytest
 
+pytestmark = [pytest.mark.twin, pytest.mark.slow]
+
 ROOT = Path(__file__).parents[1]
 DOCUMENTS = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
 LINKED = ("cellcal", "tests")  # read only

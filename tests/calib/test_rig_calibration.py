@@ -40,6 +40,8 @@ from cellcal.imagefiles import load_views, read_image
 from cellcal.mocks.camera_render import Image, Optics, SceneRenderer, board_face
 from cellcal.mocks.rig_scene import board_poses, dome_target, four_camera_rig, volume_centre
 
+pytestmark = pytest.mark.slow
+
 BOARD = Board("DICT_4X4_50", (7, 5), 60.0, 45.0)
 OPTICS = Optics(supersample=3, blur_px=0.8, noise_grey=2.0)
 N_VIEWS = 20

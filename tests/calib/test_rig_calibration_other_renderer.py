@@ -19,6 +19,8 @@ from cellcal.mocks.camera_render import Image
 from cellcal.mocks.texture_render import RenderParams, render_board
 from cellcal.mocks.texture_scenes import TEST_BOARD, board_views, oblique_rig
 
+pytestmark = pytest.mark.slow
+
 N_VIEWS = 20
 
 Scene = tuple[Rig, list[dict[str, Image]], RigCalibration]

@@ -19,6 +19,8 @@ from cellcal.cli import main
 from cellcal.drivers.camera_aravis import AravisCameraOptions, AravisRig, AravisRigOptions
 from cellcal.photofiles import read_rig, read_target
 
+pytestmark = [pytest.mark.twin, pytest.mark.slow]
+
 ROOT = Path(__file__).resolve().parents[2]
 RIG, TARGET = ROOT / "config" / "mock-rig.toml", ROOT / "config" / "mock-target.toml"
 

@@ -22,7 +22,7 @@ from cellcal.errors import CellcalError
 ROOT = Path(__file__).resolve().parents[2]
 CONFIG = ROOT / "config"
 
-pytestmark = pytest.mark.timeout(240)
+pytestmark = [pytest.mark.twin, pytest.mark.timeout(240)]
 
 
 def _cell(folder: Path) -> Path:

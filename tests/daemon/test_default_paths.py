@@ -19,7 +19,7 @@ from cellcal.commands.service_client import call
 
 ROOT = Path(__file__).resolve().parents[2]
 
-pytestmark = pytest.mark.timeout(300)
+pytestmark = [pytest.mark.twin, pytest.mark.timeout(300)]
 
 
 def _files(folder: Path) -> set[str]:

@@ -22,7 +22,7 @@ TRACKER = ("127.0.0.77", 5555)
 ROBOT = ("127.0.0.78", 1502)
 CONFIG = standalone.config_on(TRACKER, ROBOT)
 
-pytestmark = pytest.mark.timeout(180)
+pytestmark = [pytest.mark.twin, pytest.mark.timeout(180)]
 
 
 def test_which_device_an_error_names() -> None:

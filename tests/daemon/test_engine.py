@@ -25,6 +25,8 @@ from cellcal.drivers.base import Series
 from cellcal.errors import DeviceError, NoTargetError
 from cellcal.modelfiles import load_model
 
+pytestmark = pytest.mark.twin
+
 CONFIG = config_from_dict(
     {
         "sensor": [

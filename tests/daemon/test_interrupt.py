@@ -16,7 +16,7 @@ import pytest
 from cellcal.commands.service_client import call
 from tests.e2e.rig_cell import FAULT_KINDS, gige_or_skip, kinds, small_rig_cell
 
-pytestmark = pytest.mark.timeout(300)
+pytestmark = [pytest.mark.twin, pytest.mark.slow, pytest.mark.timeout(300)]
 
 
 def _stored(n: int) -> Any:

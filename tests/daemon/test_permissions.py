@@ -17,6 +17,7 @@ from typing import Any
 import pytest
 
 pytestmark = [
+    pytest.mark.twin,
     pytest.mark.timeout(120),
     pytest.mark.skipif(os.geteuid() != 0, reason="needs root to act as another uid"),
 ]

@@ -25,7 +25,7 @@ TRACKER = ("127.0.0.75", 5555)
 ROBOT = ("127.0.0.76", 1502)
 CONFIG = standalone.config_on(TRACKER, ROBOT)
 
-pytestmark = pytest.mark.timeout(180)
+pytestmark = [pytest.mark.twin, pytest.mark.timeout(180)]
 
 
 def test_a_claim_is_exclusive_and_names_its_holder(

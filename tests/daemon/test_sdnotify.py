@@ -12,7 +12,7 @@ import pytest
 
 from cellcal.daemon.sdnotify import Notifier
 
-pytestmark = pytest.mark.timeout(30)
+pytestmark = [pytest.mark.twin, pytest.mark.timeout(30)]
 
 
 def test_ready_status_watchdog_stopping_reach_systemd(fake: tuple[Any, str]) -> None:

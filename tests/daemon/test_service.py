@@ -24,7 +24,7 @@ from cellcal.daemon.service import _watchdog
 ROOT = Path(__file__).resolve().parents[2]
 TRACKER_CELL = ROOT / "config" / "mock-cell-tracker.toml"
 
-pytestmark = pytest.mark.timeout(240)
+pytestmark = [pytest.mark.twin, pytest.mark.slow, pytest.mark.timeout(240)]
 
 
 class Collector(threading.Thread):

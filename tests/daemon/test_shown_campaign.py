@@ -29,7 +29,7 @@ from cellcal.drivers.base import Series
 ROOT = Path(__file__).resolve().parents[2]
 TRACKER_CELL = ROOT / "config" / "mock-cell-tracker.toml"
 
-pytestmark = pytest.mark.timeout(240)
+pytestmark = [pytest.mark.twin, pytest.mark.slow, pytest.mark.timeout(240)]
 
 
 # ---------------------------------------------------------------- the control object

@@ -27,7 +27,7 @@ tracker_drop_after_lines = 600
 robot_protective_stop_every = 50
 """
 
-pytestmark = pytest.mark.timeout(400)
+pytestmark = [pytest.mark.twin, pytest.mark.slow, pytest.mark.timeout(400)]
 
 
 def test_soak_beam_breaks_dropped_links_protective_stops_and_a_sigkill(

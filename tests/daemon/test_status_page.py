@@ -25,7 +25,7 @@ ROOT = Path(__file__).resolve().parents[2]
 STATIC = ROOT / "cellcal" / "data" / "status"
 TRACKER_CELL = ROOT / "config" / "mock-cell-tracker.toml"
 
-pytestmark = pytest.mark.timeout(240)
+pytestmark = [pytest.mark.twin, pytest.mark.slow, pytest.mark.browser, pytest.mark.timeout(240)]
 
 
 def test_http_address_is_loopback_unless_allowed() -> None:

@@ -17,7 +17,7 @@ from cellcal.errors import MeasurementError, NoTargetError
 from cellcal.families import find
 from tests.drivers.families import cell_for, mock_devices
 
-pytestmark = pytest.mark.timeout(120)
+pytestmark = [pytest.mark.twin, pytest.mark.slow, pytest.mark.timeout(120)]
 
 FAMILY = find("sensor", "photogrammetry", "cameras")
 ROOT = Path(__file__).resolve().parents[2]

@@ -12,7 +12,7 @@ import pytest
 from cellcal.families import families
 from tests.drivers.families import cell_for, mock_devices
 
-pytestmark = pytest.mark.timeout(60)
+pytestmark = [pytest.mark.twin, pytest.mark.timeout(60)]
 
 SENSORS = families("sensor")
 

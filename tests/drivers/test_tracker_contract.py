@@ -17,6 +17,8 @@ from cellcal.drivers.transport import TransportError
 from cellcal.errors import DeviceError
 from cellcal.mocks.tracker_server import MockTracker, TrackerFaults
 
+pytestmark = pytest.mark.twin
+
 TRUTH = np.array([2100.0, -350.0, 640.0])
 NOISE = 0.01
 

@@ -24,7 +24,7 @@ from cellcal.daemon.store import Store
 from cellcal.modelfiles import load_model
 from tests.e2e.calibrated import calibrated_campaign, cli
 
-pytestmark = pytest.mark.timeout(300)
+pytestmark = [pytest.mark.twin, pytest.mark.timeout(300)]
 
 
 @pytest.fixture(scope="module")

@@ -16,7 +16,7 @@ import pytest
 
 from tests.e2e.rig_cell import FAULT_KINDS, count, gige_or_skip, kinds, small_rig_cell
 
-pytestmark = pytest.mark.timeout(300)
+pytestmark = [pytest.mark.twin, pytest.mark.timeout(300)]
 
 
 def _wait_for_a_pose(db: Path, proc: subprocess.Popen[str], timeout: float = 120.0) -> None:

@@ -18,7 +18,7 @@ from cellcal.measurementfiles import read_measurements
 from tests.conftest import TRACKER_CELL
 from tests.e2e.calibrated import calibrated_campaign, cli
 
-pytestmark = pytest.mark.timeout(300)
+pytestmark = [pytest.mark.twin, pytest.mark.timeout(300)]
 
 
 CYCLES = 6

@@ -19,6 +19,8 @@ from cellcal.errors import AcceptanceError
 from cellcal.mocks.simulated_cell import SimulatedCell
 from tests.conftest import TRACKER_CELL, tracker_cell
 
+pytestmark = [pytest.mark.twin, pytest.mark.slow]
+
 
 def _cli(*args: str, timeout: float = 300) -> subprocess.CompletedProcess[str]:
     return subprocess.run(

@@ -12,6 +12,10 @@ import sys
 import time
 from pathlib import Path
 
+import pytest
+
+pytestmark = pytest.mark.twin
+
 TRACKER = ("127.0.0.71", 5555)
 ROBOT = ("127.0.0.72", 1502)
 

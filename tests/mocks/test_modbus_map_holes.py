@@ -20,7 +20,7 @@ from cellcal.drivers.modbus_map import ModbusMap
 from cellcal.drivers.modbus_robot import ModbusRobot
 from cellcal.mocks.modbus_robot_server import ModbusRobotSimulator
 
-pytestmark = pytest.mark.timeout(30)
+pytestmark = [pytest.mark.twin, pytest.mark.timeout(30)]
 
 Q0_DEG = [0.0, -90.0, 90.0, 0.0, 45.0, 0.0]
 TARGETS_DEG = [

@@ -27,7 +27,7 @@ from cellcal.mocks.modbus_robot_server import (
     ModbusRobotSimulator,
 )
 
-pytestmark = pytest.mark.timeout(30)
+pytestmark = [pytest.mark.twin, pytest.mark.timeout(30)]
 
 Q0_DEG = [0.0, -90.0, 90.0, 0.0, 45.0, 0.0]
 TARGET_DEG = [10.0, -80.0, 75.5, 20.0, 30.0, -45.0]

@@ -21,7 +21,7 @@ from cellcal.mocks.modbus_robot_server import ModbusRobotSimulator
 
 modbus_tcp = pytest.importorskip("pyModbusTCP.client")
 
-pytestmark = pytest.mark.timeout(30)
+pytestmark = [pytest.mark.twin, pytest.mark.timeout(30)]
 
 MAP = ModbusMap(
     device_id=7,

@@ -18,7 +18,7 @@ from cellcal.mocks.rig_process import serve_in_process
 from cellcal.mocks.rig_twin import RigTruth
 from tests.e2e.rig_cell import gige_or_skip
 
-pytestmark = pytest.mark.timeout(120)
+pytestmark = [pytest.mark.twin, pytest.mark.timeout(120)]
 
 
 def _start() -> Any:

@@ -13,7 +13,7 @@ from cellcal.drivers.photogrammetry import rig_and_target
 from cellcal.mocks.netns import NamespaceUnavailableError
 from cellcal.mocks.rig_twin import DEVICE_CLOCK_S, RigScene, RigTruth, SetMarks
 
-pytestmark = pytest.mark.timeout(120)
+pytestmark = [pytest.mark.twin, pytest.mark.timeout(120)]
 
 
 def _rig_sensor(config):

@@ -23,7 +23,7 @@ from hypothesis import strategies as st
 from cellcal.mocks import link_server
 from cellcal.mocks.tracker_server import MockTracker, TrackerFaults
 
-pytestmark = pytest.mark.timeout(30)
+pytestmark = [pytest.mark.twin, pytest.mark.timeout(30)]
 
 HOST = "127.0.0.5"
 IDN = "OK cellcal,mock-tracker,SIM-0001,1.0"

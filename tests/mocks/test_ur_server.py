@@ -27,6 +27,8 @@ from cellcal.modelfiles import load_model
 from tests.mocks.test_ur_twin_wire import Rtde as RawRTDE
 from tests.mocks.test_ur_twin_wire import dashboard
 
+pytestmark = pytest.mark.twin
+
 rtde_control = pytest.importorskip("rtde_control")
 rtde_receive = pytest.importorskip("rtde_receive")
 

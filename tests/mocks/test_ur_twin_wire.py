@@ -27,7 +27,7 @@ from cellcal.mocks.ur_rtde_codec import TYPE_CODES
 from cellcal.mocks.ur_server import URSimulator, simulator_for_cell
 from cellcal.modelfiles import load_model
 
-pytestmark = pytest.mark.timeout(60, method="thread")
+pytestmark = [pytest.mark.twin, pytest.mark.timeout(60, method="thread")]
 
 CYCLE = 0.002
 VER, OUT, INP, START, PAUSE, DATA, TEXT = (ord(c) for c in "VOISPUM")
