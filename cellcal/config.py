@@ -90,6 +90,10 @@ class CampaignConfig(Strict):
     # which poses are optimal: D (the parameters' confidence volume, the default) or I
     # (the mean prediction variance inside the cube and in the validation regions)
     optimal_criterion: Literal["D", "I"] = "D"
+    # where the robot will work, which the plan's expected error judges and optimal poses
+    # are chosen from: "cube" (the paper's cube and the validation regions O1–O5) or
+    # "workspace" (points drawn over the box workspace_min_mm..workspace_max_mm)
+    region: Literal["cube", "workspace"] = "cube"
     dwell_s: Annotated[float, Field(ge=0, le=3600)] = 7.0
     samples_per_pose: Annotated[int, Field(ge=1, le=10000)] = 20
     validation_inside: Annotated[int, Field(ge=0, le=10000)] = 20

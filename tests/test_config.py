@@ -329,3 +329,11 @@ def test_cellcal_refuses_a_mixed_file_in_one_line(tmp_path):
 def test_other_unknown_keys_stay_errors(data, match):
     with pytest.raises(ConfigError, match=match):
         config_from_dict(data, "x.toml")
+
+
+def test_the_campaign_region_is_the_cube_unless_set():
+    assert config_from_dict(_base(), "x.toml").campaign.region == "cube"
+    box = config_from_dict(_base(campaign={"region": "workspace"}), "x.toml")
+    assert box.campaign.region == "workspace"
+    with pytest.raises(ConfigError, match=r"x.toml: campaign.region: .*'cube' or 'workspace'"):
+        config_from_dict(_base(campaign={"region": "box"}), "x.toml")

@@ -5,25 +5,23 @@ from __future__ import annotations
 import csv
 import io
 import math
-from typing import Any
+from importlib import resources
+from typing import TYPE_CHECKING, Any
 
 import click
 import numpy as np
 
 from cellcal.commands.output import print_json
-from cellcal.commands.run import cell_config
-from cellcal.config import CellConfig
-from cellcal.daemon.plan import (
-    CALIBRATION,
-    Plan,
-    cell_seconds,
-    expected_rms,
-    make_plan,
-    plan_identifiability,
-    workspace_poses,
-)
-from cellcal.errors import InputError
-from cellcal.modelfiles import load_model, write_atomically
+from cellcal.errors import InputError, UserError
+from cellcal.textfiles import read_toml
+
+if TYPE_CHECKING:  # imported when the command runs, after its first progress line
+    from cellcal.calib.identifiability import Identifiability
+    from cellcal.config import CellConfig
+    from cellcal.daemon.plan import Plan
+
+#: The bundled simulated cell (``--mock`` without ``--config``), as ``cellcal run`` has it.
+BUNDLED = "mock-cell.toml"
 
 WHY = {"rank": "not identifiable from these poses", "weak": "hidden by noise", "fixed": "fixed"}
 
@@ -72,6 +70,45 @@ def _poses(plan: Plan) -> list[dict[str, Any]]:
     return out
 
 
+def _glance(config_path: str | None, mock: bool) -> dict[str, Any]:
+    """The configuration's [campaign] table as written, unchecked, or {} if it cannot be
+    read: enough to say early what the plan will do. Loading the configuration itself
+    imports most of the numerics (its device families, the robot models), which takes
+    about a second on a busy machine; the checked configuration follows."""
+    try:
+        if config_path is not None:
+            data = read_toml(config_path)
+        elif mock:
+            with resources.as_file(resources.files("cellcal") / "data" / BUNDLED) as p:
+                data = read_toml(p)
+        else:
+            return {}
+    except (UserError, OSError):
+        return {}
+    campaign = data.get("campaign")
+    return campaign if isinstance(campaign, dict) else {}
+
+
+def _progress(line: str) -> None:
+    click.echo(f"planning: {line}", err=True)
+
+
+def _silent(line: str) -> None:
+    """A quick plan (the cube alone) says nothing while it works."""
+
+
+def _opening(optimal: object, criterion: object, region: object) -> str | None:
+    """The first progress line of a plan that takes more than a moment (poses to choose,
+    or workspace points to draw), None for one that does not."""
+    box = region == "workspace"
+    if isinstance(optimal, int) and not isinstance(optimal, bool) and optimal > 0:
+        where = "drawn over the workspace box" if box else "of the cube"
+        return f"{optimal} {criterion}-optimal calibration poses from candidates {where} …"
+    if box:
+        return "the expected error is judged at poses drawn over the workspace box …"
+    return None
+
+
 @click.command("plan")
 @click.option("--config", "config_path", help="Cell configuration (TOML).")
 @click.option("--mock", is_flag=True, help="The bundled simulated cell (without --config).")
@@ -85,8 +122,15 @@ def _poses(plan: Plan) -> list[dict[str, Any]]:
     "--criterion",
     type=click.Choice(["D", "I"]),
     help="What --optimal optimises: D, the parameters' confidence volume; I, the mean "
-    "prediction variance in the cube and the validation regions; overrides "
-    "campaign.optimal_criterion (D unless set).",
+    "prediction variance in the region (--region); overrides campaign.optimal_criterion "
+    "(D unless set).",
+)
+@click.option(
+    "--region",
+    type=click.Choice(["cube", "workspace"]),
+    help="Where the robot will work: the cube and the validation regions, or the workspace "
+    "box; --optimal chooses from candidates there and the expected error is judged there; "
+    "overrides campaign.region (cube unless set).",
 )
 @click.option("--out", "out_path", help="Write the plan as CSV here.")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout.")
@@ -95,6 +139,7 @@ def plan(
     mock: bool,
     optimal: int | None,
     criterion: str | None,
+    region: str | None,
     out_path: str | None,
     as_json: bool,
 ) -> None:
@@ -103,19 +148,50 @@ def plan(
     takes, and the error a calibration from these poses is expected to leave in the
     cube and the validation regions (in units of the sensor's noise); nothing connects
     or moves. The robot's start is the configuration's robot.home_deg (the campaign
-    starts there too), never the robot's reading. --optimal 0: the whole cube."""
+    starts there too), never the robot's reading. --optimal 0: the whole cube.
+    --region workspace: the expected error over the workspace box, and --optimal's
+    candidates drawn there. A plan that chooses poses or draws them says what it is
+    doing on stderr, lines starting "planning: "."""
+    written = _glance(config_path, mock)
+    early = _opening(
+        optimal if optimal is not None else written.get("optimal_poses", 0),
+        criterion or written.get("optimal_criterion", "D"),
+        region or written.get("region", "cube"),
+    )
+    if early is not None:  # before anything slow: the numerics load after this line
+        _progress(early)
+    from cellcal.commands.run import cell_config
+
     config, source = cell_config(config_path, mock)
     campaign = config.campaign
     if optimal is not None:
         campaign = campaign.model_copy(update={"optimal_poses": optimal})
     if criterion is not None:
         campaign = campaign.model_copy(update={"optimal_criterion": criterion})
+    if region is not None:
+        campaign = campaign.model_copy(update={"region": region})
+    opening = _opening(campaign.optimal_poses, campaign.optimal_criterion, campaign.region)
+    if opening is not None and opening != early:
+        _progress(opening)
+    from cellcal.daemon.plan import (
+        CALIBRATION,
+        cell_seconds,
+        expected_rms,
+        make_plan,
+        plan_identifiability,
+        workspace_poses,
+    )
+    from cellcal.daemon.plan_region import region_text
+    from cellcal.modelfiles import load_model, write_atomically
+
+    say = _progress if opening is not None else _silent
     nominal = load_model(config.robot.model).model
     home = np.radians(np.asarray(config.robot.home_deg, dtype=np.float64))
     if len(home) != nominal.dof:
         raise InputError(f"robot.home_deg has {len(home)} joints, the model {nominal.dof}")
     offset = np.asarray(config.reference_sensor.target_offset_mm, dtype=np.float64)
-    planned = make_plan(campaign, nominal, home, offset)
+    workspace = workspace_poses(campaign, nominal, home, offset, progress=say)
+    planned = make_plan(campaign, nominal, home, offset, workspace=workspace, progress=say)
     speed = _joint_speed_deg_s(config)
     summary: dict[str, Any] = {
         "config": source,
@@ -128,13 +204,11 @@ def plan(
     }
     ident = plan_identifiability(nominal, planned, offset)
     if ident is not None:
-        summary["condition_number"] = ident.condition_number
-        summary["identified"] = list(ident.identified_names)
-        summary["unidentifiable"] = {
-            ident.specs[i].name: WHY[ident.reason(i)] for i in ident.unidentifiable
-        }
+        summary.update(_identified(ident))
     q_cal = np.array([p.q for p in planned.poses if p.role == CALIBRATION])
-    workspace = workspace_poses(campaign, nominal, home, offset)
+    summary["region"] = campaign.region
+    summary["expected_region"] = region_text(campaign)
+    summary["expected_points"] = len(workspace)
     expected = expected_rms(nominal, q_cal, offset, workspace)
     if expected is not None:
         summary["expected_rms_sigma"] = expected
@@ -144,6 +218,8 @@ def plan(
             "criterion": sel.criterion,
             "n": len(sel.chosen),
             "candidates": planned.candidates,
+            "candidates_drawn": planned.drawn,
+            "candidates_unreachable": planned.drawn - planned.candidates,
             "log_det": sel.log_det,
             "exchanges": sel.exchanges,
             "history": list(sel.history),
@@ -162,6 +238,21 @@ def plan(
     _echo(planned, summary)
 
 
+def _identified(ident: Identifiability) -> dict[str, Any]:
+    """What the calibration poses identify, as the calibration counts it: the robot's
+    kinematic parameters and the target offset (``identified``), the sensor frame's apart
+    (``identified_frame``); the condition number of them all, every coordinate weighted
+    alike (the calibration weighs each by 1/σ of its measurement, which moves it)."""
+    frame = [i for i in ident.identified if ident.specs[i].kind.startswith("frame")]
+    return {
+        "condition_number": ident.condition_number,
+        "condition_number_equal_weights": ident.condition_number,
+        "identified": [ident.specs[i].name for i in ident.identified if i not in frame],
+        "identified_frame": [ident.specs[i].name for i in frame],
+        "unidentifiable": {ident.specs[i].name: WHY[ident.reason(i)] for i in ident.unidentifiable},
+    }
+
+
 def _regions(p: Plan) -> dict[str, int]:
     out: dict[str, int] = {}
     for pose in p.poses:
@@ -177,14 +268,16 @@ def _joint_speed_deg_s(config: CellConfig) -> float:
 
 
 def _echo(p: Plan, s: dict[str, Any]) -> None:
-    click.echo(f"  {'idx':>4} {'role':<12}{'region':<7} {'q1..qN (deg)':<48} target (mm)")
+    regions = [x.region for x in p.poses] + [u.region for u in p.unreachable]
+    w = max([7, *(len(r) + 1 for r in regions)])
+    click.echo(f"  {'idx':>4} {'role':<12}{'region':<{w}} {'q1..qN (deg)':<48} target (mm)")
     for pose in p.poses:
         q = " ".join(f"{v:7.2f}" for v in np.degrees(pose.q))
         t = " ".join(f"{v:8.1f}" for v in pose.target_mm)
-        click.echo(f"  {pose.idx:>4} {pose.role:<12}{pose.region:<7} {q:<48} {t}")
+        click.echo(f"  {pose.idx:>4} {pose.role:<12}{pose.region:<{w}} {q:<48} {t}")
     for u in p.unreachable:
         t = " ".join(f"{v:8.1f}" for v in u.target_mm)
-        click.echo(f"  {'—':>4} {u.role:<12}{u.region:<7} unreachable: {u.reason} at {t}")
+        click.echo(f"  {'—':>4} {u.role:<12}{u.region:<{w}} unreachable: {u.reason} at {t}")
     click.echo(
         f"{s['n_poses']} poses ({s['n_calibration']} calibration, {s['n_validation']} "
         f"validation), {s['n_unreachable']} unreachable; "
@@ -192,21 +285,31 @@ def _echo(p: Plan, s: dict[str, Any]) -> None:
     )
     if "optimal" in s:
         o = s["optimal"]
+        where = "drawn over the workspace box" if s["region"] == "workspace" else "in the cube"
         click.echo(
             f"{o['criterion']}-optimal: {o['n']} calibration poses of {o['candidates']} "
-            f"reachable candidates (log det {o['log_det']:.2f}, {o['exchanges']} exchanges)"
+            f"reachable candidates {where} ({o['candidates_unreachable']} of "
+            f"{o['candidates_drawn']} unreachable; log det {o['log_det']:.2f}, "
+            f"{o['exchanges']} exchanges)"
         )
     if "condition_number" in s:
         click.echo(
-            f"condition number {s['condition_number']:.4g}; identifies "
-            f"{len(s['identified'])} parameters: {', '.join(s['identified'])}"
+            f"condition number {s['condition_number']:.4g} with equal weights (the "
+            "calibration weighs each coordinate by its measured σ, which moves it)"
+        )
+        frame = s["identified_frame"]
+        click.echo(
+            f"identifies {len(s['identified'])} parameters of the robot and target offset"
+            f" (+ {len(frame)} of the sensor frame): {', '.join(s['identified'])}"
+            + (f"; sensor frame: {', '.join(frame)}" if frame else "")
         )
         left = "; ".join(f"{k} ({why})" for k, why in s["unidentifiable"].items())
         click.echo(f"left at nominal: {left or 'none'}")
     if "expected_rms_sigma" in s:
         click.echo(
-            f"expected RMS error in the cube and the validation regions after calibration: "
-            f"{s['expected_rms_sigma']:.3f} × the sensor's noise (σ per coordinate)"
+            f"expected RMS error {s['expected_region']} after calibration: "
+            f"{s['expected_rms_sigma']:.3f} × the sensor's noise (σ per coordinate), "
+            f"judged at {s['expected_points']} reachable poses"
         )
     click.echo(
         f"cell time about {s['cell_time_min']:.1f} min: {s['dwell_s']:g} s dwell per pose, "

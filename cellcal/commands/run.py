@@ -1,4 +1,7 @@
-"""``cellcal run``: a whole campaign, or ``--resume ID`` of an interrupted one."""
+"""``cellcal run``: a whole campaign, or ``--resume ID`` of an interrupted one.
+
+Its first line comes within a second: the campaign's modules (the analysis, scipy, the
+report's matplotlib) are loaded after it."""
 
 from __future__ import annotations
 
@@ -7,24 +10,25 @@ import sys
 from importlib import resources
 from pathlib import Path
 from types import FrameType
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import click
-import numpy as np
 
-from cellcal.calib.calibration_result import CalibrationResult
-from cellcal.commands.calibrate import at_nominal_text, echo_points
 from cellcal.commands.output import SEED, TIME_SCALE, print_json
 from cellcal.config import CellConfig, default_database, load_config
-from cellcal.daemon.analysis import PAPER, CampaignSummary
-from cellcal.daemon.campaign import CampaignOutcome, resume_campaign, start_campaign
-from cellcal.daemon.engine import StopRequest
-from cellcal.daemon.records import CampaignEnded, CampaignStarted, PoseStored, Record
-from cellcal.daemon.report import write_report
-from cellcal.daemon.store import Store
+from cellcal.daemon.stop_request import StopRequest
 from cellcal.errors import InputError
 
+if TYPE_CHECKING:
+    from cellcal.calib.calibration_result import CalibrationResult
+    from cellcal.daemon.campaign import CampaignOutcome
+    from cellcal.daemon.records import Record
+
 EXIT_INTERRUPTED = 130
+
+
+#: what follows the last pose, said as it begins (the analysis takes seconds)
+ANALYSING = "every pose stored: registering, calibrating and validating…"
 
 
 class LineProgress:
@@ -32,6 +36,8 @@ class LineProgress:
     subscriber of the campaign's record stream."""
 
     def __call__(self, record: Record) -> None:
+        from cellcal.daemon.records import CampaignStarted, PoseStored
+
         if isinstance(record, CampaignStarted):
             click.echo(f"acquiring {record.total - record.done} of {record.total} poses", err=True)
         elif isinstance(record, PoseStored) and (
@@ -39,6 +45,8 @@ class LineProgress:
         ):
             p = record.pose
             click.echo(f"pose {record.done}/{record.total} stored ({p.role}, {p.region})", err=True)
+            if record.done == record.total:
+                click.echo(ANALYSING, err=True)
 
 
 class BarProgress:
@@ -66,12 +74,17 @@ class BarProgress:
         self._task = self._bar.add_task("", total=1)
 
     def __call__(self, record: Record) -> None:
+        from cellcal.daemon.records import CampaignEnded, CampaignStarted, PoseStored
+
         if isinstance(record, CampaignStarted):
             self._bar.update(self._task, total=record.total, completed=record.done)
             self._bar.start()
         elif isinstance(record, PoseStored):
             p = record.pose
             self._bar.update(self._task, completed=record.done, description=f"{p.role} {p.region}")
+            if record.done == record.total:
+                self.close()
+                click.echo(ANALYSING, err=True)
         elif isinstance(record, CampaignEnded):
             self.close()
 
@@ -118,6 +131,11 @@ def _print_summary(out: CampaignOutcome, folder: str | None, residuals: bool) ->
     """What was measured, the headline figures with their uncertainty, the validation
     before and after, warnings, where the details are; every pose's residual only with
     ``residuals`` (always in the report and in --json)."""
+    import numpy as np
+
+    from cellcal.commands.calibrate import at_nominal_text, echo_points
+    from cellcal.daemon.analysis import PAPER, CampaignSummary
+
     s: CampaignSummary | None = out.summary
     plan = out.plan
     sensors = ", ".join(x.name for x in out.config.sensor)
@@ -271,6 +289,7 @@ def run(
 
     previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
     progress = BarProgress() if sys.stderr.isatty() and not as_json else LineProgress()
+    devices = "starting the devices' twins" if mock else "connecting the devices"
     try:
         if resume_id is not None:
             if config_path or mock or seed is not None:
@@ -278,6 +297,10 @@ def run(
                     "--resume takes only --db, --time-scale, --accept, --report, --residuals "
                     "and --json"
                 )
+            if Path(db_path or default_database()).is_file():  # else one line says so
+                click.echo(f"resuming campaign {resume_id}: connecting the devices…", err=True)
+            from cellcal.daemon.campaign import resume_campaign
+
             outcome = resume_campaign(
                 db_path or default_database(),
                 resume_id,
@@ -290,6 +313,9 @@ def run(
             config, source = cell_config(config_path, mock)
             if not mock and (seed is not None or time_scale is not None):
                 raise InputError("--seed and --time-scale apply to mock mode (--mock)")
+            click.echo(f"{config.name}: planning the poses and {devices}…", err=True)
+            from cellcal.daemon.campaign import start_campaign
+
             outcome = start_campaign(
                 config,
                 db_path or config.storage.database,
@@ -318,6 +344,10 @@ def run(
         sys.exit(EXIT_INTERRUPTED)
     folder = None
     if report_dir is not None:
+        click.echo(f"writing the report into {report_dir}…", err=True)
+        from cellcal.daemon.report import write_report
+        from cellcal.daemon.store import Store
+
         store = Store(outcome.db_path, readonly=True)
         try:
             folder = write_report(store, outcome.campaign_id, report_dir).folder

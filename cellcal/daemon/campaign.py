@@ -19,7 +19,7 @@ from cellcal.clock import Clock, SimulatedClock, WallClock
 from cellcal.config import CellConfig, config_from_dict, upgrade_stored
 from cellcal.daemon.analysis import CampaignSummary, analyse
 from cellcal.daemon.devices import Devices, build_devices
-from cellcal.daemon.engine import Acquisition, PhaseWatcher, StopRequest, acquire
+from cellcal.daemon.engine import Acquisition, PhaseWatcher, acquire
 from cellcal.daemon.locks import RunLock, robot_claim
 from cellcal.daemon.plan import CALIBRATION, VALIDATION, Plan, make_plan, plan_identifiability
 from cellcal.daemon.records import (
@@ -29,6 +29,7 @@ from cellcal.daemon.records import (
     RecordStream,
     Subscriber,
 )
+from cellcal.daemon.stop_request import StopRequest
 from cellcal.daemon.store import Store, StoreError
 from cellcal.daemon.store_writer import StoreWriter
 from cellcal.errors import AcceptanceError, CampaignError, UserError

@@ -51,19 +51,6 @@ def _unwatched(phase: str, pose: PlannedPose, t: float) -> None:
     """No one watches the phases."""
 
 
-class StopRequest(threading.Event):
-    """A stop event that remembers why it was set (a signal's name, for the records)."""
-
-    def __init__(self) -> None:
-        super().__init__()
-        self.reason = ""
-
-    def request(self, reason: str) -> None:
-        if not self.is_set():
-            self.reason = reason
-        self.set()
-
-
 @dataclass(frozen=True)
 class SensorSetting:
     sensor: PositionSensor

@@ -8,17 +8,26 @@ inside the cube and in the paper's regions O1–O5 outside it (Table 3). Every p
 solved by inverse kinematics of the nominal model and checked against the joint limits
 and the workspace box; a pose that fails is reported as unreachable, not dropped
 silently.
+
+With ``campaign.optimal_poses`` the calibration poses are chosen from candidates: the
+cube's grid points at more wrist orientations (``campaign.region = "cube"``), or poses
+drawn at random over the workspace box (``"workspace"``), reachable ones only. The
+region also says where the plan's expected error is judged: in the cube and the
+validation regions, or at other poses drawn over the box. The validation poses are the
+same whatever the region, so that reports stay comparable.
 """
 
 from __future__ import annotations
 
 import hashlib
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 
 import numpy as np
+from numpy.typing import NDArray
 
 from cellcal.calib.error_model import ParameterSpec, State, jacobian, parameter_specs, predict
-from cellcal.calib.geometry import Array, so3_exp
+from cellcal.calib.geometry import Array
 from cellcal.calib.identifiability import Identifiability
 from cellcal.calib.identifiability import analyse as analyse_identifiability
 from cellcal.calib.inverse_kinematics import solve
@@ -32,6 +41,15 @@ from cellcal.calib.pose_selection import (
 )
 from cellcal.calib.robot_model import RobotModel
 from cellcal.config import CampaignConfig
+from cellcal.daemon.plan_region import (
+    CUBE,
+    REGION_CANDIDATES,
+    REGION_POINTS,
+    WORKSPACE,
+    box,
+    draw_reachable,
+    orientations,
+)
 from cellcal.errors import InputError
 
 CALIBRATION = "calibration"
@@ -47,13 +65,19 @@ CANDIDATE_VARIATION_DEG = 60.0
 WORKSPACE_INSIDE = 60
 WORKSPACE_PER_REGION = 20
 WORKSPACE_SEED = 7919
+#: Where a plan says what it is doing (``cellcal plan`` prints it on stderr).
+Progress = Callable[[str], None]
+
+
+def _quiet(message: str) -> None:
+    """No progress report."""
 
 
 @dataclass(frozen=True)
 class PlannedPose:
     """``idx``: position in the plan; ``role``: calibration or validation; ``region``:
-    ``cube`` or ``O1``…; ``target_mm``: the nominal target position (base frame);
-    ``q``: joint readings (rad)."""
+    ``cube``, ``workspace`` (drawn over the workspace box) or ``O1``…; ``target_mm``:
+    the nominal target position (base frame); ``q``: joint readings (rad)."""
 
     idx: int
     role: str
@@ -74,12 +98,14 @@ class UnreachablePose:
 class Plan:
     """The poses in order, the poses that cannot be reached, and with
     ``campaign.optimal_poses`` the selection: how many reachable candidates it chose
-    from, and its criterion's figures."""
+    from, how many were tried (``drawn``: the cube's grid points × orientations, or the
+    poses drawn over the workspace box, reachable or not), and its criterion's figures."""
 
     poses: tuple[PlannedPose, ...]
     unreachable: tuple[UnreachablePose, ...]
     candidates: int = 0
     selection: PoseSelection | None = None
+    drawn: int = 0
 
     @property
     def digest(self) -> str:
@@ -117,11 +143,30 @@ def _ball(rng: np.random.Generator, centre: Array, radius: float, n: int) -> Arr
     return out
 
 
-def _orientations(rng: np.random.Generator, R0: Array, n: int, deg: float) -> Array:
-    if deg == 0 or n == 0:
-        return np.broadcast_to(R0, (n, 3, 3)).copy()
-    v = rng.uniform(-1, 1, (n, 3)) * np.radians(deg)
-    return np.array([so3_exp(w) @ R0 for w in v])
+def _solve_group(
+    model: RobotModel,
+    home_q: Array,
+    target_offset: Array,
+    R0: Array,
+    pts: Array,
+    Rs: Array,
+) -> tuple[Array, NDArray[np.bool_]]:
+    """Joint readings of a group of poses and whether each was solved within the joint
+    limits: from the solution at the group's centre (neighbouring poses, short moves),
+    then from home for the ones that failed."""
+    centre_sol = solve(model, target_offset, pts.mean(axis=0)[None], R0, home_q)
+    from_centre = bool(centre_sol.ok[0])
+    seed = centre_sol.q[0] if from_centre else home_q
+    sol = solve(model, target_offset, pts, Rs, seed)
+    retry = ~sol.ok
+    if not from_centre or not retry.any():  # from home again would fail again
+        return sol.q, sol.ok
+    again = solve(model, target_offset, pts[retry], Rs[retry], home_q)
+    q = sol.q.copy()
+    q[retry] = again.q
+    ok = sol.ok.copy()
+    ok[retry] = again.ok
+    return q, ok
 
 
 def make_plan(
@@ -131,34 +176,60 @@ def make_plan(
     target_offset: Array,
     *,
     select: bool = True,
+    workspace: Array | None = None,
+    progress: Progress = _quiet,
 ) -> Plan:
     """The campaign's poses for ``model`` starting from ``home_q`` (rad), with the target
     at ``target_offset`` (mm, flange frame). With ``campaign.optimal_poses`` and
-    ``select=False``: every reachable candidate as a calibration pose (for comparisons)."""
+    ``select=False``: every reachable candidate as a calibration pose (for comparisons).
+    ``workspace``: the joints of :func:`workspace_poses`, if they are already known (else
+    computed when the selection needs them); ``progress`` hears what the plan is doing."""
+    if cfg.optimal_poses and select and workspace is None:
+        workspace = workspace_poses(cfg, model, home_q, target_offset, progress=progress)
     rng = np.random.default_rng(cfg.seed)
     R0 = target_kinematics(model, home_q[None], target_offset, jacobian=False).R_flange[0]
-    lo_box = np.asarray(cfg.workspace_min_mm)
-    hi_box = np.asarray(cfg.workspace_max_mm)
+    lo_box, hi_box = box(cfg)
     groups: list[tuple[str, str, Array, Array]] = []
     cube = cube_points(cfg)
-    cube_R = _orientations(rng, R0, len(cube), cfg.orientation_variation_deg)
-    if cfg.optimal_poses:
-        # Candidates: each grid point at its plan orientation and at more seeded ones.
-        more = np.random.default_rng([cfg.seed, 1])
-        extra = CANDIDATE_ORIENTATIONS - 1
-        turn = max(cfg.orientation_variation_deg, CANDIDATE_VARIATION_DEG)
-        cube_R = np.concatenate([cube_R, _orientations(more, R0, extra * len(cube), turn)])
-        cube = np.concatenate([cube, np.tile(cube, (extra, 1))])
-    groups.append((CALIBRATION, "cube", cube, cube_R))
+    # drawn even when the candidates come from the workspace: the validation poses below
+    # come from the same generator and must not change with the region
+    cube_R = orientations(rng, R0, len(cube), cfg.orientation_variation_deg)
+    turn = max(cfg.orientation_variation_deg, CANDIDATE_VARIATION_DEG)
+    poses: list[PlannedPose] = []
+    drawn = len(cube)
+    if cfg.optimal_poses and cfg.region == WORKSPACE:
+        region = draw_reachable(
+            cfg,
+            model,
+            home_q,
+            target_offset,
+            np.random.default_rng([cfg.seed, 2]),
+            REGION_CANDIDATES,
+            turn,
+        )
+        drawn = region.drawn
+        poses += [
+            PlannedPose(k, CALIBRATION, WORKSPACE, p, q)
+            for k, (p, q) in enumerate(zip(region.points, region.q, strict=True))
+        ]
+    else:
+        if cfg.optimal_poses:
+            # Candidates: each grid point at its plan orientation and at more seeded ones.
+            more = np.random.default_rng([cfg.seed, 1])
+            extra = CANDIDATE_ORIENTATIONS - 1
+            cube_R = np.concatenate([cube_R, orientations(more, R0, extra * len(cube), turn)])
+            cube = np.concatenate([cube, np.tile(cube, (extra, 1))])
+            drawn = len(cube)
+        groups.append((CALIBRATION, CUBE, cube, cube_R))
     c = np.asarray(cfg.cube_centre_mm)
     h = cfg.cube_edge_mm / 2.0
     inside = c + rng.uniform(-h, h, (cfg.validation_inside, 3))
     groups.append(
         (
             VALIDATION,
-            "cube",
+            CUBE,
             inside,
-            _orientations(rng, R0, len(inside), cfg.orientation_variation_deg),
+            orientations(rng, R0, len(inside), cfg.orientation_variation_deg),
         )
     )
     for k, centre in enumerate(cfg.validation_regions_mm, start=1):
@@ -170,50 +241,60 @@ def make_plan(
                 VALIDATION,
                 f"O{k}",
                 pts,
-                _orientations(rng, R0, len(pts), cfg.orientation_variation_deg),
+                orientations(rng, R0, len(pts), cfg.orientation_variation_deg),
             )
         )
 
-    poses: list[PlannedPose] = []
     unreachable: list[UnreachablePose] = []
-    for role, region, pts, Rs in groups:
+    for role, region_name, pts, Rs in groups:
         if len(pts) == 0:
             continue
-        # Seed from the group's centre, solved from home: neighbouring poses, short moves.
-        centre_sol = solve(model, target_offset, pts.mean(axis=0)[None], R0, home_q)
-        seed = centre_sol.q[0] if centre_sol.ok[0] else home_q
-        sol = solve(model, target_offset, pts, Rs, seed)
-        retry = ~sol.ok
-        if retry.any():  # a second chance from home for the ones that failed
-            again = solve(model, target_offset, pts[retry], Rs[retry], home_q)
-            q = sol.q.copy()
-            q[retry] = again.q
-            ok = sol.ok.copy()
-            ok[retry] = again.ok
-        else:
-            q, ok = sol.q, sol.ok
+        q, ok = _solve_group(model, home_q, target_offset, R0, pts, Rs)
         for p, qi, good in zip(pts, q, ok, strict=True):
             in_box = bool(np.all(p >= lo_box) and np.all(p <= hi_box))
             if not in_box:
-                unreachable.append(UnreachablePose(role, region, p, "outside the workspace box"))
+                reason = "outside the workspace box"
+                unreachable.append(UnreachablePose(role, region_name, p, reason))
             elif not good:
-                unreachable.append(
-                    UnreachablePose(role, region, p, "no joint solution within the limits")
-                )
+                reason = "no joint solution within the limits"
+                unreachable.append(UnreachablePose(role, region_name, p, reason))
             else:
-                poses.append(PlannedPose(len(poses), role, region, p, qi))
-    if cfg.optimal_poses and select:
-        workspace = workspace_poses(cfg, model, home_q, target_offset)
-        return _optimal(cfg, poses, unreachable, model, home_q, target_offset, workspace)
-    return Plan(tuple(poses), tuple(unreachable))
+                poses.append(PlannedPose(len(poses), role, region_name, p, qi))
+    if not cfg.optimal_poses:
+        return Plan(tuple(poses), tuple(unreachable))
+    reachable = sum(1 for p in poses if p.role == CALIBRATION)
+    where = "drawn over the workspace box" if cfg.region == WORKSPACE else "in the cube"
+    found = f"{reachable} reachable candidates of {drawn} {where} ({drawn - reachable} unreachable)"
+    if not select or workspace is None:
+        progress(found)
+        return Plan(tuple(poses), tuple(unreachable), reachable, None, drawn)
+    progress(f"{found}; choosing {cfg.optimal_poses} ({cfg.optimal_criterion}-optimal) …")
+    return _optimal(cfg, poses, unreachable, model, home_q, target_offset, workspace, drawn)
 
 
 def workspace_poses(
-    cfg: CampaignConfig, model: RobotModel, home_q: Array, target_offset: Array
+    cfg: CampaignConfig,
+    model: RobotModel,
+    home_q: Array,
+    target_offset: Array,
+    *,
+    progress: Progress = _quiet,
 ) -> Array:
-    """Joint readings (rad) of the workspace points the prediction is judged at: inside
-    the cube and in the validation regions, drawn like the validation poses but from
-    another seed; the unreachable ones left out."""
+    """Joint readings (rad) of the workspace points the prediction is judged at, the
+    unreachable ones left out. ``campaign.region = "cube"``: inside the cube and in the
+    validation regions, drawn like the validation poses but from another seed.
+    ``"workspace"``: :data:`REGION_POINTS` reachable poses drawn over the workspace box,
+    turned as the validation poses are, from another seed than the candidates'."""
+    if cfg.region == WORKSPACE:
+        rng = np.random.default_rng([cfg.seed + WORKSPACE_SEED, 2])
+        region = draw_reachable(
+            cfg, model, home_q, target_offset, rng, REGION_POINTS, cfg.orientation_variation_deg
+        )
+        progress(
+            f"{len(region.q)} reachable workspace points of {region.drawn} drawn to judge "
+            "the prediction at"
+        )
+        return region.q
     points = cfg.model_copy(
         update={
             "seed": cfg.seed + WORKSPACE_SEED,
@@ -301,12 +382,18 @@ def _optimal(
     home_q: Array,
     target_offset: Array,
     workspace: Array,
+    drawn: int,
 ) -> Plan:
     """The plan with the campaign's optimal calibration poses of the candidates (D- or
     I-optimal), in a short tour from home, then the validation poses; unreachable
-    candidates are not poses."""
+    candidates are not poses (``drawn`` counts them)."""
     candidates = [p for p in poses if p.role == CALIBRATION]
     if not candidates:
+        if cfg.region == WORKSPACE:
+            raise InputError(
+                f"none of {drawn} poses drawn over the workspace box is reachable; check "
+                "campaign.workspace_min_mm and workspace_max_mm"
+            )
         raise InputError("no calibration candidate of the cube is reachable; check the cube")
     q = np.array([p.q for p in candidates])
     G, H, _ = identification_blocks(model, q, target_offset, workspace)
@@ -326,4 +413,4 @@ def _optimal(
         PlannedPose(i, p.role, p.region, p.target_mm, p.q) for i, p in enumerate(kept)
     )
     left = tuple(u for u in unreachable if u.role != CALIBRATION)
-    return Plan(renumbered, left, len(candidates), selection)
+    return Plan(renumbered, left, len(candidates), selection, drawn)

@@ -131,7 +131,8 @@ def poses_csv(data: PoseData) -> str:
 
 def plan_text(config_json: str) -> str:
     """How the campaign chose its calibration poses, from its stored configuration: the
-    cube's grid, or N D- or I-optimal poses of the candidates (``cellcal plan``)."""
+    cube's grid, or N D- or I-optimal poses of the candidates, the cube's or those drawn
+    over the workspace box (``cellcal plan``)."""
     try:
         campaign = json.loads(config_json).get("campaign", {})
     except (ValueError, AttributeError):
@@ -141,7 +142,12 @@ def plan_text(config_json: str) -> str:
     n = campaign.get("optimal_poses") or 0
     if n:
         criterion = campaign.get("optimal_criterion", "D")
-        return f"{n} {criterion}-optimal calibration poses of the cube's candidates"
+        where = (
+            "candidates drawn over the workspace box"
+            if campaign.get("region") == "workspace"
+            else "the cube's candidates"
+        )
+        return f"{n} {criterion}-optimal calibration poses of {where}"
     grid = campaign.get("grid")
     if isinstance(grid, list) and grid:
         return "the cube's grid, " + " × ".join(str(k) for k in grid) + " points"

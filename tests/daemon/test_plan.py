@@ -1,4 +1,5 @@
-"""The plan: properties that hold for any cube the robot can reach."""
+"""The plan: properties that hold for any cube the robot can reach, and poses drawn over
+the workspace box."""
 
 from __future__ import annotations
 
@@ -9,7 +10,16 @@ from hypothesis import strategies as st
 
 from cellcal.calib.kinematics import target_kinematics
 from cellcal.config import CampaignConfig
-from cellcal.daemon.plan import CALIBRATION, VALIDATION, cube_points, make_plan
+from cellcal.daemon import plan_region
+from cellcal.daemon.plan import (
+    CALIBRATION,
+    VALIDATION,
+    cube_points,
+    make_plan,
+    workspace_poses,
+)
+from cellcal.daemon.plan_region import REGION_CANDIDATES, REGION_POINTS, draw_reachable
+from cellcal.errors import InputError
 from cellcal.modelfiles import load_model
 
 MODEL = load_model("kuka-kr5-arc").model
@@ -101,3 +111,71 @@ def test_any_reachable_cube_gives_a_consistent_plan(cx, cy, cz, edge, n, vary, s
     plan = make_plan(cfg, MODEL, HOME, TOOL)
     _check(plan, cfg)
     assert len(plan.poses) + len(plan.unreachable) == n**3 + 5 + 2 * 5
+
+
+#: A box about the robot's front, as a cell would set it (mm).
+BOX = {"workspace_min_mm": [400.0, -900.0, 300.0], "workspace_max_mm": [1100.0, 900.0, 1300.0]}
+
+
+def test_the_workspace_region_chooses_from_reachable_poses_drawn_over_the_box():
+    cfg = CampaignConfig(optimal_poses=12, region="workspace", **BOX)
+    plan = make_plan(cfg, MODEL, HOME, TOOL)
+    _check(plan, cfg)
+    cal = [p for p in plan.poses if p.role == CALIBRATION]
+    assert len(cal) == 12 and {p.region for p in cal} == {"workspace"}
+    # Chosen from REGION_CANDIDATES reachable ones; the unreachable draws are counted.
+    assert plan.candidates == REGION_CANDIDATES and plan.drawn > plan.candidates
+    assert plan.selection is not None and len(set(plan.selection.chosen)) == 12
+    targets = np.array([p.target_mm for p in cal])
+    assert np.ptp(targets, axis=0).min() > 300  # spread over the box, not a cube
+    # The validation poses are the cube plan's, whatever the region: reports compare.
+    cube = make_plan(CampaignConfig(optimal_poses=12, **BOX), MODEL, HOME, TOOL)
+    np.testing.assert_array_equal(
+        [p.q for p in plan.poses if p.role == VALIDATION],
+        [p.q for p in cube.poses if p.role == VALIDATION],
+    )
+    assert [(u.region, u.reason) for u in plan.unreachable] == [
+        (u.region, u.reason) for u in cube.unreachable if u.role == VALIDATION
+    ]
+    assert make_plan(cfg, MODEL, HOME, TOOL).digest == plan.digest  # seeded
+    # The expected error is judged at other reachable poses drawn over the same box.
+    judged = workspace_poses(cfg, MODEL, HOME, TOOL)
+    assert judged.shape == (REGION_POINTS, 6)
+    at = target_kinematics(MODEL, judged, TOOL, jacobian=False).p
+    assert (at >= np.array(BOX["workspace_min_mm"]) - 1e-6).all()
+    assert (at <= np.array(BOX["workspace_max_mm"]) + 1e-6).all()
+    assert not np.isin(np.round(judged, 9), np.round([p.q for p in cal], 9)).all(axis=1).any()
+
+
+def test_without_optimal_poses_the_region_only_moves_where_the_error_is_judged():
+    cfg = CampaignConfig(region="workspace", **BOX)
+    assert (
+        make_plan(cfg, MODEL, HOME, TOOL).digest
+        == make_plan(CampaignConfig(**BOX), MODEL, HOME, TOOL).digest
+    )
+
+
+def test_drawing_does_not_depend_on_how_many_poses_are_solved_at_once(monkeypatch):
+    cfg = CampaignConfig(**BOX)
+
+    def draw():
+        return draw_reachable(cfg, MODEL, HOME, TOOL, np.random.default_rng(5), 40, 60.0)
+
+    first = draw()
+    monkeypatch.setattr(plan_region, "REGION_FIRST_BATCH", 7)
+    again = draw()
+    assert first.drawn == again.drawn and len(first.q) == 40
+    np.testing.assert_array_equal(first.q, again.q)
+    np.testing.assert_array_equal(first.points, again.points)
+
+
+def test_a_box_the_robot_cannot_reach_is_refused(monkeypatch):
+    monkeypatch.setattr(plan_region, "REGION_MAX_DRAWS", 50)
+    cfg = CampaignConfig(
+        optimal_poses=12,
+        region="workspace",
+        workspace_min_mm=[3000.0, 3000.0, 0.0],
+        workspace_max_mm=[3500.0, 3500.0, 500.0],
+    )
+    with pytest.raises(InputError, match="none of 50 poses drawn over the workspace box"):
+        make_plan(cfg, MODEL, HOME, TOOL)

@@ -100,6 +100,11 @@ def test_the_report_names_how_the_poses_were_chosen():
 
     optimal = '{"campaign": {"optimal_poses": 24, "optimal_criterion": "I", "grid": [4, 4, 5]}}'
     assert plan_text(optimal) == "24 I-optimal calibration poses of the cube's candidates"
+    box = '{"campaign": {"optimal_poses": 30, "region": "workspace"}}'
+    assert (
+        plan_text(box)
+        == "30 D-optimal calibration poses of candidates drawn over the workspace box"
+    )
     assert plan_text('{"campaign": {"grid": [4, 4, 5]}}') == "the cube's grid, 4 × 4 × 5 points"
     assert plan_text("{}") == plan_text("not json") == "the cube's grid"
 
