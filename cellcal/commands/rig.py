@@ -272,7 +272,13 @@ def calibrate(
             f"--max-length-error: expected a positive length in mm, got {max_length_mm}"
         )
     board = read_board(board_path)
+    click.echo(f"rig calibrate: reading the views in {views_dir}…", err=True)
     views = load_views(views_dir)
+    click.echo(
+        f"rig calibrate: {len(views.views)} views of {len(views.cameras)} cameras: finding "
+        "the board, measuring its corners from their edges, adjusting the bundle…",
+        err=True,
+    )
     options = RigCalibrationOptions(
         fix_k3=fix_k3, fix_tangential=fix_tangential, max_length_rms_mm=max_length_mm
     )
