@@ -145,6 +145,23 @@ class Daemon:
         return code
 
 
+def small_cell(folder: Path) -> Path:
+    """The tracker cell on a 3×3×3 cube with 16 validation poses (43 poses, not 128):
+    for the tests about the service's states, which need a campaign to run and end but
+    not the paper's 80 calibration poses; written into ``folder``."""
+    text = TRACKER_CELL.read_text(encoding="utf-8")
+    for old, new in (
+        ("grid = [4, 4, 5]", "grid = [3, 3, 3]"),
+        ("validation_inside = 20", "validation_inside = 6"),
+        ("validation_per_region = 6", "validation_per_region = 2"),
+    ):
+        assert old in text, old
+        text = text.replace(old, new)
+    path = folder / "small-cell.toml"
+    path.write_text(text, encoding="utf-8")
+    return path
+
+
 @pytest.fixture
 def folder() -> Iterator[Path]:
     # Unix socket paths are limited to 108 bytes: pytest's temp paths may be longer

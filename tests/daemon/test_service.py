@@ -20,6 +20,7 @@ from cellcal.commands.service_client import call
 from cellcal.daemon.control import Control
 from cellcal.daemon.sdnotify import Notifier
 from cellcal.daemon.service import _watchdog
+from tests.daemon.conftest import small_cell
 
 ROOT = Path(__file__).resolve().parents[2]
 TRACKER_CELL = ROOT / "config" / "mock-cell-tracker.toml"
@@ -65,7 +66,7 @@ def test_start_pause_resume_abort_queue_sigkill_resume(
 ) -> None:
     systemd, notify_path = fake
     collector = Collector(systemd)
-    d = daemon(folder, notify_path, time_scale=0.02)
+    d = daemon(folder, notify_path, time_scale=0.02, config=small_cell(folder))
     d.start()
     seen: dict[str, str] = {}
     for fields in collector.take():

@@ -25,6 +25,7 @@ from cellcal.daemon.control import READY, Control, event_data
 from cellcal.daemon.plan import Plan, PlannedPose
 from cellcal.daemon.records import CampaignStarted, PoseStored
 from cellcal.drivers.base import Series
+from tests.daemon.conftest import small_cell
 
 ROOT = Path(__file__).resolve().parents[2]
 TRACKER_CELL = ROOT / "config" / "mock-cell-tracker.toml"
@@ -209,7 +210,7 @@ def _check_shown(s: dict[str, Any], cid: int, status: str, stored: list[int]) ->
 
 def test_campaign_b_is_shown_with_its_poses_alone(folder: Path, daemon: Callable[..., Any]) -> None:
     address = f"127.0.0.{random.randint(2, 254)}"
-    d = daemon(folder, None, 0.02, ["--http", f"{address}:0"])
+    d = daemon(folder, None, 0.02, ["--http", f"{address}:0"], config=small_cell(folder))
     d.start()
     a = _start(d)
     done = d.until(lambda s: s["state"] == "idle" and f"campaign {a} complete" in s["reason"], 120)
@@ -258,7 +259,7 @@ def test_campaign_b_is_shown_with_its_poses_alone(folder: Path, daemon: Callable
 def test_a_held_campaign_is_reported_after_restarts(
     folder: Path, daemon: Callable[..., Any]
 ) -> None:
-    d = daemon(folder, None, 0.02)
+    d = daemon(folder, None, 0.02, config=small_cell(folder))
     d.start()
     cid = _start(d, {"when": "now"})
     planned = d.rows(f"SELECT n_poses FROM campaigns WHERE id = {cid}")[0][0]

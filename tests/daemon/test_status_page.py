@@ -20,6 +20,7 @@ from cellcal.commands.service_client import call
 from cellcal.daemon.page import FILES, host_allowed, parse_http
 from cellcal.errors import InputError
 from tests.browser import needs_chromium
+from tests.daemon.conftest import small_cell
 
 ROOT = Path(__file__).resolve().parents[2]
 STATIC = ROOT / "cellcal" / "data" / "status"
@@ -126,7 +127,7 @@ def test_the_page_in_chromium_follows_a_campaign_to_its_errors(
     capsys: pytest.CaptureFixture[str],
     shared_chromium: Any,
 ) -> None:
-    d = daemon(folder, None, 0.03, ["--http", f"{_address()}:0"])
+    d = daemon(folder, None, 0.03, ["--http", f"{_address()}:0"], config=small_cell(folder))
     d.start()
     url = _page_url(d)
     browser = shared_chromium
