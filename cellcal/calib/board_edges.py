@@ -29,12 +29,16 @@ for its level to be read (a board seen very obliquely across that direction). Me
 on rendered views (blur 0.8 px, noise 2 grey levels, barrel distortion, up to 65°):
 see docs/photogrammetry.md.
 
+All the edges a view's corners need are measured together, in arrays padded to the
+longest edge's rows, and all the lines through them fitted together.
+
 Pure numerics: an image, the board, a camera model and the board's pose in; corner ids
 and pixels out.
 """
 
 from __future__ import annotations
 
+import contextlib
 from dataclasses import dataclass
 from typing import Any
 
@@ -44,6 +48,7 @@ from numpy.typing import NDArray
 
 from cellcal.calib.camera_rig import Board
 from cellcal.calib.geometry import Array
+from cellcal.calib.marker_corners import row_median
 
 Image = NDArray[Any]
 
@@ -67,6 +72,9 @@ MIN_LINE_POINTS = 8
 GATE = 1.5
 #: Residual beyond which an edge point is dropped from its line, in robust σ.
 REJECT_SIGMA = 3.0
+#: Most edges × rows measured in one batch: an edge the pose stretches across far more
+#: rows than the image has is measured apart, not padded into every other edge's rows.
+BATCH_ROWS = 1 << 18
 
 
 @dataclass(frozen=True, eq=False)
@@ -144,146 +152,231 @@ class BoardEdges:
     ) -> RefinedCorners:
         """The corners ``ids`` measured in ``grey`` (float or 8-bit grey levels), the board
         posed at (rvec, tvec) in a camera (K, dist)."""
-        img = np.asarray(grey, dtype=np.float32)
+        img = np.asarray(grey)
+        if img.dtype not in (np.uint8, np.float32):
+            img = img.astype(np.float32)
         project = _Projector(K, dist, rvec, tvec)
-        cache: dict[tuple[int, int, int], Array | None] = {}
-
-        def points(key: tuple[int, int, int]) -> Array | None:
-            if key not in cache:
-                seg = self.segments.get(key)
-                cache[key] = None if seg is None else self._edge(img, project, seg)
-            return cache[key]
-
-        kept, pixels, rms, lost = [], [], [], []
-        for k in np.asarray(ids, dtype=np.int64).ravel():
-            i, j = int(k) % (self.nx - 1) + 1, int(k) // (self.nx - 1) + 1
-            h = [p for p in (points((0, i - 1, j)), points((0, i, j))) if p is not None]
-            v = [p for p in (points((1, i, j - 1)), points((1, i, j))) if p is not None]
-            guess = project(np.array([[i * self.board.square, j * self.board.square]]))[0]
-            corner = _meet(h, v, guess)
-            if corner is None:
-                lost.append(int(k))
-                continue
-            kept.append(int(k))
-            pixels.append(corner[0])
-            rms.append(corner[1])
-        line_rms = np.array(rms, dtype=np.float64)
+        ids = np.asarray(ids, dtype=np.int64).ravel()
+        if len(ids) == 0:
+            none = np.zeros(0, dtype=np.int64)
+            return RefinedCorners(none, np.zeros((0, 2)), none, np.zeros(0))
+        i, j = ids % (self.nx - 1) + 1, ids // (self.nx - 1) + 1
+        # each corner's two lines (horizontal, then vertical), each of two edges
+        line_edges = [
+            key
+            for a, b in zip(i.tolist(), j.tolist(), strict=True)
+            for key in ((0, a - 1, b), (0, a, b), (1, a, b - 1), (1, a, b))
+        ]
+        keys = list(dict.fromkeys(k for k in line_edges if k in self.segments))
+        pts, ok = self._edges(img, project, [self.segments[k] for k in keys])
+        # an edge the board does not have is the empty one appended last (index -1)
+        pts = np.concatenate([pts, np.zeros((1, *pts.shape[1:]))])
+        ok = np.concatenate([ok, np.zeros((1, ok.shape[1]), dtype=bool)])
+        where = {k: n for n, k in enumerate(keys)}
+        slots = np.array([where.get(k, -1) for k in line_edges], dtype=np.int64).reshape(-1, 2)
+        measured = np.asarray(ok[slots].any(axis=2))  # (lines, 2): which edges were measured
+        curves = _curves(
+            pts[slots].reshape(len(slots), -1, 2),
+            ok[slots].reshape(len(slots), -1),
+            np.asarray(measured.all(axis=1)),
+        )
+        board_xy = np.column_stack([i, j]).astype(np.float64) * self.board.square
+        corners, met, line_rms = _meet(curves, project(board_xy))
+        kept, lost = ids[met].tolist(), ids[~met].tolist()
+        pixels, line_rms = corners[met], line_rms[met]
         if len(kept) >= 4:  # a line measured much worse than the others: a bad edge
             bad = line_rms > GATE * float(np.median(line_rms))
             lost += [k for k, b in zip(kept, bad, strict=True) if b]
             kept = [k for k, b in zip(kept, bad, strict=True) if not b]
-            pixels = [p for p, b in zip(pixels, bad, strict=True) if not b]
-            line_rms = line_rms[~bad]
+            pixels, line_rms = pixels[~bad], line_rms[~bad]
         return RefinedCorners(
             np.array(kept, dtype=np.int64),
-            np.array(pixels, dtype=np.float64).reshape(-1, 2),
+            pixels.reshape(-1, 2),
             np.array(sorted(lost), dtype=np.int64),
             line_rms,
         )
 
-    def _edge(self, img: Image, project: _Projector, seg: _Segment) -> Array | None:
-        """Sub-pixel points (n, 2) where the edge ``seg`` crosses pixel rows (or columns);
-        None when it cannot be measured."""
-        h, w = img.shape
+    def _edges(
+        self, img: Image, project: _Projector, segs: list[_Segment]
+    ) -> tuple[Array, NDArray[np.bool_]]:
+        """Sub-pixel points (E, R, 2) where each edge of ``segs`` crosses pixel rows (or
+        columns), padded to the most rows R, and which of them were measured (E, R): none
+        of an edge that cannot be measured."""
+        n_e = len(segs)
+        if n_e == 0:
+            return np.zeros((0, 1, 2)), np.zeros((0, 1), dtype=bool)
+        a = np.array([s.a for s in segs])
+        b = np.array([s.b for s in segs])
         t = np.linspace(0.0, 1.0, 33)
-        along_mm = seg.a[None, :] + t[:, None] * (seg.b - seg.a)[None, :]
-        curve = project(along_mm)
-        d = curve[-1] - curve[0]
-        ax = 1 if abs(d[0]) < abs(d[1]) else 0  # 1: scan rows (edge runs down the image)
-        scan, across = curve[:, ax], curve[:, 1 - ax]
-        lo_t, hi_t = np.interp(EDGE_SPAN, t, scan)
-        js = np.arange(np.ceil(min(lo_t, hi_t)), np.floor(max(lo_t, hi_t)) + 1)
-        if len(js) < 3 or not np.all(np.diff(scan) * np.sign(scan[-1] - scan[0]) > 0):
-            return None
-        order = np.argsort(scan)
-        e = np.interp(js, scan[order], across[order])
-        tj = np.interp(js, scan[order], t[order])
-        q = seg.a[None, :] + tj[:, None] * (seg.b - seg.a)[None, :]
-        # board mm per pixel along the scan line, at each point (the pose's local map)
-        J = project.jacobian(q)  # (n, 2, 2): d pixel / d board
-        step_px = np.zeros((len(js), 2))
-        step_px[:, 1 - ax] = 1.0
-        try:
-            u = np.linalg.solve(J, step_px[..., None])[..., 0]  # board mm per px
-        except np.linalg.LinAlgError:
-            return None
-        normal = seg.dark  # across the edge, toward the black square
-        rate = u @ normal  # mm across per px along the scan (signed)
-        if np.any(np.abs(rate) < 1e-9):
-            return None
+        along_mm = a[:, None, :] + t[None, :, None] * (b - a)[:, None, :]
+        curve = project(along_mm.reshape(-1, 2)).reshape(n_e, len(t), 2)
+        d = curve[:, -1] - curve[:, 0]
+        by_rows = (np.abs(d[:, 0]) < np.abs(d[:, 1]))[:, None]  # the edge runs down the image
+        scan = np.where(by_rows, curve[..., 1], curve[..., 0])
+        across = np.where(by_rows, curve[..., 0], curve[..., 1])
+        # the rows (or columns) between EDGE_SPAN of the edge: np.interp's arithmetic
+        k = np.searchsorted(t, EDGE_SPAN, side="right") - 1
+        slope = (scan[:, k + 1] - scan[:, k]) / (t[k + 1] - t[k])
+        ends = slope * (np.array(EDGE_SPAN) - t[k]) + scan[:, k]
+        with np.errstate(invalid="ignore"):
+            first, last = np.ceil(ends.min(axis=1)), np.floor(ends.max(axis=1))
+            count = np.where(np.isfinite(first + last), last - first + 1, 0).astype(np.int64)
+            rising = np.sign(scan[:, -1] - scan[:, 0])
+            monotone = np.all(np.diff(scan, axis=1) * rising[:, None] > 0, axis=1)
+        alive = (count >= 3) & monotone
+        n_r = int(count[alive].max(initial=0))
+        if n_r == 0:
+            return np.zeros((n_e, 1, 2)), np.zeros((n_e, 1), dtype=bool)
+        if n_e > 1 and n_e * n_r > BATCH_ROWS:
+            return self._halves(img, project, segs, count)
+        ok = alive[:, None] & (np.arange(n_r) < count[:, None])
+        js = np.where(ok, first[:, None] + np.arange(n_r), 0.0)
+        # where the pose puts the edge on each row, and the board point there: np.interp
+        # on the curve ordered along the scan
+        up = (rising > 0)[:, None]
+        xs = np.where(up, scan, scan[:, ::-1])
+        at = np.clip((xs[:, None, :] <= js[..., None]).sum(axis=2) - 1, 0, len(t) - 2)
+
+        def interp(ys: Array) -> Array:
+            rise = np.take_along_axis(np.diff(ys, axis=1) / np.diff(xs, axis=1), at, axis=1)
+            out: Array = rise * (js - np.take_along_axis(xs, at, axis=1))
+            return out + np.take_along_axis(ys, at, axis=1)
+
+        with np.errstate(all="ignore"):
+            e = np.where(ok, interp(np.where(up, across, across[:, ::-1])), 0.0)
+            tj = interp(np.where(up, t, t[::-1]))
+        q = a[:, None, :] + tj[..., None] * (b - a)[:, None, :]
+        # board mm across the edge (toward the black square) per px along the scan line,
+        # at each point (the pose's local map)
+        edge_of = np.broadcast_to(np.arange(n_e)[:, None], ok.shape)[ok]
+        step_px = np.zeros((len(edge_of), 2))
+        step_px[:, 0], step_px[:, 1] = by_rows[edge_of, 0], ~by_rows[edge_of, 0]
+        u = _per_px(project.jacobian(q[ok]), step_px, edge_of)  # board mm per px
+        rate = np.ones(ok.shape)
+        rate[ok] = (u * np.array([s.dark for s in segs])[edge_of]).sum(axis=1)
+        # an edge the view turns edge-on on any row (or whose map there cannot be
+        # inverted) is not measured
+        alive &= ~np.any(ok & ~(np.abs(rate) >= 1e-9), axis=1)
+        ok &= alive[:, None]
+        return self._measure(img, by_rows, js, e, np.where(ok, rate, 1.0), ok)
+
+    def _halves(
+        self, img: Image, project: _Projector, segs: list[_Segment], count: NDArray[np.int64]
+    ) -> tuple[Array, NDArray[np.bool_]]:
+        """:meth:`_edges` of the shorter half of ``segs`` (``count`` rows each) and of the
+        longer half apart, put together."""
+        order = np.argsort(count, kind="stable")
+        parts = [order[: len(order) // 2], order[len(order) // 2 :]]
+        done = [self._edges(img, project, [segs[k] for k in part]) for part in parts]
+        n_r = max(p.shape[1] for p, _ in done)
+        pts, ok = np.zeros((len(segs), n_r, 2)), np.zeros((len(segs), n_r), dtype=bool)
+        for part, (p, m) in zip(parts, done, strict=True):
+            pts[part, : p.shape[1]], ok[part, : m.shape[1]] = p, m
+        return pts, ok
+
+    def _measure(
+        self,
+        img: Image,
+        by_rows: NDArray[np.bool_],
+        js: Array,
+        e: Array,
+        rate: Array,
+        ok: NDArray[np.bool_],
+    ) -> tuple[Array, NDArray[np.bool_]]:
+        """The edges measured on their rows: ``js`` (E, R) the scan coordinate of each
+        row, ``e`` where the pose puts the edge across it, ``rate`` the board mm across
+        the edge (toward the black square) per px along the scan, ``ok`` the rows to
+        measure; as :meth:`_edges`."""
+        n_e = len(js)
+        h, w = img.shape
         sign = np.sign(rate)  # +1: the black square lies toward larger scan coordinate
         dark_px = 0.5 * self.board.square / np.abs(rate)
         bright_px = self.margin / np.abs(rate)
-        if np.median(bright_px) < 2.0 * BLUR_REACH_PX + 0.2:
-            return None  # the white margin is too narrow in the image to read its level
+        # the white margin too narrow in the image to read its level
+        ok &= ~(row_median(np.where(ok, bright_px, np.nan)) < 2.0 * BLUR_REACH_PX + 0.2)[:, None]
         reach_dark = np.minimum(dark_px - BLUR_REACH_PX, WINDOW_MAX_PX)
         reach_bright = np.minimum(bright_px - BLUR_REACH_PX, WINDOW_MAX_PX)
         # the levels are read from three pixels a row where there is room (one in a
         # narrow margin): their noise would otherwise shift a whole edge
-        probe_dark = np.minimum(0.5 * dark_px, DARK_PROBE_PX)[:, None] + np.array([-1, 0, 1])
+        three = np.array([-1.0, 0.0, 1.0])
+        probe_dark = np.minimum(0.5 * dark_px, DARK_PROBE_PX)[..., None] + three
         spread = np.where(bright_px >= 2.0 * BLUR_REACH_PX + 2.0, 1.0, 0.0)
-        probe_bright = (0.5 * bright_px)[:, None] + spread[:, None] * np.array([-1, 0, 1])
-        j_int = js.astype(np.int64)
-        ok = np.ones(len(js), dtype=bool)
+        probe_bright = (0.5 * bright_px)[..., None] + spread[..., None] * three
         offs = np.arange(-int(WINDOW_MAX_PX) - 2, int(WINDOW_MAX_PX) + 3)
+        # the pixel at scan coordinate j, across coordinate i: row j, column i when the
+        # scan lines are rows; row i, column j when they are columns
+        flat = img.reshape(-1)
+        j = js.astype(np.int64)[..., None]
+        rows = by_rows[..., None]
+        j_at = np.where(rows, np.clip(j, 0, h - 1) * w, np.clip(j, 0, w - 1))
+        j_in = (j >= 0) & (j < np.where(rows, h, w))
+        i_step: Image = np.where(rows, 1, w)
+        i_end: Image = np.where(rows, w, np.int64(h))
 
-        def gather(i: Array) -> Array:
-            i = np.asarray(i, dtype=np.int64)
-            jj = np.broadcast_to(j_int.reshape((-1,) + (1,) * (i.ndim - 1)), i.shape)
-            if ax == 1:
-                inside = (i >= 0) & (i < w) & (jj >= 0) & (jj < h)
-                vals = img[np.clip(jj, 0, h - 1), np.clip(i, 0, w - 1)]
-            else:
-                inside = (i >= 0) & (i < h) & (jj >= 0) & (jj < w)
-                vals = img[np.clip(i, 0, h - 1), np.clip(jj, 0, w - 1)]
-            return np.where(inside, vals.astype(np.float64), np.nan)
+        def gather(i: Image) -> Array:
+            """Grey levels at across coordinates ``i`` (E, R, k) on each edge's rows; NaN
+            outside the image."""
+            i = i.astype(np.int64)
+            vals = flat.take(j_at + np.clip(i, 0, i_end - 1) * i_step).astype(np.float64)
+            out: Array = np.where(j_in & (i >= 0) & (i < i_end), vals, np.nan)
+            return out
 
-        dark = bright = float("nan")
         for _ in range(PASSES):
-            dark_v = gather(np.rint((e + sign * probe_dark.T).T))
-            bright_v = gather(np.rint((e - sign * probe_bright.T).T))
-            dark = _level(np.where(ok[:, None], dark_v, np.nan))
-            bright = _level(np.where(ok[:, None], bright_v, np.nan))
-            if not np.isfinite(dark) or not np.isfinite(bright) or bright - dark < MIN_CONTRAST:
-                return None
+            dark_v = gather(np.rint(e[..., None] + sign[..., None] * probe_dark))
+            bright_v = gather(np.rint(e[..., None] - sign[..., None] * probe_bright))
+            dark = _levels(np.where(ok[..., None], dark_v, np.nan).reshape(n_e, -1))
+            bright = _levels(np.where(ok[..., None], bright_v, np.nan).reshape(n_e, -1))
+            read = np.isfinite(dark) & np.isfinite(bright) & ~(bright - dark < MIN_CONTRAST)
+            ok &= read[:, None]
             # the window [lo, hi] along the scan: toward the black square by reach_dark,
             # toward the white margin by reach_bright
             lo = np.where(sign > 0, e - reach_bright, e - reach_dark)
             hi = np.where(sign > 0, e + reach_dark, e + reach_bright)
-            left = np.where(sign > 0, bright, dark)
-            right = np.where(sign > 0, dark, bright)
-            pix = np.rint(e).astype(np.int64)[:, None] + offs[None, :]
-            inside = np.minimum(pix + 0.5, hi[:, None]) - np.maximum(pix - 0.5, lo[:, None])
+            left = np.where(sign > 0, bright[:, None], dark[:, None])
+            right = np.where(sign > 0, dark[:, None], bright[:, None])
+            pix = np.rint(e).astype(np.int64)[..., None] + offs
+            inside = np.minimum(pix + 0.5, hi[..., None]) - np.maximum(pix - 0.5, lo[..., None])
             weight = np.clip(inside, 0.0, 1.0)
             vals = gather(pix)
-            total = np.where(weight > 0, vals * weight, 0.0).sum(axis=1)
-            valid = np.isfinite(np.where(weight > 0, vals, 0.0)).all(axis=1)
+            total = np.where(weight > 0, vals * weight, 0.0).sum(axis=2)
+            valid = np.isfinite(np.where(weight > 0, vals, 0.0)).all(axis=2)
             with np.errstate(all="ignore"):
                 e_new = (total + left * lo - right * hi) / (left - right)
-            step_ok = (
-                valid
-                & np.isfinite(e_new)
-                & (np.abs(e_new - e) < np.minimum(reach_dark, reach_bright) + 1.0)
-            )
+                step_ok = (
+                    valid
+                    & np.isfinite(e_new)
+                    & (np.abs(e_new - e) < np.minimum(reach_dark, reach_bright) + 1.0)
+                )
             ok &= step_ok
             e = np.where(step_ok, e_new, e)
         ok &= (reach_dark >= 1.0) & (reach_bright >= 0.6)
-        if ok.sum() < 3:
-            return None
-        pts = np.empty((int(ok.sum()), 2))
-        pts[:, ax] = js[ok]
-        pts[:, 1 - ax] = e[ok]
-        return pts
+        ok &= (ok.sum(axis=1) >= 3)[:, None]
+        pts = np.stack([np.where(by_rows, e, js), np.where(by_rows, js, e)], axis=2)
+        return pts, ok
 
 
-def _level(values: Array) -> float:
-    """The mean of grey levels within 3 robust σ of their median (NaN when none)."""
-    v = values[np.isfinite(values)]
-    if v.size == 0:
-        return float("nan")
-    med = float(np.median(v))
-    mad = 1.4826 * float(np.median(np.abs(v - med)))
-    return float(v[np.abs(v - med) <= max(3.0 * mad, 1.0)].mean())
+def _per_px(J: Array, step_px: Array, edge_of: NDArray[np.int64]) -> Array:
+    """``J⁻¹ step_px`` for each row (n, 2); NaN on every row of an edge whose local map
+    cannot be inverted."""
+    with contextlib.suppress(np.linalg.LinAlgError):
+        return np.asarray(np.linalg.solve(J, step_px[..., None])[..., 0], dtype=np.float64)
+    out = np.full(step_px.shape, np.nan)
+    for k in np.unique(edge_of):
+        sel = edge_of == k
+        with contextlib.suppress(np.linalg.LinAlgError):
+            out[sel] = np.linalg.solve(J[sel], step_px[sel][..., None])[..., 0]
+    return out
+
+
+def _levels(values: Array) -> Array:
+    """Per row of ``values`` (m, k): the mean of its grey levels within 3 robust σ of
+    their median, NaN ignored (NaN for a row with none)."""
+    med = row_median(values)
+    dev = np.abs(values - med[:, None])
+    keep = dev <= np.maximum(3.0 * 1.4826 * row_median(dev), 1.0)[:, None]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        out: Array = np.where(keep, values, 0.0).sum(axis=1) / keep.sum(axis=1)
+    return out
 
 
 class _Projector:
@@ -310,60 +403,89 @@ class _Projector:
         return J
 
 
-def _curve(parts: list[Array]) -> tuple[Array, Array, Array, Array, float] | None:
-    """A parabola fitted to a line's points: (origin, direction, normal, coefficients of
-    the offset along the normal as a quadratic in the distance along the direction, RMS).
-    Points beyond ``REJECT_SIGMA`` robust σ are dropped (two passes)."""
-    if not parts:
-        return None
-    pts = np.concatenate(parts)
-    if len(pts) < MIN_LINE_POINTS:
-        return None
-    origin = pts.mean(axis=0)
-    _, _, vt = np.linalg.svd(pts - origin, full_matrices=False)
-    direction, normal = vt[0], vt[1]
-    s = (pts - origin) @ direction
-    n = (pts - origin) @ normal
-    keep = np.ones(len(pts), dtype=bool)
-    degree = 2 if len(parts) == 2 else 1
-    coef = np.zeros(3)
+@dataclass(frozen=True, eq=False)
+class _Curves:
+    """Curves fitted to lines' points, one a line: origin, direction and normal (L, 2),
+    the offset along the normal as a quadratic in the distance along the direction
+    (coefficients (L, 3), highest first), the RMS (L,) and whether the line was fitted."""
+
+    origin: Array
+    direction: Array
+    normal: Array
+    coef: Array
+    rms: Array
+    fitted: NDArray[np.bool_]
+
+
+def _curves(pts: Array, mask: NDArray[np.bool_], quadratic: NDArray[np.bool_]) -> _Curves:
+    """Curves fitted to lines' points (L, P, 2) where ``mask``, all lines at once: a
+    parabola (in pixels, along the line's principal direction) through a line whose two
+    edges were measured (``quadratic``), a straight line through one (least squares, by
+    the normal equations in the scaled distance along the line). Points beyond
+    ``REJECT_SIGMA`` robust σ are dropped (two passes); a line with fewer than
+    ``MIN_LINE_POINTS`` points is not fitted."""
+    n_l = len(pts)
+    count = mask.sum(axis=1)
+    fitted = count >= MIN_LINE_POINTS
+    origin = np.where(mask[..., None], pts, 0.0).sum(axis=1) / np.maximum(count, 1)[:, None]
+    x = np.where(mask[..., None], pts - origin[:, None, :], 0.0)
+    scatter = x.transpose(0, 2, 1) @ x
+    theta = 0.5 * np.arctan2(2.0 * scatter[:, 0, 1], scatter[:, 0, 0] - scatter[:, 1, 1])
+    direction = np.stack([np.cos(theta), np.sin(theta)], axis=1)
+    normal = np.stack([-np.sin(theta), np.cos(theta)], axis=1)
+    s = (x * direction[:, None, :]).sum(axis=2)
+    n = (x * normal[:, None, :]).sum(axis=2)
+    # fitted in s over its largest |s|, which keeps the normal equations well conditioned
+    scale = np.maximum(np.abs(s).max(axis=1), 1e-9)
+    u = s / scale[:, None]
+    A = np.stack([np.where(quadratic[:, None], u * u, 0.0), u, np.ones_like(u)], axis=2)
+    keep = mask.copy()
+    c, r = np.zeros((n_l, 3)), np.zeros(s.shape)
     for _ in range(3):
-        A = np.vander(s[keep], degree + 1)
-        c, *_ = np.linalg.lstsq(A, n[keep], rcond=None)
-        coef = np.concatenate([np.zeros(3 - len(c)), c])
-        r = n - np.polyval(coef, s)
-        mad = 1.4826 * float(np.median(np.abs(r[keep])))
-        new = np.abs(r) <= max(REJECT_SIGMA * mad, 1e-6)
-        if new.sum() < MIN_LINE_POINTS or np.array_equal(new, keep):
-            break
-        keep = new
-    rms = float(np.sqrt(np.mean(r[keep] ** 2)))
-    return origin, direction, normal, coef, rms
+        wa = A * keep[..., None]
+        M = wa.transpose(0, 2, 1) @ A
+        M[~quadratic, 0, 0] = 1.0  # a straight line: no square term
+        fitted &= np.linalg.det(M) != 0
+        M[~fitted] = np.eye(3)
+        c = np.linalg.solve(M, (wa * n[..., None]).sum(axis=1)[..., None])[..., 0]
+        r = n - ((c[:, :1] * u + c[:, 1:2]) * u + c[:, 2:])
+        mad = 1.4826 * row_median(np.where(keep, np.abs(r), np.nan))
+        new = mask & (np.abs(r) <= np.maximum(REJECT_SIGMA * mad, 1e-6)[:, None])
+        done = (new.sum(axis=1) < MIN_LINE_POINTS) | (new == keep).all(axis=1)
+        keep = np.where(done[:, None], keep, new)  # a done line's next pass repeats its last
+    rms = np.sqrt(np.where(keep, r**2, 0.0).sum(axis=1) / np.maximum(keep.sum(axis=1), 1))
+    coef = c / np.stack([scale**2, scale, np.ones(n_l)], axis=1)
+    return _Curves(origin, direction, normal, coef, rms, fitted)
 
 
-def _meet(h: list[Array], v: list[Array], guess: Array) -> tuple[Array, float] | None:
-    """Where the curves fitted to the two lines through a corner meet (px), and the larger
-    of their RMS; None when either line cannot be fitted or they do not meet near the
-    expected corner."""
-    ch, cv_ = _curve(h), _curve(v)
-    if ch is None or cv_ is None:
-        return None
+def _meet(curves: _Curves, guess: Array) -> tuple[Array, NDArray[np.bool_], Array]:
+    """Where the curves fitted to the two lines through each corner meet (lines 2k and
+    2k + 1 are corner k's; Newton's method from ``guess`` (C, 2), px); whether they do
+    (both lines fitted, meeting within 3 px of the guess); the larger of their RMS."""
+    n_c = len(guess)
+    o, d, nrm, c = (
+        a.reshape(n_c, 2, -1) for a in (curves.origin, curves.direction, curves.normal, curves.coef)
+    )
+    ok = curves.fitted.reshape(n_c, 2).all(axis=1)
     p = np.asarray(guess, dtype=np.float64).copy()
-    for _ in range(8):
-        F, Jf = [], []
-        for origin, direction, normal, coef, _ in (ch, cv_):
-            s = float((p - origin) @ direction)
-            n = float((p - origin) @ normal)
-            slope = 2 * coef[0] * s + coef[1]
-            F.append(n - float(np.polyval(coef, s)))
-            Jf.append(normal - slope * direction)
-        try:
-            dp = np.linalg.solve(np.array(Jf), -np.array(F))
-        except np.linalg.LinAlgError:
-            return None
-        p += dp
-        if np.linalg.norm(dp) < 1e-9:
-            break
-    if not np.all(np.isfinite(p)) or np.linalg.norm(p - guess) > 3.0:
-        return None
-    return p, max(ch[4], cv_[4])
+    going = ok.copy()
+    with np.errstate(all="ignore"):  # a corner whose curves barely cross may run off
+        for _ in range(8):
+            rel = p[:, None, :] - o
+            s, n = (rel * d).sum(axis=2), (rel * nrm).sum(axis=2)
+            F = n - ((c[..., 0] * s + c[..., 1]) * s + c[..., 2])
+            J = nrm - (2.0 * c[..., 0] * s + c[..., 1])[..., None] * d  # row k: curve k
+            det = J[:, 0, 0] * J[:, 1, 1] - J[:, 0, 1] * J[:, 1, 0]
+            stuck = going & ~(np.abs(det) > 0)
+            ok &= ~stuck
+            going &= ~stuck
+            # J dp = −F by Cramer's rule
+            dx = (J[:, 0, 1] * F[:, 1] - J[:, 1, 1] * F[:, 0]) / det
+            dy = (J[:, 1, 0] * F[:, 0] - J[:, 0, 0] * F[:, 1]) / det
+            dp = np.stack([dx, dy], axis=1)
+            p = np.where(going[:, None], p + dp, p)
+            going &= ~(np.hypot(dp[:, 0], dp[:, 1]) < 1e-9)
+            if not going.any():
+                break
+    ok &= np.isfinite(p).all(axis=1) & (np.hypot(*(p - guess).T) <= 3.0)
+    return p, ok, curves.rms.reshape(n_c, 2).max(axis=1)
