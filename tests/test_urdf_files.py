@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import math
 import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -21,6 +20,7 @@ from cellcal.modelfiles import load_model
 from cellcal.urdffiles import model_from_urdf, to_urdf
 from tests.calib.simulated import well_spread
 from tests.cli.test_calibrate_cli import write_measurements
+from tests.inprocess import cellcal
 
 ROOT = Path(__file__).parent
 UR5 = ROOT / "data" / "urdf" / "ur5_robot.urdf"
@@ -28,9 +28,7 @@ TOOL = np.array([20.0, -30.0, 120.0])
 
 
 def _cli(*args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, "-m", "cellcal", *args], capture_output=True, text=True, timeout=120
-    )
+    return cellcal(*args)
 
 
 def _pinocchio(urdf: str, q: np.ndarray, frame: str, relative_to: str | None = None) -> np.ndarray:

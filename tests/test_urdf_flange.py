@@ -10,7 +10,6 @@ import json
 import math
 import re
 import subprocess
-import sys
 import tomllib
 from pathlib import Path
 
@@ -27,6 +26,7 @@ from cellcal.modelfiles import builtin_names, load_model
 from cellcal.urdffiles import model_from_urdf, to_urdf
 from tests.calib.simulated import well_spread
 from tests.cli.test_calibrate_cli import write_measurements
+from tests.inprocess import cellcal
 
 ROOT = Path(__file__).resolve().parents[1]
 UR5 = ROOT / "tests" / "data" / "urdf" / "ur5_robot.urdf"
@@ -41,9 +41,7 @@ TOOL0_ORIGIN = '<origin rpy="-1.57079632679 0 0" xyz="0 0.0823 0"/>'
 
 
 def _cli(*args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, "-m", "cellcal", *args], capture_output=True, text=True, timeout=120
-    )
+    return cellcal(*args)
 
 
 def _read(path: Path) -> tuple[RobotModel, list[str]]:

@@ -9,17 +9,15 @@ import io
 import json
 import math
 import subprocess
-import sys
 
 import pytest
 
 from tests.conftest import TRACKER_CELL
+from tests.inprocess import cellcal
 
 
 def _cli(*args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, "-m", "cellcal", *args], capture_output=True, text=True, timeout=120
-    )
+    return cellcal(*args)
 
 
 def test_the_mock_cells_plan_is_printed():
