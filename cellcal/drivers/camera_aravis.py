@@ -13,7 +13,11 @@ in the set's ``lost`` with the reason.
 Aravis waits 2.5 s (hard-coded) for a camera's answer to any control command. The rig
 does not: it waits at most ``timeout_s × (retries + 1)`` for the slowest camera, and a
 camera whose thread is still waiting (a camera gone mid-series) is reported lost; until
-its thread is free again the camera is reported lost at once.
+its thread is free again the camera is reported lost at once. A trigger that Aravis
+could not get acknowledged in its 2.5 s is not sent again: a camera that no longer
+answers on its control channel has dropped it (a GigE Vision camera gives up control
+when its heartbeat stops), so it is reported lost at once in every later set, until
+the rig connects again.
 
 Frame ids: GigE Vision 1.x counts frames in 16 bits, wrapping from 65535 to 1; the rig
 unwraps them into a count that keeps increasing. Device time is the camera's timestamp
@@ -225,7 +229,9 @@ class AravisRig:
         lost: dict[str, str] = {}
         for name in self.cameras:
             worker = self._workers[name]
-            if worker.busy:
+            if self._links[name].gone:
+                lost[name] = "not answering: a trigger went unacknowledged"
+            elif worker.busy:
                 lost[name] = "still waiting for its previous command (camera gone?)"
             else:
                 pending[name] = worker.submit(self._links[name].shot)

@@ -98,7 +98,8 @@ class AravisLink:
         self.cam: Any = None
         self.stream: Any = None
         self._last_id: int | None = None
-        #: the camera stopped answering commands (its stop would wait for Aravis's timeout)
+        #: the camera stopped answering commands: its trigger went unacknowledged (it is not
+        #: triggered again, and its stop would wait for Aravis's timeout)
         self.gone = False
         #: the stream comes through a UDP socket whose buffer Aravis sizes at a frame
         self.udp = False
@@ -217,7 +218,8 @@ class AravisLink:
 
     def shot(self) -> Shot:
         """Trigger the camera and take its frame; incomplete or late frames are grabbed
-        again, up to ``retries`` times, within ``timeout_s × (retries + 1)``."""
+        again, up to ``retries`` times, within ``timeout_s × (retries + 1)``. A trigger
+        that is not acknowledged ends the attempts and marks the camera ``gone``."""
         if self.cam is None or self.stream is None:
             return Shot(None, "not open")
         a = load_aravis()
@@ -234,10 +236,12 @@ class AravisLink:
             try:
                 self.cam.software_trigger()
             except a.GLib.Error as exc:
+                # Aravis has sent the command again for 2.5 s: the camera no longer
+                # answers on its control channel (a GigE Vision camera then gives up
+                # control too), and triggering it again would give nothing
                 reason = f"trigger not acknowledged ({_text(exc)})"
                 self.gone = True
-                continue
-            self.gone = False
+                break
             wait_s = max(0.001, min(o.timeout_s, deadline - time.monotonic()))
             buf = self._pop(a, time.monotonic() + wait_s)
             if buf is None:

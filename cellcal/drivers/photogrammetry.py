@@ -29,7 +29,6 @@ from typing import Annotated, Literal
 
 import numpy as np
 from pydantic import Field, PrivateAttr
-from scipy.spatial.transform import Rotation
 
 from cellcal.calib.camera_rig import Rig, Target
 from cellcal.calib.rig_measurement import TargetMeter, mean_of
@@ -119,6 +118,10 @@ def rig_and_target(options: CameraRigOptions) -> tuple[Rig, Target]:
 
 def quaternion(R: np.ndarray) -> np.ndarray:
     """A rotation matrix as a unit quaternion (w, x, y, z), w ≥ 0."""
+    # imported here: the rig's camera twin, a process of its own, imports this module
+    # for the options alone (scipy.spatial would add a quarter of a second to its start)
+    from scipy.spatial.transform import Rotation
+
     x, y, z, w = Rotation.from_matrix(R).as_quat()
     q = np.array([w, x, y, z])
     return q if w >= 0 else -q

@@ -19,8 +19,14 @@ Adaptations of the fill: an image of another size than the camera's region is cr
 padded with black; uint8 for Mono16 is scaled by 257, uint16 for Mono8 keeps its high
 byte. A source that raises or gives no 2-D image makes a black frame (counted in
 :meth:`errors`, logged once). The fake camera polls its trigger register
-(``trigger_poll_hz``, 200 here; Aravis's default of 25 Hz adds up to 40 ms a frame, and
-its loop spins through the last millisecond before each poll, so faster costs CPU).
+(``trigger_poll_hz``, every 3 ms here; Aravis's default of 25 Hz adds up to 40 ms a
+frame). Its loop sleeps in ``poll()`` for whole milliseconds and spins (``poll()`` with
+no timeout) through the last millisecond before each trigger poll: four idle cameras
+kept a quarter to a third of a core busy at 200 Hz. So their threads get a timer slack
+of :data:`TIMER_SLACK_NS` (1 ms: the kernel may end a sleep that much later), and the
+last sleep runs into the trigger poll instead of spinning (four idle cameras: 3 % of a
+core); a trigger received mid-wait is acted on up to 1 ms after its poll, and one
+received, or a frame sent, within the last millisecond still spins to the poll.
 Its frame ids start at 65401 and wrap after 65535 to 1, as Aravis does on purpose; its
 timestamps are the host's wall clock in ns, or ``device_clock()`` (s) when given.
 
@@ -81,6 +87,13 @@ _REG_TRIGGER_SOFTWARE = 0x30C
 _WAKE_PACKET = struct.pack(">BBHHHI", 0x42, 0x00, 0x0080, 4, 1, 0x0000)
 _GVCP_PORT = 3956
 
+#: The fake cameras' threads' timer slack, ns (the module's note).
+TIMER_SLACK_NS = 1_000_000
+_PR_SET_TIMERSLACK, _PR_GET_TIMERSLACK = 29, 30
+_libc = ctypes.CDLL(None, use_errno=True)
+_libc.prctl.restype = ctypes.c_int
+_libc.prctl.argtypes = [ctypes.c_int] + [ctypes.c_ulong] * 4
+
 _vp, _u32 = ctypes.c_void_p, ctypes.c_uint32
 #: void (*ArvFakeCameraFillPattern)(ArvBuffer *, void *data, guint32 exposure_us,
 #: guint32 gain, ArvPixelFormat)
@@ -88,18 +101,23 @@ _FILL = ctypes.CFUNCTYPE(None, _vp, _vp, _u32, _u32, _u32)
 
 
 class _Aravis:
-    """The few libaravis calls the twin needs (CDLL: the GIL is released in each)."""
+    """The few libaravis calls the twin needs. Those that may wait release the GIL
+    (CDLL); the getters and setters of a register or a buffer field, called at every
+    frame and every trigger poll, keep it (PyDLL): they neither wait nor call back, and
+    releasing the GIL only to take it again costs a handover between the cameras'
+    threads each time."""
 
     def __init__(self) -> None:
         try:
             lib = ctypes.CDLL("libaravis-0.8.so.0")
+            quick = ctypes.PyDLL("libaravis-0.8.so.0")
             gobject = ctypes.CDLL("libgobject-2.0.so.0")
         except OSError as exc:
             raise DeviceError(
                 f"camera twin: {exc}; install it with `apt-get install libaravis-0.8-0`"
             ) from None
 
-        def fn(lib: ctypes.CDLL, name: str, restype: Any, *args: Any) -> Any:
+        def fn(lib: ctypes.CDLL | ctypes.PyDLL, name: str, restype: Any, *args: Any) -> Any:
             f = getattr(lib, name)
             f.restype, f.argtypes = restype, list(args)
             return f
@@ -110,16 +128,16 @@ class _Aravis:
         self.gv_fake = fn(lib, "arv_gv_fake_camera_get_fake_camera", _vp, _vp)
         self.write = fn(lib, "arv_fake_camera_write_register", ctypes.c_int, _vp, _u32, _u32)
         self.read = fn(
-            lib, "arv_fake_camera_read_register", ctypes.c_int, _vp, _u32, ctypes.POINTER(_u32)
+            quick, "arv_fake_camera_read_register", ctypes.c_int, _vp, _u32, ctypes.POINTER(_u32)
         )
         self.trigger_hz = fn(
             lib, "arv_fake_camera_set_trigger_frequency", None, _vp, ctypes.c_double
         )
         self.set_fill = fn(lib, "arv_fake_camera_set_fill_pattern", None, _vp, _FILL, _vp)
-        self.data = fn(lib, "arv_buffer_get_data", _vp, _vp, ctypes.POINTER(ctypes.c_size_t))
-        self.width = fn(lib, "arv_buffer_get_image_width", ctypes.c_int, _vp)
-        self.height = fn(lib, "arv_buffer_get_image_height", ctypes.c_int, _vp)
-        self.set_timestamp = fn(lib, "arv_buffer_set_timestamp", None, _vp, ctypes.c_uint64)
+        self.data = fn(quick, "arv_buffer_get_data", _vp, _vp, ctypes.POINTER(ctypes.c_size_t))
+        self.width = fn(quick, "arv_buffer_get_image_width", ctypes.c_int, _vp)
+        self.height = fn(quick, "arv_buffer_get_image_height", ctypes.c_int, _vp)
+        self.set_timestamp = fn(quick, "arv_buffer_set_timestamp", None, _vp, ctypes.c_uint64)
         self.unref = fn(gobject, "g_object_unref", None, _vp)
         self.set_property = gobject.g_object_set  # variadic: (object, name, value, NULL)
         self.set_property.restype = None
@@ -175,7 +193,7 @@ class GigECameraTwin:
         width: int = 1280,
         height: int = 1024,
         pixel_format: str = "Mono8",
-        trigger_poll_hz: float = 200.0,
+        trigger_poll_hz: float = 1000.0 / 3.0,
         device_clock: Callable[[], float] | None = None,
         first_address: int = 2,
         writer: FrameWriter | None = None,
@@ -220,12 +238,16 @@ class GigECameraTwin:
         return self
 
     def _open_all(self) -> None:
+        # the cameras' threads take this thread's timer slack (the module's note)
+        slack = _timer_slack(TIMER_SLACK_NS)
         try:
             for c in self.cameras.values():
                 self._open(c)
         except BaseException:
             self.stop()
             raise
+        finally:
+            _timer_slack(slack)
         # started here, it runs in the cameras' namespace
         threading.Thread(target=self._wake_stalled, name="camera-twin-waker", daemon=True).start()
 
@@ -300,7 +322,10 @@ class GigECameraTwin:
                 )
 
     def stop(self) -> None:
-        """Stop every camera and release the namespace; safe to call twice."""
+        """Stop every camera and release the namespace; safe to call twice. The cameras
+        stop one after the other: stopped from several threads at once, Aravis's fake
+        cameras sometimes abort the process (SIGABRT, seen in the camera process's
+        SIGINT test)."""
         self._stopping.set()
         for name in self.cameras:
             self.stop_camera(name)
@@ -359,6 +384,15 @@ class GigECameraTwin:
                 c.errors += 1
 
         return fill
+
+
+def _timer_slack(ns: int) -> int:
+    """Set this thread's timer slack (ns; the threads it starts inherit it) and return
+    the one it had; where the kernel does not tell (-1), nothing is set."""
+    previous = int(_libc.prctl(_PR_GET_TIMERSLACK, 0, 0, 0, 0))
+    if previous > 0 and ns > 0:
+        _libc.prctl(_PR_SET_TIMERSLACK, ns, 0, 0, 0)
+    return previous
 
 
 def _drop_answers(sock: socket.socket) -> None:

@@ -190,6 +190,7 @@ class RigScene:
         self.T_flange_target[:3, :3] = R
         self.T_flange_target[:3, 3] = truth.target_offset - R @ target.reference
         self._lock = threading.Lock()
+        self._rendering = threading.Lock()
         self._q: Array | None = None
         self._pose = 0
         self._T = np.eye(4)
@@ -198,13 +199,7 @@ class RigScene:
         # cell's next noise stream, draws fresh noise
         self._camera_k = {c.name: k for k, c in enumerate(rig.cameras)}
         self._unannounced = dict.fromkeys(self._camera_k, 0)
-        self._bank: dict[str, list[Image]] = {}
-        for k, c in enumerate(rig.cameras):
-            background = np.full((c.height, c.width), optics.background, dtype=np.float32)
-            rng = np.random.default_rng([truth.seed, 2, truth.noise_stream, k])
-            self._bank[c.name] = [
-                exposed(background, rng, optics.noise_grey) for _ in range(NOISE_BANK)
-            ]
+        self._bank = _NoiseBank(truth, rig, optics)
 
     def T_rig_target(self, q: Array) -> Array:
         k = target_kinematics(self.truth.model, q[None], np.zeros(3), jacobian=False)
@@ -241,7 +236,10 @@ class RigScene:
                 key = [self._pose, 0, 0, self._unannounced[camera]]
                 self._unannounced[camera] += 1
         if cached is None:
-            cached = self._render(camera, T)
+            # one render at a time: the cameras' threads are triggered together, and
+            # four renders taking turns under the interpreter lock all end late
+            with self._rendering:
+                cached = self._render(camera, T)
             with self._lock:
                 if self._q is not None and np.array_equal(q, self._q):
                     self._clean[camera] = cached
@@ -277,7 +275,41 @@ class RigScene:
         plain background."""
         cam = self.rig.camera(camera)
         part, region = render_region(cam, self.renderer.faces, T_rig_target, self.renderer.optics)
-        return part, region, self._bank[camera]
+        return part, region, self._bank.frames(camera)
+
+
+class _NoiseBank:
+    """Each camera's :data:`NOISE_BANK` frames of plain background with noise, drawn
+    from the camera's own seed by a thread per camera as the scene is made (about 0.1 s
+    a camera: the cameras open meanwhile); a camera's first frame waits for them."""
+
+    def __init__(self, truth: RigTruth, rig: Rig, optics: Optics) -> None:
+        self._frames: dict[str, list[Image]] = {}
+        self._failed: dict[str, BaseException] = {}
+        self._ready: dict[str, threading.Event] = {}
+        for k, c in enumerate(rig.cameras):
+            self._ready[c.name] = threading.Event()
+            seed = [truth.seed, 2, truth.noise_stream, k]
+            args = (c.name, (c.height, c.width), seed, optics)
+            threading.Thread(target=self._draw, args=args, name="rig-noise", daemon=True).start()
+
+    def _draw(self, name: str, shape: tuple[int, int], seed: list[int], optics: Optics) -> None:
+        try:
+            background = np.full(shape, optics.background, dtype=np.float32)
+            rng = np.random.default_rng(seed)
+            self._frames[name] = [
+                exposed(background, rng, optics.noise_grey) for _ in range(NOISE_BANK)
+            ]
+        except BaseException as exc:  # the camera's first frame raises it
+            self._failed[name] = exc
+        finally:
+            self._ready[name].set()
+
+    def frames(self, name: str) -> list[Image]:
+        self._ready[name].wait()
+        if name in self._failed:
+            raise DeviceError(f"camera {name}: noise bank: {self._failed[name]}")
+        return self._frames[name]
 
 
 class RenderedRigOptions(Strict):

@@ -185,6 +185,17 @@ def test_camera_stopped_mid_series_is_lost_within_the_deadline(twin: GigECameraT
         t0 = time.monotonic()
         s = rig.grab()
         assert set(s.lost) == {"top"} and time.monotonic() - t0 < 1.0
+        # once Aravis gives up on the trigger (2.5 s), the camera is not triggered
+        # again: lost at once in every later set, saying why
+        deadline = time.monotonic() + 5.0
+        while rig._workers["top"].busy and time.monotonic() < deadline:
+            time.sleep(0.05)
+        for _ in range(2):
+            t0 = time.monotonic()
+            s = rig.grab()
+            assert set(s.frames) == {"left", "right"} and time.monotonic() - t0 < 1.0
+            assert "trigger went unacknowledged" in s.lost["top"]
+            assert not rig._workers["top"].busy
     finally:
         t0 = time.monotonic()
         rig.close()

@@ -213,8 +213,11 @@ def test_campaign_list_text_and_errors(finished, tmp_path):
     ):
         res = _cli(*args)
         assert res.returncode == 2, (args, res.stderr)
-        assert "not a cellcal database" in res.stderr or "another program" in res.stderr
-        assert len(res.stderr.strip().splitlines()) == 1
+        # the error is one line, the last; `run` says what it is doing before it
+        *progress, error = res.stderr.strip().splitlines()
+        assert "not a cellcal database" in error or "another program" in error
+        assert all(line.startswith("simulated KR 5 arc cell: planning") for line in progress)
+        assert len(progress) == (args[0] == "run")
     res = _cli(
         "report", "--db", str(folder / "c.db"), "--campaign", "9", "--out", str(tmp_path / "x")
     )

@@ -75,14 +75,21 @@ def test_noise_is_fresh_per_frame_and_has_the_asked_level() -> None:
     assert hot.dtype == np.uint8 and hot.min() > 240
 
 
-def test_a_board_renders_its_chessboard_and_markers() -> None:
+@pytest.mark.parametrize(
+    ("dist", "rotvec"),
+    [([0.0] * 5, [0.0, 0.0, 0.0]), ([-0.12, 0.05, 0.0005, -0.0004, 0.0], [0.3, -0.2, 0.1])],
+)
+def test_a_board_renders_its_chessboard_and_markers(dist, rotvec) -> None:
     """The rendered ChArUco board is found by OpenCV's own board detector, every inner
-    chessboard corner, within 0.1 px of where the board's geometry projects it."""
+    chessboard corner, within 0.1 px of where the board's geometry projects it: facing
+    the camera, and tilted through a lens with distortion."""
     import cv2
+    from scipy.spatial.transform import Rotation
 
     board = Board("DICT_4X4_50", (7, 5), 40.0, 30.0)
-    cam = Camera("cam0", 1280, 1024, K, [0.0] * 5, np.eye(4))
+    cam = Camera("cam0", 1280, 1024, K, dist, np.eye(4))
     T = np.eye(4)
+    T[:3, :3] = Rotation.from_rotvec(rotvec).as_matrix()
     T[:3, 3] = [-140.0, -100.0, 900.0]
     img = SceneRenderer.for_board((cam,), board, Optics(noise_grey=0.0)).clean(T)["cam0"]
     img8 = np.clip(np.rint(img), 0, 255).astype(np.uint8)
