@@ -310,9 +310,7 @@ def write_report(
         "mock": row.mock,
         "plan": plan_text(row.config_json),
         "cellcal_version": __version__,
-        "acquired_with": store.conn.execute(
-            "SELECT cellcal_version FROM campaigns WHERE id = ?", (cid,)
-        ).fetchone()[0],
+        "acquired_with": store.acquired_with(cid),
     }
     iso = is_iso_test(store, cid, summary)
     if iso:

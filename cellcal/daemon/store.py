@@ -207,6 +207,16 @@ class Store(AnalysisTables, StatusReads):
             )
             return int(cur.lastrowid or 0)
 
+    def acquired_with(self, campaign_id: int) -> str | None:
+        """The cellcal version that acquired the campaign; None where it is not recorded
+        (a campaign an older cellcal wrote, or a file of schema 3 or older read as it is)."""
+        if self.schema_version < 4:
+            return None
+        row = self.conn.execute(
+            "SELECT cellcal_version FROM campaigns WHERE id = ?", (campaign_id,)
+        ).fetchone()
+        return None if row is None else row[0]
+
     def campaign(self, campaign_id: int) -> CampaignRow:
         row = self.conn.execute(
             """SELECT id, status, mock, seed, time_scale, model, sensors, n_poses,

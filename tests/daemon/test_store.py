@@ -157,6 +157,7 @@ def test_a_schema_2_file_reads_read_only_and_migrates_keeping_its_samples(tmp_pa
     data = old.pose_data(1)
     np.testing.assert_allclose(data.mean["tracker"][0], [1, 2, 4])
     assert np.isnan(data.cov["tracker"][0]).all()
+    assert old.acquired_with(1) is None  # read as it is: no version column to read
     old.close()
     store = Store(path)
     assert store.schema_version == SCHEMA_VERSION
@@ -168,9 +169,10 @@ def test_a_schema_2_file_reads_read_only_and_migrates_keeping_its_samples(tmp_pa
     assert rows == [(3.0, None, None), (5.0, None, None)]
     # an old campaign says it does not know which cellcal acquired it; a new one does
     assert store.conn.execute("SELECT cellcal_version FROM campaigns").fetchall() == [(None,)]
+    assert store.acquired_with(1) is None
     cid = _campaign(store)
     version = store.conn.execute("SELECT cellcal_version FROM campaigns WHERE id = ?", (cid,))
-    assert version.fetchone() == (__version__,)
+    assert version.fetchone() == (__version__,) and store.acquired_with(cid) == __version__
 
 
 def test_covariances_and_orientations_round_trip(tmp_path):
