@@ -30,7 +30,10 @@ from __future__ import annotations
 import contextlib
 import logging
 import multiprocessing
+import os
 import signal
+import sys
+import traceback
 from collections.abc import Iterator
 from multiprocessing.connection import Connection
 from multiprocessing.process import BaseProcess
@@ -200,8 +203,29 @@ def _child_main(
     options: CameraRigOptions, truth: RigTruth, shared: Any, marked: Any, pipe: Connection
 ) -> None:
     """The child: serve the rig's cameras until told to stop or orphaned; a Ctrl-C on
-    the terminal is its parent's to act on."""
+    the terminal is its parent's to act on. Once it has stopped its cameras and said what
+    it has to say it leaves at once (``os._exit``): the interpreter's own exit runs the
+    native libraries' destructors while OpenCV's worker threads may still be alive, and
+    that aborted the process now and then ("terminate called without an active
+    exception", SIGABRT, on a loaded machine)."""
     _ignore_interrupts()
+    code = 0
+    try:
+        _serve(options, truth, shared, marked, pipe)
+    except BaseException:  # what went wrong is said, as the interpreter would say it
+        traceback.print_exc()
+        code = 1
+    finally:
+        for stream in (sys.stdout, sys.stderr):
+            with contextlib.suppress(Exception):
+                stream.flush()
+        os._exit(code)
+
+
+def _serve(
+    options: CameraRigOptions, truth: RigTruth, shared: Any, marked: Any, pipe: Connection
+) -> None:
+    """Open the cameras, say so (or why not) on the pipe, serve until told to stop."""
     from cellcal.mocks.gige_cameras import GigECameraTwin
     from cellcal.mocks.rig_twin import RigScene, serve_gige
 
