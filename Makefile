@@ -70,9 +70,10 @@ UR_CLIENT := $(VENV)/ur-rtde-client/rtde/rtde.py
 $(UR_CLIENT): | $(STAMP)
 	@$(BIN)/python tests/mocks/ur_official_client.py $(VENV)/ur-rtde-client
 
-# Every core; a test file's tests on one worker (they share module fixtures), except the
-# files tests/conftest.py names in SPREAD, whose tests go out one by one; the slow tests
-# first (marker slow). The 20 slowest are listed at the end.
+# Two workers per core (tests/conftest.py: a third of the time the tests wait); a test
+# file's tests on one worker (they share module fixtures), except the files conftest names in
+# SPREAD, whose tests go out one by one; README's examples, then the slow tests (marker slow)
+# first. The 20 slowest are listed at the end.
 PARALLEL := -n auto --dist loadfile --no-loadscope-reorder
 unit: $(STAMP) $(UR_CLIENT) $(ARAVIS) $(TOOLS)
 	$(BIN)/pytest -q $(PARALLEL) --durations=20

@@ -21,10 +21,13 @@ import re
 import shutil
 import subprocess
 import sys
+from contextlib import nullcontext
 from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
+
+from tests.bundled_campaign import producing
 
 pytestmark = [pytest.mark.twin, pytest.mark.slow]
 
@@ -32,6 +35,9 @@ ROOT = Path(__file__).parents[1]
 DOCUMENTS = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
 LINKED = ("cellcal", "tests")  # read only
 COPIED = ("config", "examples")  # a relative database path in a config lands beside it
+#: README's main example, the bundled campaign: its database is handed to the tests that
+#: read such a campaign (tests/bundled_campaign.py)
+BUNDLED_RUN = re.compile(r"^(\.venv/bin/)?cellcal run --mock\s*(#.*)?$")
 BLOCK = re.compile(r"^```(\w*)\n(.*?)^```", re.S | re.M)
 
 
@@ -100,7 +106,9 @@ def test_every_document_has_examples_that_are_collected() -> None:
 
 @pytest.mark.parametrize("doc", DOCUMENTS, ids=lambda p: p.name)
 @pytest.mark.timeout(1500)  # README runs the bundled campaign with its camera rig: minutes
-def test_examples_run_literally(doc: Path, tmp_path: Path) -> None:
+def test_examples_run_literally(
+    doc: Path, tmp_path: Path, tmp_path_factory: pytest.TempPathFactory
+) -> None:
     todo = steps(doc)
     if not todo:
         pytest.skip(f"{doc.name}: no runnable examples")
@@ -110,26 +118,34 @@ def test_examples_run_literally(doc: Path, tmp_path: Path) -> None:
     env.pop("CELLCAL_SOCKET", None)
     env.pop("STATE_DIRECTORY", None)
     env["XDG_DATA_HOME"] = str(tmp_path / ".data")  # the default database's folder
-    for step in todo:
-        command = step.command.replace(".venv/bin/cellcal", "cellcal")
-        res = subprocess.run(
-            ["bash", "-c", command],
-            cwd=tmp_path,
-            env=env,
-            capture_output=True,
-            text=True,
-            timeout=600,
-            check=False,
-        )
-        said = res.stderr.strip().splitlines()
-        if not step.expect:
-            assert res.returncode == 0, f"{step.where}: {step.command}\n{res.stderr[-2000:]}"
-            continue
-        code = 3 if step.expect[0].startswith("cellcal: refused") else 2
-        assert res.returncode == code, f"{step.where}: {step.command}\n{res.stderr[-2000:]}"
-        for line in step.expect:
-            assert line in said, f"{step.where}: {step.command}\nshown: {line}\nsaid: {said}"
+    with producing(tmp_path_factory) if doc.name == "README.md" else nullcontext() as publish:
+        for step in todo:
+            _run(step, tmp_path, env)
+            if publish is not None and BUNDLED_RUN.match(step.command):
+                publish(tmp_path / ".data" / "cellcal" / "cellcal.db")
     assert _untracked() == before, "an example wrote into the checkout"
+
+
+def _run(step: Step, tmp_path: Path, env: dict[str, str]) -> None:
+    """One step, run as the document shows it; what it must say, said."""
+    command = step.command.replace(".venv/bin/cellcal", "cellcal")
+    res = subprocess.run(
+        ["bash", "-c", command],
+        cwd=tmp_path,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=600,
+        check=False,
+    )
+    said = res.stderr.strip().splitlines()
+    if not step.expect:
+        assert res.returncode == 0, f"{step.where}: {step.command}\n{res.stderr[-2000:]}"
+        return
+    code = 3 if step.expect[0].startswith("cellcal: refused") else 2
+    assert res.returncode == code, f"{step.where}: {step.command}\n{res.stderr[-2000:]}"
+    for line in step.expect:
+        assert line in said, f"{step.where}: {step.command}\nshown: {line}\nsaid: {said}"
 
 
 def _untracked() -> set[str]:

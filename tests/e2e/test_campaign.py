@@ -80,9 +80,14 @@ def _cli(*args, timeout=120):
 
 
 def test_run_json_contract(tmp_path):
-    res = _cli("run", "--mock", "--config", TRACKER_CELL, "--db", tmp_path / "c.db", "--json")
+    rep = tmp_path / "r"
+    res = _cli(
+        "run", "--mock", "--config", TRACKER_CELL, "--db", tmp_path / "c.db", "--report", rep,
+        "--json",
+    )  # fmt: skip
     assert res.returncode == 0, res.stderr
     doc = json.loads(res.stdout)
+    assert doc["report"] == str(rep) and (rep / "summary.json").is_file()
     for key in (
         "campaign_id",
         "n_poses",

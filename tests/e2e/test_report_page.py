@@ -1,5 +1,5 @@
-"""The campaign report: a short mock campaign with the tracker and the camera rig, its
-report folder written, the numbers the page shows recomputed from the database equal to
+"""The campaign report: the bundled cell's campaign with the tracker and the camera rig,
+its report folder written, the numbers the page shows recomputed from the database equal to
 the analysis' stored summary, and the page opened in headless Chromium (Debian's
 chromium + chromium-driver): no errors, every figure there, nothing loaded from
 elsewhere; a full-page screenshot is kept and its path printed."""
@@ -14,12 +14,11 @@ import numpy as np
 import pytest
 
 from cellcal import __version__
-from cellcal.config import load_config
-from cellcal.daemon.campaign import start_campaign
 from cellcal.daemon.report import write_report
 from cellcal.daemon.report_data import METHODS, report_data
 from cellcal.daemon.store import Store
 from tests.browser import chromium, needs_chromium
+from tests.bundled_campaign import bundled_database
 
 ROOT = Path(__file__).parents[2]
 
@@ -27,21 +26,12 @@ pytestmark = [pytest.mark.twin, pytest.mark.slow, pytest.mark.browser, pytest.ma
 
 
 @pytest.fixture(scope="module")
-def campaign(tmp_path_factory):
-    """The bundled cell (tracker and rig) on a 3×3×3 cube with few validation poses."""
+def campaign(request, tmp_path_factory):
+    """The bundled cell's campaign, tracker and rig: README's when its test runs in this
+    session, else run here (tests/bundled_campaign.py)."""
     folder = tmp_path_factory.mktemp("report")
-    config = load_config(ROOT / "config" / "mock-cell.toml", relative_paths=False)
-    config = config.model_copy(
-        update={
-            "campaign": config.campaign.model_copy(
-                update={"grid": [3, 3, 3], "validation_inside": 6, "validation_per_region": 2}
-            )
-        }
-    )
-    db = str(folder / "c.db")
-    outcome = start_campaign(config, db, config_path=None, mock=True)
-    assert outcome.summary is not None
-    return folder, db, outcome.campaign_id
+    db, _ = bundled_database(request, folder)
+    return folder, str(db), 1
 
 
 def _rms(e: np.ndarray) -> float:
@@ -160,7 +150,7 @@ def test_the_report_page_renders_in_chromium(campaign, capsys):
         assert "0.200" in body and "Table 3" in body  # beside the paper's figures
         assert "mock mode" in body  # and says what a simulated campaign's numbers mean
         assert "cellcal mock-tracker, serial SIM-0001" in body
-        assert "the cube's grid, 3 × 3 × 3 points" in body  # how the poses were chosen
+        assert "the cube's grid, 4 × 4 × 5 points" in body  # how the poses were chosen
         assert f"report by {__version__}; campaign acquired by {__version__}" in body
         errors = [e for e in browser.get_log("browser") if e["level"] == "SEVERE"]
         assert not errors, errors
