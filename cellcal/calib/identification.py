@@ -41,6 +41,7 @@ from cellcal.calib.geometry import Array, skew, so3_log, wrap_deg
 from cellcal.calib.identifiability import analyse, condition_number, weakly_determined
 from cellcal.calib.kinematics import target_kinematics
 from cellcal.calib.observations import (
+    STILL_MM,
     Data,
     balance,
     check_measurements,
@@ -146,6 +147,26 @@ def _fit_frames(model: RobotModel, data: Data, w: Array) -> State:
     return state
 
 
+def _nominal_offsets(
+    state: State, specs: tuple[ParameterSpec, ...], sel: tuple[ParameterSpec, ...], data: Data
+) -> State:
+    """``state`` with each target-offset component the fit leaves out (pinned by --fix,
+    or not determined by the poses) at its nominal value, and the sensor frames
+    registered again to it: the best-fit baseline estimates every offset, and a fit that
+    starts there and does not free it would keep that estimate, not the nominal value it
+    reports."""
+    model = state.model
+    tools = state.tools.copy()
+    for s in specs:
+        if s.kind == "tool" and s not in sel:
+            tools[s.group, s.axis] = model.tool[s.axis]
+    if np.array_equal(tools, state.tools):
+        return state
+    k = target_kinematics(model, data.q, tools[data.groups.target], jacobian=False)
+    Rs, ts = register_sessions(k.p, data.measured, data.groups)
+    return State(model, tools, Rs, ts, state.pivots, state.tool_rotations)
+
+
 def frames_rms(model: RobotModel, q: Array, measured: Array, groups: Groups | None = None) -> float:
     """RMS position residual (mm) of the model with best-fit frames; joint limits not
     checked (for trying reinterpretations of data that do not fit)."""
@@ -239,7 +260,7 @@ def calibrate(
     for s in range(len(g.sessions)):
         rows = g.session == s
         findings += check_data(nominal, q[rows], measured[rows], nominal.tool)
-        still |= bool(np.ptp(measured[rows], axis=0).max() <= 1e-9)
+        still |= bool(np.ptp(measured[rows], axis=0).max() <= STILL_MM)
     if not still:  # points on a line are degenerate geometry (exit 2) ...
         check_sessions(measured, g)
     # ... a target that stays put while the robot moves does not follow it (exit 3)
@@ -287,11 +308,12 @@ def calibrate(
         )
     # Identifiability as a matter of degree: fit, estimate the noise, leave at nominal
     # what the noise hides, and fit again from the baseline without it.
+    start = _nominal_offsets(baseline, specs, sel, data)
     try:
-        point, _, nfev = _least_squares(baseline, sel, data, w)
+        point, _, nfev = _least_squares(start, sel, data, w)
         for _ in range(2 if six else 0):
             w = balance(w, data.residuals(point))
-            point, _, more = _least_squares(baseline, sel, data, w)
+            point, _, more = _least_squares(start, sel, data, w)
             nfev += more
     except ConvergenceError:
         point, nfev = baseline, 0
@@ -301,7 +323,7 @@ def calibrate(
     sel = tuple(specs[i] for i in ident.identified)
     P = len(sel)
     try:
-        state, Jw, more = _least_squares(baseline, sel, data, w)
+        state, Jw, more = _least_squares(_nominal_offsets(baseline, specs, sel, data), sel, data, w)
     except ConvergenceError:
         raise diagnosis("the identification did not converge") from None
     nfev += more

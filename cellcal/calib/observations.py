@@ -63,21 +63,64 @@ def check_measurements(
     return q, m, s
 
 
+#: Points whose RMS distance from their best-fit line is below this fraction of their
+#: RMS spread along it lie "on a line": they cannot fix a sensor frame's rotation about
+#: that line (a robot moved along a straight path leaves tenths of a millimetre across
+#: it, its own errors, which such a fit would read as that rotation).
+LINE_RATIO = 0.01
+#: Measurements that span less than this (mm) in every direction stay put: the target
+#: does not follow the robot (an acceptance check, exit 3), which is said before they
+#: are called degenerate geometry.
+STILL_MM = 1.0
+
+
+@dataclass(frozen=True)
+class LineLayout:
+    """Points that lie on a line: their RMS distance from it and their extent along it
+    (mm)."""
+
+    n: int
+    across_rms_mm: float
+    along_mm: float
+
+    def reason(self) -> str:
+        return (
+            f"its {self.n} points lie within {self.across_rms_mm:.3g} mm (RMS) of one line "
+            f"{self.along_mm:.0f} mm long: they cannot fix the sensor frame's rotation about "
+            "that line"
+        )
+
+
+def on_a_line(points: Array) -> LineLayout | None:
+    """The layout of ``points`` (n×3, mm) when they lie on a line (or at one point),
+    else None."""
+    c = points - points.mean(axis=0)
+    sv = np.linalg.svd(c, compute_uv=False) / np.sqrt(max(len(points), 1))
+    across = float(np.hypot(sv[1], sv[2]))
+    if not across > LINE_RATIO * sv[0]:
+        _, _, vt = np.linalg.svd(c, full_matrices=False)
+        along = c @ vt[0]
+        return LineLayout(len(points), across, float(np.ptp(along)))
+    return None
+
+
 def check_sessions(measured: Array, groups: Groups) -> None:
     """Each session's measurements must determine its sensor frame: at least 3, not
     on a line or at one point."""
     for s, name in enumerate(groups.sessions):
         m_s = measured[groups.session == s]
-        if len(groups.sessions) > 1 and len(m_s) < 3:
+        several = len(groups.sessions) > 1
+        if several and len(m_s) < 3:
             raise DegenerateGeometryError(
                 f"session {name!r} has {len(m_s)} measurement(s); each sensor set-up "
                 "needs at least 3 (spread over a volume)"
             )
-        sv = np.linalg.svd(m_s - m_s.mean(axis=0), compute_uv=False)
-        if not sv[1] > 1e-9 * sv[0]:
+        line = on_a_line(m_s)
+        if line is not None:
+            who = f"session {name!r}" if several else "the measurements"
             raise DegenerateGeometryError(
-                "the measurements do not determine the sensor frame (they lie on a line "
-                "or at one point); spread the poses over a volume"
+                f"{who}: {line.reason()}; measure poses off the line (spread over a "
+                "plane or a volume)"
             )
 
 

@@ -20,9 +20,10 @@ from cellcal.calib.identification import (
     calibrate,
     fit_frames,
 )
-from cellcal.calib.observations import check_measurements
+from cellcal.calib.observations import check_measurements, on_a_line
+from cellcal.calib.registration import fit_rigid_batch
 from cellcal.calib.robot_model import RobotModel
-from cellcal.errors import InputError, UserError
+from cellcal.errors import AcceptanceError, InputError, UserError
 
 
 @dataclass(frozen=True)
@@ -127,13 +128,32 @@ def validate_on(
             )
         except UserError:
             own = None
+        line = on_a_line(measured)
+        if own is None and line is not None:
+            # a rigid fit still says whether they fit once moved; the rotation about the
+            # line is free and does not change what is left
+            fit = fit_rigid_batch(result.predict(q, groups)[None], measured[None])
+            own = ErrorStats.of(np.zeros((1, 3)) + float(fit.rms[0]))
         if own is not None and own.rms < ACCURACY_CLASS_MM:
+            how = (
+                "re-register that set-up with cellcal calibrate --model CALIBRATED.toml "
+                "--fix kinematics --data FILE"
+                if line is None
+                else f"and {line.reason()}, so they cannot be re-registered: validate on "
+                "points spread over a plane or a volume"
+            )
             raise InputError(
                 f"the validation points are {off:.0f} mm (RMS) from the model's prediction but "
                 f"fit it within {own.rms:.3g} mm once re-registered: they come from another "
-                "set-up (sensor moved, another target); re-register that set-up with "
-                "cellcal calibrate --model CALIBRATED.toml --fix kinematics --data FILE"
+                f"set-up (sensor moved, another target); {how}"
             )
+        raise AcceptanceError(
+            "validation far off",
+            f"the validation points are {off:.0f} mm (RMS) from the model's prediction, "
+            f"beyond any robot's accuracy class ({ACCURACY_CLASS_MM:.0f} mm), and no "
+            "re-registration brings them close: they are not this robot's in this set-up "
+            "(another robot or model, other units, other joint zeros)",
+        )
     return Validation("file", ErrorStats.of(eb), ErrorStats.of(ea), eb, ea)
 
 
