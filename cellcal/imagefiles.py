@@ -1,10 +1,12 @@
 """Camera images on disk: one image, or sets of images (one folder per set, one image per
 camera named ``<camera>.png``), read at the edge with one clear line per fault.
 
-Images are 8- or 16-bit, grey or colour, in any format OpenCV decodes (PNG is what
-cellcal writes). A missing, unreadable, truncated or empty file, or one that is not an
-image, is an :class:`ImageFileError` (a :class:`~cellcal.errors.FileFormatError`) that
-names it and says why; OpenCV's own warnings about broken files are kept off the terminal.
+Images are 8- or 16-bit, grey or colour, PNG (what cellcal writes), JPEG, TIFF, BMP,
+PNM, WebP or JPEG 2000. A missing, unreadable, truncated or empty file, one that is not
+an image, or one whose header promises more than :data:`MAX_DECODED_BYTES` once decoded
+(checked before decoding: a small PNG can hold a gigabyte of zeros), is an
+:class:`ImageFileError` (a :class:`~cellcal.errors.FileFormatError`) that names it and
+says why; OpenCV's own warnings about broken files are kept off the terminal.
 """
 
 from __future__ import annotations
@@ -24,9 +26,14 @@ from numpy.typing import NDArray
 
 from cellcal.calib.marker_corners import grey
 from cellcal.errors import FileFormatError, InputError
+from cellcal.imageheaders import image_header
+from cellcal.outputfiles import write_atomically
 
 #: Larger image files are refused (a 16-bit 20-megapixel PNG is about 40 MB).
 MAX_IMAGE_BYTES = 200 * 1024 * 1024
+#: Images that decode to more are refused before they are decoded, from their header
+#: (a 20-megapixel 16-bit colour image takes 120 MB, a 150-megapixel grey one 150 MB).
+MAX_DECODED_BYTES = 256 * 1024 * 1024
 
 Image = NDArray[Any]
 
@@ -133,6 +140,7 @@ def read_image(path: str | Path) -> Image:
         why = _png_not_whole(data)
         if why is not None:
             raise ImageFileError(p, f"not a complete image: {why}")
+    _check_decoded_size(p, data)
     try:
         with _quiet_opencv():
             img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
@@ -144,6 +152,30 @@ def read_image(path: str | Path) -> Image:
         raise ImageFileError(p, f"{img.dtype} pixels; 8- or 16-bit images expected")
     out: Image = img
     return out
+
+
+def _check_decoded_size(path: Path, data: NDArray[np.uint8]) -> None:
+    """Refuse, before decoding, an image whose header promises more than
+    :data:`MAX_DECODED_BYTES`, or whose size its header does not give."""
+    header = image_header(data.data)
+    if header is None:
+        with _quiet_opencv():
+            other = _format(bytes(data[:16])) is None and cv2.haveImageReader(str(path))
+        if other:
+            raise ImageFileError(
+                path,
+                "its size cannot be read before decoding: an image of another format than "
+                "PNG, JPEG, TIFF, BMP, PNM, WebP or JPEG 2000",
+            )
+        raise ImageFileError(path, _undecodable(data))
+    if header.width == 0 or header.height == 0:
+        raise ImageFileError(path, f"not a complete image: {header.width}×{header.height} px")
+    if header.decoded_bytes > MAX_DECODED_BYTES:
+        raise ImageFileError(
+            path,
+            f"{header.describe()} decode to {header.decoded_bytes / 1e6:.0f} MB; an image "
+            f"may take at most {MAX_DECODED_BYTES / 1e6:.0f} MB",
+        )
 
 
 def read_camera_image(path: str | Path, camera: str, size: tuple[int, int]) -> Image:
@@ -273,11 +305,10 @@ def stray_images(folders: Iterable[Path], cameras: Iterable[str]) -> list[Path]:
 
 
 def write_image(path: str | Path, image: Image) -> None:
-    """Write an image as PNG (lossless, 8 or 16 bits), atomically."""
+    """Write an image as PNG (lossless, 8 or 16 bits), atomically; an existing ``path``
+    that is not a regular file is refused and left as it was (``cellcal.outputfiles``)."""
     p = Path(path)
     ok, buf = cv2.imencode(".png", image)
     if not ok:
         raise InputError(f"{p}: the image cannot be encoded as PNG")
-    tmp = p.with_name(f".{p.name}.tmp")
-    tmp.write_bytes(buf.tobytes())
-    os.replace(tmp, p)
+    write_atomically(p, buf.tobytes(), durable=False)  # as before: a set is many images

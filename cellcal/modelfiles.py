@@ -8,8 +8,6 @@ the same folder, renamed over the target only once it is complete.
 
 from __future__ import annotations
 
-import os
-import tempfile
 from collections.abc import Sequence
 from dataclasses import dataclass
 from datetime import UTC, datetime
@@ -27,6 +25,7 @@ from cellcal.calib.outliers import PointResidual, point_residuals
 from cellcal.calib.robot_model import RobotModel, model_from_dict, model_to_dict
 from cellcal.calib.validation import Validation
 from cellcal.errors import FileFormatError
+from cellcal.outputfiles import write_atomically as write_file_atomically
 from cellcal.plainvalues import plain
 from cellcal.textfiles import read_toml
 
@@ -246,37 +245,11 @@ def calibrated_document(
     return out
 
 
-def _umask() -> int:
-    mask = os.umask(0)
-    os.umask(mask)
-    return mask
-
-
 def write_atomically(path: str | Path, text: str) -> None:
-    """Write ``text`` to ``path`` so that a reader sees the old file or the whole new one."""
-    p = Path(path)
-    folder = p.parent if str(p.parent) else Path(".")
-    if not folder.is_dir():
-        raise FileFormatError(f"{p}: folder {folder} does not exist")
-    if p.is_dir():
-        raise FileFormatError(f"{p}: is a directory; give a file name")
-    try:
-        fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.", suffix=".tmp", dir=folder)
-    except OSError as exc:
-        raise FileFormatError(f"{p}: cannot write ({exc.strerror})") from None
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as fh:
-            fh.write(text)
-            fh.flush()
-            os.fchmod(fh.fileno(), 0o666 & ~_umask())  # as open() would, not mkstemp's 0600
-            os.fsync(fh.fileno())
-        os.replace(tmp, p)
-    except OSError as exc:
-        Path(tmp).unlink(missing_ok=True)
-        raise FileFormatError(f"{p}: cannot write ({exc.strerror})") from None
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    """Write ``text`` to ``path`` so that a reader sees the old file or the whole new one;
+    an existing ``path`` that is not a regular file (a device, a FIFO, a socket, a
+    folder) is refused and left as it was (``cellcal.outputfiles``)."""
+    write_file_atomically(path, text)
 
 
 def calibrated_toml(

@@ -8,27 +8,24 @@ the joint's scale (±1), and the joint's URDF value is the controller's reading.
 roll-pitch-yaw never meets its singularity where DH rows turn by 90° twice; every
 origin is rebuilt from what is written and must agree to 1e-12.
 
-In: Pinocchio parses the URDF; the serial chain of revolute joints from the root to the
-end frame (``tool0``, else ``flange``, else the last joint's link) becomes a modified-DH
-table by the common normals of consecutive joint axes at the zero readings, with
-Hayati's β where consecutive axes are parallel. The end frame is the model's flange
-frame, orientation included (the last row's θ, and scale −1 where its z is against the
-last axis), so that a target offset read back names the point it named; an end frame no
-DH table can end on (tilted off the last axis, or its origin off it) is said in one
-warning line, the model then ending on the nearest frame that one can, with the end
-frame's origin as the model's ``[tool]`` offset. The result is checked against
-Pinocchio's own kinematics of the file at random readings, and refused when they differ.
+In: the text is screened first (``urdf_input``: no DTD or entity, joints and links
+bounded), then Pinocchio parses it, every failure one line; the serial chain of
+revolute joints from the root to the end frame (``tool0``, else ``flange``, else the
+last joint's link) becomes a modified-DH table by the common normals of consecutive
+joint axes at the zero readings, with Hayati's β where consecutive axes are parallel.
+The end frame is the model's flange frame, orientation included (the last row's θ, and
+scale −1 where its z is against the last axis), so that a target offset read back names
+the point it named; an end frame no DH table can end on (tilted off the last axis, or
+its origin off it) is said in one warning line, the model then ending on the nearest
+frame that one can, with the end frame's origin as the model's ``[tool]`` offset. The
+result is checked against Pinocchio's own kinematics of the file at random readings,
+and refused when they differ.
 """
 
 from __future__ import annotations
 
-import contextlib
 import math
-import os
-import sys
-import tempfile
 import xml.etree.ElementTree as ET
-from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -40,6 +37,7 @@ from cellcal.calib.robot_model import PARALLEL_AXES_DEG, Joint, RobotModel
 from cellcal.config import Warn, warn_on_stderr
 from cellcal.errors import FileFormatError, InputError
 from cellcal.textfiles import read_text
+from cellcal.urdf_input import MAX_BYTES, first_line, pinocchio_model, screen
 
 #: A rebuilt origin may differ from the intended one by this much (rotation, and m).
 ROUND_TRIP = 1e-12
@@ -168,6 +166,8 @@ AGREE_ROTATION = 1e-9
 #: (rad) is that flange frame (a file's rounded π/2 leaves 5e-12).
 FLANGE_RAD = 1e-9
 END_FRAMES = ("tool0", "flange")
+#: A serial industrial arm has 6 or 7 joints, a redundant one with a track a few more.
+MAX_DOF = 12
 
 
 def _unit(v: Array) -> Array:
@@ -314,50 +314,43 @@ def _limit(value: float, default: float) -> float:
     return float(value) if math.isfinite(value) and abs(value) < 1e9 else default
 
 
-@contextlib.contextmanager
-def _c_stderr() -> Iterator[Callable[[], list[str]]]:
-    """The C++ parser writes its complaints to the process's stderr: hold them, so that
-    a bad file is one line (ours) with the parser's first complaint in it."""
-    sys.stderr.flush()
-    saved = os.dup(2)
-    with tempfile.TemporaryFile() as held:
-        os.dup2(held.fileno(), 2)
-        try:
-            yield lambda: [ln.strip() for ln in _read(held).splitlines() if ln.strip()]
-        finally:
-            os.dup2(saved, 2)
-            os.close(saved)
-
-
-def _read(f: Any) -> str:
-    f.flush()
-    f.seek(0)
-    return bytes(f.read()).decode("utf-8", "replace")
+def _checked_limits(p: Path, name: str, lo: float, hi: float) -> tuple[float, float]:
+    if math.isnan(lo) or math.isnan(hi) or lo > hi:
+        raise FileFormatError(f"{p}: joint {name!r} has limits {lo:g}..{hi:g}: not lower ≤ upper")
+    return _limit(lo, -math.inf), _limit(hi, math.inf)
 
 
 def model_from_urdf(path: str | Path, *, warn: Warn | None = warn_on_stderr) -> RobotModel:
     """A robot model from a URDF file (see the module's notes); refused, one line, when
-    the file is not a URDF, the chain is not of revolute joints, or the result does not
-    reproduce the file's own kinematics."""
+    the file is not a URDF (:func:`cellcal.urdf_input.screen`: no DTD or entity, its
+    joints and links bounded), Pinocchio does not read it, the chain is not of at most
+    :data:`MAX_DOF` revolute joints, or the result does not reproduce the file's own
+    kinematics."""
+    p = Path(path)
+    text = read_text(p, "a URDF file", limit=MAX_BYTES)
+    screen(text, p)
+    try:
+        with np.errstate(all="ignore"):  # overflow of huge numbers: refused below
+            return _from_urdf(p, text, warn)
+    except (ArithmeticError, ValueError, IndexError, RuntimeError, np.linalg.LinAlgError) as exc:
+        # NaN or huge numbers that passed Pinocchio's parser, or a std::exception of its
+        # kinematics: the derived geometry is not usable.
+        raise FileFormatError(
+            f"{p}: its geometry gives no usable model ({first_line(exc)}): origins, axes "
+            "and limits must be finite numbers of a robot's size"
+        ) from None
+
+
+def _from_urdf(p: Path, text: str, warn: Warn | None) -> RobotModel:
     import pinocchio as pin
 
-    p = Path(path)
-    text = read_text(p, "a URDF file")
     try:
         root = ET.fromstring(text)
     except ET.ParseError as exc:
         raise FileFormatError(f"{p}: not XML ({exc})") from None
     if root.tag != "robot":
         raise FileFormatError(f"{p}: not a URDF (its root element is <{root.tag}>, not <robot>)")
-    with _c_stderr() as said:
-        try:
-            pm = pin.buildModelFromXML(text)
-        except (RuntimeError, ValueError) as exc:
-            pm = None
-            why = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-    if pm is None:
-        detail = said()[:1] or [why]
-        raise FileFormatError(f"{p}: not a URDF that Pinocchio reads ({detail[0]})")
+    pm = pinocchio_model(pin, p, text)
     names = [f.name for f in pm.frames]
     end_name = next((f for f in END_FRAMES if f in names), None)
     fid = pm.getFrameId(end_name) if end_name is not None else None
@@ -371,6 +364,11 @@ def model_from_urdf(path: str | Path, *, warn: Warn | None = warn_on_stderr) -> 
     chain.reverse()
     if not chain:
         raise InputError(f"{p}: no joint between the root and the end frame")
+    if len(chain) > MAX_DOF:
+        raise InputError(
+            f"{p}: {len(chain)} joints between the root and the end frame: at most "
+            f"{MAX_DOF} (a serial industrial arm)"
+        )
     for j in chain:
         kind = pm.joints[j].shortname()
         if pm.joints[j].nv != 1 or not kind.startswith(("JointModelR", "JointModelRevolute")):
@@ -378,7 +376,10 @@ def model_from_urdf(path: str | Path, *, warn: Warn | None = warn_on_stderr) -> 
                 f"{p}: joint {pm.names[j]!r} is {kind.removeprefix('JointModel')}; cellcal "
                 "models serial chains of revolute joints"
             )
-    d = pm.createData()
+    try:
+        d = pm.createData()
+    except Exception as exc:  # bad_alloc and the like: one line, not a traceback
+        raise FileFormatError(f"{p}: Pinocchio cannot model it ({first_line(exc)})") from None
 
     def placements(readings: Array) -> tuple[Array, Array]:
         """The end frame's origins (N×3, mm) and axes (N×3×3) by Pinocchio."""
@@ -405,15 +406,19 @@ def model_from_urdf(path: str | Path, *, warn: Warn | None = warn_on_stderr) -> 
         points.append(np.array(d.oMi[joint].translation) * 1000.0)
         jm = pm.joints[joint]
         if jm.nq == 1:
-            limits.append(
-                (
-                    _limit(pm.lowerPositionLimit[jm.idx_q], -math.inf),
-                    _limit(pm.upperPositionLimit[jm.idx_q], math.inf),
-                )
-            )
+            lo_j = float(pm.lowerPositionLimit[jm.idx_q])
+            hi_j = float(pm.upperPositionLimit[jm.idx_q])
+            limits.append(_checked_limits(p, pm.names[joint], lo_j, hi_j))
         else:
             limits.append((-math.inf, math.inf))
     ends, end_axes = placements(np.zeros((1, len(chain))))
+    norms = np.linalg.norm(np.array(axes), axis=1)
+    finite = all(np.isfinite(v).all() for v in (np.array(points), ends, end_axes))
+    if not finite or not (np.abs(norms - 1.0) < 1e-6).all():
+        raise FileFormatError(
+            f"{p}: its joint origins or axes are not finite numbers of a robot's size (NaN, "
+            "inf, a zero axis or lengths beyond reach)"
+        )
     model = mdh_from_axes(
         np.array(points), np.array(axes), ends[0], limits, pm.name or p.stem, end_axes[0]
     )

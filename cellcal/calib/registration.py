@@ -59,7 +59,6 @@ NEAR_COLLINEAR_WARN = 1e-3
 CHI3_MEDIAN = 1.5381722
 HUBER_K = 2.8  # ≈ 95 % quantile of χ₃: points beyond it are down-weighted
 TUKEY_C = 4.7  # points beyond it get weight zero
-RANSAC_SIGMAS = 4.0  # default inlier threshold, in robust σ of the best sample
 
 
 @dataclass(frozen=True)
@@ -548,61 +547,6 @@ def _irls(
     return sol, w, np.asarray(inl & (w0 > 0))
 
 
-def _ransac(
-    P: Array,
-    Q: Array,
-    w0: Array,
-    method: str,
-    scale: bool,
-    threshold: float | None,
-    seed: int,
-    max_samples: int = 2000,
-) -> tuple[_Solution, Array, NDArray[np.bool_]]:
-    n = len(P)
-    rng = np.random.default_rng(seed)
-    cand = np.flatnonzero(w0 > 0)
-    m = len(cand)
-    if m * (m - 1) * (m - 2) // 6 <= max_samples:
-        from itertools import combinations
-
-        samples = np.array(list(combinations(cand, 3)))
-    else:
-        samples = np.array([rng.choice(cand, 3, replace=False) for _ in range(max_samples)])
-    bs = fit_rigid_batch(P[samples], Q[samples], scale=scale)
-    ok = ~(bs.degenerate | bs.mirrored)
-    if not ok.any():
-        raise DegenerateGeometryError("ransac: every 3-point sample is collinear")
-    R, t, s = bs.R[ok], bs.t[ok], bs.scale[ok]
-    pred = np.einsum("bij,nj->bni", R, P) * s[:, None, None] + t[:, None, :]
-    r = np.linalg.norm(Q[None] - pred, axis=2)[:, cand]  # (samples, m)
-    if threshold is None:
-        med = np.median(r, axis=1)
-        best = int(np.argmin(med))
-        sigma = float(med[best]) / CHI3_MEDIAN * (1.0 + 5.0 / max(m - 3, 1))
-        threshold = max(RANSAC_SIGMAS * sigma, 1e-9 * max(1.0, float(np.max(np.abs(Q)))))
-    elif not np.isfinite(threshold) or threshold <= 0:
-        raise InputError("ransac threshold must be a positive number of mm")
-    # MSAC (Torr & Zisserman 2000): inliers cost their squared residual, outliers the
-    # squared threshold; the lowest total wins.
-    score = np.minimum(r, threshold) ** 2
-    best = int(np.argmin(score.sum(axis=1)))
-    inl = np.zeros(n, dtype=bool)
-    inl[cand[r[best] <= threshold]] = True
-    # Refit on the inliers until the set is stable; the set returned is the one fitted.
-    for attempt in range(20):
-        if inl.sum() < 3:
-            raise DegenerateGeometryError("ransac: fewer than 3 inliers")
-        w = np.where(inl, w0, 0.0)
-        _diagnose_geometry(P, Q, w)
-        sol = _solve_ls(P, Q, w, method, scale)
-        res = np.linalg.norm(Q - sol.scale * (P @ sol.R.T) - sol.t, axis=1)
-        new = (res <= threshold) & (w0 > 0)
-        if np.array_equal(new, inl) or new.sum() < 3 or attempt == 19:
-            break
-        inl = new
-    return sol, np.where(inl, w0, 0.0), inl
-
-
 # --------------------------------------------------------------------------- public API
 
 
@@ -693,7 +637,9 @@ def fit_rigid(
     elif robust in ("huber", "tukey"):
         sol, w, inliers = _irls(P, Q, _ones_or(w, n), method, scale, robust)
     elif robust == "ransac":
-        sol, w, inliers = _ransac(P, Q, _ones_or(w, n), method, scale, ransac_threshold, seed)
+        from cellcal.calib.ransac import ransac  # it builds on this module's solvers
+
+        sol, w, inliers = ransac(P, Q, _ones_or(w, n), method, scale, ransac_threshold, seed)
     elif method == "svd" and w is None:
         R = rs.rotation_from_svd(U, Vt, det_uv)
         s_ = 1.0

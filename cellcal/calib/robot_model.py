@@ -34,6 +34,18 @@ Convention = Literal["dh", "mdh"]
 #: Consecutive axes closer than this are treated as parallel (Hayati's β replaces d).
 PARALLEL_AXES_DEG = 1.0
 
+#: A model that drives a robot has joint limits within this (deg) of the zero reading:
+#: the widest industrial axes (UR e-Series, KUKA's A4/A6) turn ±350..360°; a larger
+#: range (a URDF's ±1e9, a "continuous" joint, a typo) is no robot's. An axis that turns
+#: farther is given the ±360° it needs for calibration poses.
+MAX_LIMIT_DEG = 360.0
+#: How a model is given limits, for the messages that refuse one without them.
+LIMITS_HOW = (
+    "give each joint's limits from the robot's data sheet: min and max (deg) in each "
+    '[[joint]] of a model TOML, or in a URDF type="revolute" with <limit lower=… upper=…> '
+    '(rad; a "continuous" joint has none)'
+)
+
 _JOINT_KEYS = {"a", "alpha", "d", "theta", "beta", "min", "max", "scale", "couple"}
 _TOP_KEYS = {"name", "convention", "joint", "tool", "description"}
 
@@ -210,6 +222,36 @@ def model_from_dict(data: Mapping[str, object], source: str = "model") -> RobotM
             "same readings (the reading → angle map is singular)"
         )
     return model
+
+
+def limits_problem(model: RobotModel) -> str | None:
+    """What is wrong with the model's joint limits for driving a robot, naming the joint
+    (None when every joint has finite limits, min < max, within ±:data:`MAX_LIMIT_DEG`)."""
+    for i, j in enumerate(model.joints, start=1):
+        lo, hi = math.degrees(j.q_min), math.degrees(j.q_max)
+        if math.isnan(lo) or math.isnan(hi) or (math.isinf(lo) and math.isinf(hi)):
+            return f"joint {i} has no limits"
+        if not math.isfinite(lo):
+            return f"joint {i} has no lower limit (min)"
+        if not math.isfinite(hi):
+            return f"joint {i} has no upper limit (max)"
+        if lo >= hi:
+            return f"joint {i}'s limits {lo:.6g}..{hi:.6g}° are not min < max"
+        if max(abs(lo), abs(hi)) > MAX_LIMIT_DEG + 1e-9:
+            return (
+                f"joint {i}'s limits {lo:.6g}..{hi:.6g}° go beyond ±{MAX_LIMIT_DEG:g}°, "
+                "which no robot's joint range does"
+            )
+    return None
+
+
+def require_limits(model: RobotModel, source: str) -> None:
+    """Refuse (one line naming the joint) a model whose joint limits cannot keep a robot
+    safe: every use that drives a robot or plans its moves calls this; reading a model
+    to predict or calibrate does not."""
+    problem = limits_problem(model)
+    if problem is not None:
+        raise ModelError(f"{source}: {problem}; a model that drives a robot must {LIMITS_HOW}")
 
 
 def _couple(value: object, where: str, i: int, n: int) -> tuple[int, float]:

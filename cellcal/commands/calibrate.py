@@ -28,6 +28,7 @@ from cellcal.commands.output import SEED, print_json, warn
 from cellcal.errors import AcceptanceError, InputError, UserError
 from cellcal.measurementfiles import Measurements, read_measurements
 from cellcal.modelfiles import builtin_models, load_model, write_calibrated
+from cellcal.outputfiles import check_output_file
 
 #: The paper's figures (Liu et al. 2018, Sec. 4.2): position error after calibration with
 #: another registration method (0.436) and with its own (0.200), and outside the region.
@@ -242,6 +243,8 @@ def calibrate(
     """
     if folds and folds < 2:
         raise InputError("--folds must be 0 (no validation) or at least 2")
+    if out_path is not None:
+        check_output_file(out_path)  # before the fit: a device or FIFO is refused at once
     loaded = load_model(model_spec)
     x, y, z = (float(v) for v in loaded.tool)
     nominal = replace(loaded.model, tool_xyz=(x, y, z))

@@ -8,18 +8,42 @@ from pathlib import Path
 import click
 import numpy as np
 
-from cellcal.calib.compensation import Compensation, compensate
+from cellcal.calib.compensation import (
+    BASE,
+    FAR,
+    LIMITS,
+    MAX_CORRECTION_MM,
+    REACHED,
+    UNREACHED,
+    Compensation,
+    compensate,
+)
 from cellcal.calib.geometry import Array, apply, invert, so3_log
 from cellcal.calib.kinematics import flange_transforms
-from cellcal.calib.robot_model import model_from_dict
+from cellcal.calib.robot_model import model_from_dict, require_limits
 from cellcal.commands.output import print_json
-from cellcal.errors import FileFormatError, InputError
+from cellcal.errors import AcceptanceError, FileFormatError, InputError
 from cellcal.modelfiles import LoadedModel, load_model, write_atomically
+from cellcal.outputfiles import check_output_file
 from cellcal.targetfiles import Targets, read_targets
 from cellcal.textfiles import read_toml
 
 #: How many failed targets a refusal names.
 NAMED = 5
+#: The acceptance check an answer that cannot be right fails (exit 3), and what usually
+#: causes each kind of it.
+CHECK = "compensation"
+CAUSE = {
+    LIMITS: "the point is beyond the robot's joint range in the configuration the seed "
+    "picks: give the program's joints (q1..qn columns) or --seed-deg in the "
+    "configuration the robot uses there",
+    BASE: "the point is at the robot's base, or the seed folds the arm onto it: check the "
+    "points' frame (--frame) and give the program's joints (q1..qn columns)",
+    FAR: "the calibrated model is not a small correction of the nominal one (a model of "
+    f"another robot, an edited file; corrections are a few tenths of a mm, at most "
+    f"{MAX_CORRECTION_MM:g} mm), or the seed picks another configuration than the "
+    "nominal solution's",
+}
 
 
 def _nominal(loaded: LoadedModel) -> LoadedModel:
@@ -46,6 +70,31 @@ def _seed(targets: Targets, seed_deg: str | None, dof: int) -> Array:
     if len(values) != dof or not all(math.isfinite(v) for v in values):
         raise InputError(f"--seed-deg {seed_deg!r}: give {dof} finite numbers, comma-separated")
     return np.broadcast_to(np.radians(values), (len(targets.names), dof))
+
+
+def _refuse(targets: Targets, comp: Compensation) -> None:
+    """Targets the solver did not reach: exit 2 (a user error: the point is out of
+    reach); answers that cannot be right (outside the limits, inside the base, far from
+    the nominal solution): exit 3 with the likely cause. Nothing is written either way."""
+
+    def named(rows: list[int]) -> str:
+        shown = "; ".join(f"{targets.names[k]}: {comp.why_not[k]}" for k in rows[:NAMED])
+        return shown + (f" (and {len(rows) - NAMED} more)" if len(rows) > NAMED else "")
+
+    n = len(comp.kind)
+    unreached = [k for k in range(n) if comp.kind[k] == UNREACHED]
+    if unreached:
+        raise InputError(
+            f"{len(unreached)} of {n} targets cannot be reached with the calibrated model: "
+            f"{named(unreached)}; nothing written"
+        )
+    refused = [k for k in range(n) if comp.kind[k] != REACHED]
+    if refused:
+        raise AcceptanceError(
+            CHECK,
+            f"{len(refused)} of {n} targets have no acceptable joints: {named(refused)}; "
+            f"nothing written; likely cause: {CAUSE[comp.kind[refused[0]]]}",
+        )
 
 
 def _csv(targets: Targets, comp: Compensation) -> str:
@@ -106,12 +155,14 @@ def compensate_command(
     flange_rx..rz: rotation vector, deg) for a controller that takes Cartesian targets,
     and correction_mm: how far the nominal model would have been from the point.
     """
+    check_output_file(out_path)
     loaded = load_model(model_spec)
     if not loaded.calibrated or loaded.T_sensor_base is None:
         raise InputError(
             f"--model {model_spec}: a nominal model; compensate needs a calibrated model "
             "(cellcal calibrate --out, or model.toml of a campaign's report)"
         )
+    require_limits(loaded.model, f"--model {model_spec}")
     tool = loaded.tool
     if target_name is not None:
         if not loaded.targets or target_name not in loaded.targets:
@@ -132,14 +183,7 @@ def compensate_command(
         # Keep the orientation the program has today at its joints (nominal model).
         R = flange_transforms(nominal, seed)[:, :3, :3]
     comp = compensate(loaded.model, tool, nominal, p, R, seed)
-    bad = np.flatnonzero(~comp.ok)
-    if len(bad):
-        shown = "; ".join(f"{targets.names[k]}: {comp.why_not[k]}" for k in bad[:NAMED])
-        more = f" (and {len(bad) - NAMED} more)" if len(bad) > NAMED else ""
-        raise InputError(
-            f"{len(bad)} of {len(p)} targets cannot be reached with the calibrated model: "
-            f"{shown}{more}; nothing written"
-        )
+    _refuse(targets, comp)
     write_atomically(out_path, _csv(targets, comp))
     summary = {
         "out": out_path,

@@ -6,6 +6,7 @@ import click
 
 from cellcal.commands.output import print_json
 from cellcal.modelfiles import load_model, write_atomically
+from cellcal.outputfiles import check_output_file
 from cellcal.urdffiles import to_urdf
 
 
@@ -24,6 +25,7 @@ def export_urdf(model_spec: str, out_path: str, as_json: bool) -> None:
     """The model as URDF for ROS, MoveIt and Pinocchio: base_link, link_1..n turned by
     joint_1..n (values: the controller's readings), flange, target (the target offset
     on the flange) and, for a calibrated model, the sensor frame fixed to the base."""
+    check_output_file(out_path)
     loaded = load_model(model_spec)
     text = to_urdf(loaded.model, loaded.tool, loaded.T_sensor_base)
     write_atomically(out_path, text)

@@ -13,11 +13,14 @@ import numpy as np
 
 from cellcal.commands.output import print_json
 from cellcal.errors import InputError, UserError
+from cellcal.outputfiles import check_output_file
 from cellcal.textfiles import read_toml
 
 if TYPE_CHECKING:  # imported when the command runs, after its first progress line
+    from cellcal.calib.geometry import Array
     from cellcal.calib.identifiability import Identifiability
-    from cellcal.config import CellConfig
+    from cellcal.calib.robot_model import RobotModel
+    from cellcal.config import CampaignConfig, CellConfig
     from cellcal.daemon.plan import Plan
 
 #: The bundled simulated cell (``--mock`` without ``--config``), as ``cellcal run`` has it.
@@ -152,6 +155,8 @@ def plan(
     --region workspace: the expected error over the workspace box, and --optimal's
     candidates drawn there. A plan that chooses poses or draws them says what it is
     doing on stderr, lines starting "planning: "."""
+    if out_path is not None:
+        check_output_file(out_path)  # before the work: a device or FIFO is refused
     written = _glance(config_path, mock)
     early = _opening(
         optimal if optimal is not None else written.get("optimal_poses", 0),
@@ -181,6 +186,7 @@ def plan(
         plan_identifiability,
         workspace_poses,
     )
+    from cellcal.daemon.plan_checks import check_inputs
     from cellcal.daemon.plan_region import region_text
     from cellcal.modelfiles import load_model, write_atomically
 
@@ -190,6 +196,7 @@ def plan(
     if len(home) != nominal.dof:
         raise InputError(f"robot.home_deg has {len(home)} joints, the model {nominal.dof}")
     offset = np.asarray(config.reference_sensor.target_offset_mm, dtype=np.float64)
+    check_inputs(campaign, nominal, home, f"robot.model {config.robot.model}")
     workspace = workspace_poses(campaign, nominal, home, offset, progress=say)
     planned = make_plan(campaign, nominal, home, offset, workspace=workspace, progress=say)
     speed = _joint_speed_deg_s(config)
@@ -229,6 +236,7 @@ def plan(
     q_all = np.array([p.q for p in planned.poses]).reshape(-1, nominal.dof)
     seconds = cell_seconds(q_all, home, math.radians(speed), campaign.dwell_s)
     summary["cell_time_min"] = seconds / 60.0
+    summary["moves_leaving_box"] = _leaving(campaign, nominal, home, offset, q_all)
     if out_path is not None:
         write_atomically(out_path, plan_csv(planned, nominal.dof))
         summary["out"] = out_path
@@ -236,6 +244,28 @@ def plan(
         print_json({**summary, "poses": _poses(planned)})
         return
     _echo(planned, summary)
+
+
+def _leaving(
+    campaign: CampaignConfig, model: RobotModel, home: Array, offset: Array, q: Array
+) -> list[dict[str, Any]]:
+    """The moves that leave the workspace box on the way (the safety gate refuses them):
+    the pose moved to, how far (mm), which point (flange or target), where on the way
+    (fraction of the move) and where (mm, base frame)."""
+    from cellcal.daemon.plan_checks import moves_outside
+    from cellcal.daemon.plan_region import box
+
+    lo, hi = box(campaign)
+    return [
+        {
+            "idx": k,
+            "excess_mm": round(e.excess_mm, 3),
+            "point": e.point,
+            "fraction": round(e.fraction, 4),
+            "at_mm": [round(float(v), 3) for v in e.where_mm],
+        }
+        for k, e in moves_outside(model, home, q, offset, lo, hi).items()
+    ]
 
 
 def _identified(ident: Identifiability) -> dict[str, Any]:
@@ -310,6 +340,17 @@ def _echo(p: Plan, s: dict[str, Any]) -> None:
             f"expected RMS error {s['expected_region']} after calibration: "
             f"{s['expected_rms_sigma']:.3f} × the sensor's noise (σ per coordinate), "
             f"judged at {s['expected_points']} reachable poses"
+        )
+    leaving = s["moves_leaving_box"]
+    if leaving:
+        worst = max(leaving, key=lambda m: m["excess_mm"])
+        shown = ", ".join(f"{m['idx']} ({m['excess_mm']:.1f} mm)" for m in leaving[:10])
+        more = f" and {len(leaving) - 10} more" if len(leaving) > 10 else ""
+        click.echo(
+            f"{len(leaving)} moves leave the workspace box on the way, which the safety "
+            f"gate refuses (the joint move to pose, by how much): {shown}{more}; the worst "
+            f"by {worst['excess_mm']:.1f} mm (its {worst['point']}): widen "
+            "campaign.workspace_min_mm/max_mm or move the cube"
         )
     click.echo(
         f"cell time about {s['cell_time_min']:.1f} min: {s['dwell_s']:g} s dwell per pose, "

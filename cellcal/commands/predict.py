@@ -14,6 +14,7 @@ from cellcal.calib.observations import check_measurements
 from cellcal.errors import InputError
 from cellcal.measurementfiles import format_positions, read_joints_labelled
 from cellcal.modelfiles import load_model, write_atomically
+from cellcal.outputfiles import check_output_file
 
 
 def _pick(
@@ -55,6 +56,8 @@ def predict(model_spec: str, joints_path: str, out_path: str | None) -> None:
     joints file names); with a nominal model, in the robot base frame with the model's
     [tool] offset.
     """
+    if out_path is not None:
+        check_output_file(out_path)
     loaded = load_model(model_spec)
     q, targets, sessions = read_joints_labelled(joints_path, loaded.model.dof)
     check_measurements(loaded.model, q, np.zeros((len(q), 3)), None)

@@ -24,6 +24,7 @@ from cellcal.imagefiles import (
     set_folders,
     stray_images,
 )
+from cellcal.outputfiles import check_output_file
 from cellcal.photofiles import read_board, read_rig, read_target, write_rig
 
 
@@ -271,6 +272,7 @@ def calibrate(
         raise InputError(
             f"--max-length-error: expected a positive length in mm, got {max_length_mm}"
         )
+    check_output_file(out_path)  # before the bundle adjustment: a device or FIFO is refused
     board = read_board(board_path)
     click.echo(f"rig calibrate: reading the views in {views_dir}…", err=True)
     views = load_views(views_dir)

@@ -109,7 +109,12 @@ def _grab(
                 announce(k - 1)
             frames = cameras.grab()
             folder = out / f"set-{k:04d}"
-            folder.mkdir(exist_ok=True)
+            try:
+                folder.mkdir(exist_ok=True)
+            except OSError as exc:  # a file, FIFO or device of that name
+                raise InputError(
+                    f"{folder}: cannot make the set's folder ({exc.strerror})"
+                ) from None
             for name, frame in frames.frames.items():
                 write_image(folder / f"{name}.png", frame.image)
             record = {

@@ -17,6 +17,8 @@ import click
 from cellcal.config import load_config
 from cellcal.daemon.unitfile import UNIT_NAME, render, verify
 from cellcal.errors import CampaignError, InputError
+from cellcal.outputfiles import check_output_file
+from cellcal.textfiles import read_text
 
 DEFAULT_CONFIG = "/etc/cellcal/cell.toml"
 UNIT_DIR = "/etc/systemd/system"
@@ -70,9 +72,11 @@ def install(
         return 0
     _user_exists(user)
     target = Path(unit_dir) / UNIT_NAME
-    if target.exists() and target.read_text() != text and not force:
+    check_output_file(target)  # a FIFO would hang the reading, a device take the writing
+    current = read_text(target, "a unit file") if target.exists() else None
+    if current is not None and current != text and not force:
         raise CampaignError(f"{target} exists and differs (see --dry-run); --force replaces it")
-    unchanged = target.exists() and target.read_text() == text
+    unchanged = current == text
     if not unchanged:
         try:
             target.write_text(text)

@@ -22,6 +22,7 @@ from cellcal.daemon.devices import Devices, build_devices
 from cellcal.daemon.engine import Acquisition, PhaseWatcher, acquire
 from cellcal.daemon.locks import RunLock, robot_claim
 from cellcal.daemon.plan import CALIBRATION, VALIDATION, Plan, make_plan, plan_identifiability
+from cellcal.daemon.plan_checks import LIMITS_EVENT, limits_record, same_limits
 from cellcal.daemon.records import (
     CampaignEnded,
     CampaignEvent,
@@ -299,6 +300,8 @@ def stored_plan(store: Store, campaign_id: int) -> tuple[CellConfig, Plan, Robot
             f"campaign {campaign_id}: the plan computed now differs from the stored one "
             "(another cellcal version or robot model?); start a new campaign"
         )
+    recorded = [e["message"] for e in store.events(campaign_id) if e["kind"] == LIMITS_EVENT]
+    same_limits(campaign_id, recorded, plan.limits_deg, config.robot.model)
     return config, plan, nominal
 
 
@@ -311,8 +314,8 @@ def _create(
     time_scale: float,
     status: str,
 ) -> int:
-    """The campaign's row, with what it runs with."""
-    return store.create_campaign(
+    """The campaign's row, with what it runs with (and the joint limits it keeps)."""
+    campaign_id = store.create_campaign(
         config_json=config.model_dump_json(),
         config_path=config_path,
         mock=mock,
@@ -326,6 +329,9 @@ def _create(
         plan_digest=plan.digest,
         status=status,
     )
+    if plan.limits_deg:  # what a resumed campaign must keep
+        store.add_event(campaign_id, LIMITS_EVENT, limits_record(plan.limits_deg), None)
+    return campaign_id
 
 
 def plan_campaign(config: CellConfig) -> Plan:

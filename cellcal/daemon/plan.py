@@ -41,6 +41,7 @@ from cellcal.calib.pose_selection import (
 )
 from cellcal.calib.robot_model import RobotModel
 from cellcal.config import CampaignConfig
+from cellcal.daemon.plan_checks import CANDIDATE_ORIENTATIONS, check_inputs
 from cellcal.daemon.plan_region import (
     CUBE,
     REGION_CANDIDATES,
@@ -54,8 +55,6 @@ from cellcal.errors import InputError
 
 CALIBRATION = "calibration"
 VALIDATION = "validation"
-#: Wrist orientations tried at each grid point when ``campaign.optimal_poses`` is set.
-CANDIDATE_ORIENTATIONS = 4
 #: and their wrist turned up to this much about each axis (deg), or the campaign's own
 #: orientation_variation_deg where that is more.
 CANDIDATE_VARIATION_DEG = 60.0
@@ -99,13 +98,16 @@ class Plan:
     """The poses in order, the poses that cannot be reached, and with
     ``campaign.optimal_poses`` the selection: how many reachable candidates it chose
     from, how many were tried (``drawn``: the cube's grid points × orientations, or the
-    poses drawn over the workspace box, reachable or not), and its criterion's figures."""
+    poses drawn over the workspace box, reachable or not), and its criterion's figures.
+    ``limits_deg``: the model's joint limits (min, max per joint, deg) the plan was made
+    within, which a resumed campaign must keep (not part of the digest)."""
 
     poses: tuple[PlannedPose, ...]
     unreachable: tuple[UnreachablePose, ...]
     candidates: int = 0
     selection: PoseSelection | None = None
     drawn: int = 0
+    limits_deg: tuple[tuple[float, float], ...] = ()
 
     @property
     def digest(self) -> str:
@@ -183,7 +185,36 @@ def make_plan(
     at ``target_offset`` (mm, flange frame). With ``campaign.optimal_poses`` and
     ``select=False``: every reachable candidate as a calibration pose (for comparisons).
     ``workspace``: the joints of :func:`workspace_poses`, if they are already known (else
-    computed when the selection needs them); ``progress`` hears what the plan is doing."""
+    computed when the selection needs them); ``progress`` hears what the plan is doing.
+    Refused before any work: a model without finite, plausible joint limits, a home
+    outside them, a plan too large (:func:`check_size`). The moves between the poses
+    are not checked here: :func:`cellcal.daemon.plan_checks.moves_outside` says which
+    leave the workspace box on the way (``cellcal plan`` prints them); the safety gate
+    refuses them."""
+    check_inputs(cfg, model, home_q)
+    plan = _planned(cfg, model, home_q, target_offset, select, workspace, progress)
+    return replace(plan, limits_deg=limits_deg(model))
+
+
+def limits_deg(model: RobotModel) -> tuple[tuple[float, float], ...]:
+    """The model's joint limits (deg, rounded at 1e-9°)."""
+    lo, hi = model.limits
+    return tuple(
+        (round(float(np.degrees(a)), 9) + 0.0, round(float(np.degrees(b)), 9) + 0.0)
+        for a, b in zip(lo, hi, strict=True)
+    )
+
+
+def _planned(
+    cfg: CampaignConfig,
+    model: RobotModel,
+    home_q: Array,
+    target_offset: Array,
+    select: bool,
+    workspace: Array | None,
+    progress: Progress,
+) -> Plan:
+    """:func:`make_plan` once its inputs are checked."""
     if cfg.optimal_poses and select and workspace is None:
         workspace = workspace_poses(cfg, model, home_q, target_offset, progress=progress)
     rng = np.random.default_rng(cfg.seed)
@@ -285,6 +316,7 @@ def workspace_poses(
     validation regions, drawn like the validation poses but from another seed.
     ``"workspace"``: :data:`REGION_POINTS` reachable poses drawn over the workspace box,
     turned as the validation poses are, from another seed than the candidates'."""
+    check_inputs(cfg, model, home_q)
     if cfg.region == WORKSPACE:
         rng = np.random.default_rng([cfg.seed + WORKSPACE_SEED, 2])
         region = draw_reachable(

@@ -31,6 +31,7 @@ from cellcal.daemon.report_html import report_html
 from cellcal.daemon.store import PoseData, Store
 from cellcal.errors import CampaignError, InputError
 from cellcal.modelfiles import write_atomically
+from cellcal.outputfiles import check_output_file
 
 
 @dataclass(frozen=True)
@@ -331,6 +332,8 @@ def write_report(
     page_facts = {**facts, "dwell_s": dwell_s, "iso9283": iso}
     data_for_page = report_data(store, cid, page_facts, methods=methods and not iso)
     files["index.html"] = report_html(data_for_page, timeline)
+    for name in files:  # a device, FIFO or folder in the way: refused before any is written
+        check_output_file(folder / name)
     for name, text in files.items():
         write_atomically(folder / name, text)
     return ReportFolder(cid, str(folder), tuple(files), summary is not None)

@@ -3,21 +3,78 @@ pseudo-terminal and TCP (``/dev/ttyUSB0``, ``/dev/pts/7``, ``socket://127.0.0.5:
 
 A transport moves bytes and reports a broken link as :class:`TransportError`; the
 layers above (line framing, protocol) know nothing of sockets or serial ports.
+
+Only plain transports are taken: a serial device (a path to a character device),
+``socket://`` and ``rfc2217://``. pyserial's other URL handlers are refused before
+anything is opened (:class:`RefusedAddressError`): ``spy://…?file=`` opens a file for
+writing (and empties it), ``hwgrep://`` opens whichever port matches a pattern,
+``alt://`` swaps the port's implementation, ``loop://`` and ``cp2110://`` are no serial
+line to a tracker.
 """
 
 from __future__ import annotations
 
 import contextlib
+import os
+import stat
 import time
 from typing import Protocol
 
 import serial
 
-from cellcal.errors import DeviceError
+from cellcal.errors import DeviceError, InputError
 
 
 class TransportError(DeviceError):
     """The link is down: a dropped connection, an unplugged device, a refused connect."""
+
+
+class RefusedAddressError(InputError):
+    """An address that is no plain transport: a pyserial URL handler that writes files
+    or is not a serial line or TCP, or a path that is not a serial device."""
+
+
+#: The pyserial URL kinds taken: plain TCP and RFC 2217 (a serial port over telnet).
+PLAIN_SCHEMES = ("socket", "rfc2217")
+
+_WHY = {
+    "spy": "it writes a log of the traffic into a file (file=...) and wraps another port",
+    "hwgrep": "it opens whichever serial port matches a pattern",
+    "alt": "it swaps the serial port's implementation",
+    "loop": "it is a loopback, no device",
+    "cp2110": "it is a USB HID bridge, not a serial line",
+}
+
+
+def check_address(url: str) -> None:
+    """Refuse a pyserial URL that is not a plain transport (see the module's docstring)."""
+    scheme, sep, _ = url.partition("://")
+    if not sep:
+        return
+    scheme = scheme.lower()  # as pyserial reads it
+    if scheme in PLAIN_SCHEMES:
+        return
+    why = _WHY.get(scheme, "it is not a serial or TCP transport")
+    raise RefusedAddressError(
+        f"{url}: {scheme}:// addresses are refused ({why}); give a serial device "
+        "(/dev/ttyUSB0, a pty path), socket://HOST:PORT or rfc2217://HOST:PORT"
+    )
+
+
+def _check_device(url: str) -> None:
+    """A path (no URL kind) must be a character device when it exists: pyserial would
+    open a regular file, a FIFO or a folder for reading and writing."""
+    if "://" in url:
+        return
+    try:
+        info = os.stat(url)
+    except OSError:
+        return  # not there (unplugged?): pyserial says so, and the link layer retries
+    if not stat.S_ISCHR(info.st_mode):
+        raise RefusedAddressError(
+            f"{url}: not a serial device (not a character device); give a serial device "
+            "(/dev/ttyUSB0, a pty path), socket://HOST:PORT or rfc2217://HOST:PORT"
+        )
 
 
 class Transport(Protocol):
@@ -38,9 +95,11 @@ class Transport(Protocol):
 
 
 class SerialUrlTransport:
-    """A pyserial ``serial_for_url`` port (serial device, pty path or ``socket://``)."""
+    """A pyserial ``serial_for_url`` port (serial device, pty path, ``socket://`` or
+    ``rfc2217://``); any other URL kind is refused here, before anything is opened."""
 
     def __init__(self, url: str, *, baudrate: int = 115200, connect_timeout: float = 5.0) -> None:
+        check_address(url)
         self.url = url
         self.baudrate = baudrate
         self.connect_timeout = connect_timeout
@@ -52,6 +111,8 @@ class SerialUrlTransport:
 
     def open(self) -> None:
         self.close()
+        check_address(self.url)
+        _check_device(self.url)
         try:
             port = serial.serial_for_url(
                 self.url,

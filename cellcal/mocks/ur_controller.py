@@ -24,7 +24,8 @@ Simplifications (docs/ur-twin.md): motion is :class:`cellcal.mocks.motion.JointM
 timed on the leading joint (moveJ, moveL_FK) or the TCP translation (moveL; a pure
 reorientation on the leading joint at 1.05 rad/s, 1.4 rad/s²), straight in joint space.
 A protective or emergency stop halts the robot and aborts the move; the script stays
-PLAYING but takes no command until the stop is cleared (at once: no 5 s wait). An
+PLAYING but takes no command until the stop is cleared (at once: no 5 s wait). A joint
+target outside the joint ranges (±360°) is a protective stop before any motion. An
 unreachable pose ends the control script, as ``get_inverse_kin``'s runtime error does.
 Other commands are acknowledged without effect; other scripts end at once; a loaded
 ``.urp`` runs without effect until stopped. ``time_scale`` (wall seconds per simulated
@@ -65,6 +66,10 @@ READY, DONE = 1, 2
 CMD_MOVEJ, CMD_MOVEJ_IK, CMD_MOVEL, CMD_MOVEL_FK = 1, 2, 3, 4
 CMD_PROTECTIVE_STOP, CMD_STOPL, CMD_STOPJ, CMD_STOP_SCRIPT = 31, 33, 34, 255
 CONTROL_SCRIPT = "rtde_control"
+
+#: A UR e-Series joint turns ±360° (every joint, UR3e to UR20): a target beyond is
+#: refused with a protective stop, as the controller's joint position limits do.
+JOINT_RANGE_RAD = 2.0 * math.pi
 
 SAFETY_REPLY_CYCLES = 3  # a safety request is answered this many cycles after it
 STOPPING_CYCLES = 25  # a program that ends by itself is STOPPING for 50 ms
@@ -243,11 +248,25 @@ class Controller:
 
     def start_motion(
         self, q1: list[float], v: float, a: float, is_async: bool, cart_m: float | None
-    ) -> None:
+    ) -> bool:
         """Move to ``q1``. Joint moves are timed on the leading joint (v rad/s, a rad/s²);
         linear moves (``cart_m``, the TCP translation) on the TCP (v m/s, a m/s²), or, for
-        a pure reorientation, on the leading joint at 1.05 rad/s and 1.4 rad/s²."""
+        a pure reorientation, on the leading joint at 1.05 rad/s and 1.4 rad/s². A target
+        outside the joint ranges (±360°, :data:`JOINT_RANGE_RAD`) is not moved to: a
+        protective stop, as the controller's joint position limits give; False then."""
         q0, q1_ = np.asarray(self.q, dtype=np.float64), np.asarray(q1, dtype=np.float64)
+        beyond = np.flatnonzero(~(np.abs(q1_) <= JOINT_RANGE_RAD + 1e-9))
+        if len(beyond):
+            j = int(beyond[0])
+            log.warning(
+                "UR simulator %s: joint %d target %.6g° is outside its range ±360°: "
+                "protective stop",
+                self.host,
+                j + 1,
+                math.degrees(float(q1_[j])),
+            )
+            self.set_protective(True)
+            return False
         if cart_m is not None and cart_m > 1e-9:
             self.motion = JointMove(q0, q1_, v, a, distance=cart_m)
         elif cart_m is not None:
@@ -258,6 +277,7 @@ class Controller:
         self.motion_async = is_async
         if is_async:
             self._write_async(0)
+        return True
 
     def advance(self, dt: float) -> None:
         m = self.motion
@@ -377,8 +397,8 @@ class Controller:
         is_async = self.in_int[1] == 1
         if cmd in (CMD_MOVEJ, CMD_MOVEL_FK):
             self._stop_async_move()
-            self.start_motion(vals, v, a, is_async, None)
-            self._after_start(is_async)
+            if self.start_motion(vals, v, a, is_async, None):
+                self._after_start(is_async)
         elif cmd in (CMD_MOVEJ_IK, CMD_MOVEL):
             rid = self.ik_next
             self.ik_next += 1
@@ -422,8 +442,8 @@ class Controller:
         self._stop_async_move()
         q1 = [float(x) for x in q]
         cart = math.dist(self.tcp[:3], p.pose[:3]) if p.cmd == CMD_MOVEL else None
-        self.start_motion(q1, p.v, p.a, p.is_async, cart)
-        self._after_start(p.is_async)
+        if self.start_motion(q1, p.v, p.a, p.is_async, cart):
+            self._after_start(p.is_async)
 
     # -- status words -------------------------------------------------------------------
 
