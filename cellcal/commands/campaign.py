@@ -11,12 +11,13 @@ from typing import Any
 import click
 
 from cellcal.commands.output import SEED, print_json
-from cellcal.commands.service_client import call, follow, socket_path
+from cellcal.commands.service_client import answer_of, call, follow, socket_path
 from cellcal.daemon.report import list_campaigns
 from cellcal.daemon.store import Store
 from cellcal.errors import InputError, UserError
 
 EXIT_REFUSED = 3
+EXIT_FAILED = 2
 
 SOCKET = click.option(
     "--socket",
@@ -51,24 +52,31 @@ def list_command(db_path: str | None, sock: str | None, as_json: bool) -> None:
     else:
         path = socket_path(sock)
         try:
-            rows = call(path, "GET", "/v1/campaigns?limit=1000")["campaigns"]
+            answer = call(path, "GET", "/v1/campaigns?limit=1000")
+            with answer_of(path, "list of campaigns"):
+                rows = answer["campaigns"]
+                if not isinstance(rows, list):
+                    raise TypeError("campaigns is not a list")
         except UserError as exc:
             raise UserError(f"{exc}; or read a database file with --db FILE") from None
         source = path
     if as_json:
         print_json({"database" if db_path else "socket": source, "campaigns": rows})
         return
-    click.echo(
+    lines = [
         f"{'id':>4}  {'created (UTC)':<19} {'status':<12} {'poses':>11}  {'RMS before':>11}"
         f"  {'RMS after':>10}  model / sensors"
-    )
-    for r in rows:
-        created = r["created"][:19].replace("T", " ")
-        click.echo(
-            f"{r['id']:>4}  {created:<19} {r['status']:<12} {r['poses_stored']:>5} / "
-            f"{r['n_poses']:<4} {_fmt(r['rms_before_mm']):>11}  {_fmt(r['rms_after_mm']):>10}  "
-            f"{r['model']} / {', '.join(r['sensors'])}"
-        )
+    ]
+    with answer_of(source, "list of campaigns"):
+        for r in rows:
+            created = r["created"][:19].replace("T", " ")
+            lines.append(
+                f"{r['id']:>4}  {created:<19} {r['status']:<12} {r['poses_stored']:>5} / "
+                f"{r['n_poses']:<4} {_fmt(r['rms_before_mm']):>11}  "
+                f"{_fmt(r['rms_after_mm']):>10}  {r['model']} / {', '.join(r['sensors'])}"
+            )
+    for line in lines:
+        click.echo(line)
 
 
 @campaign.command("start")
@@ -106,9 +114,10 @@ def start(
     if as_json:
         print_json(answer)
         return
-    cid = answer["campaign_id"]
+    with answer_of(path, "answer to a start"):
+        cid, n_poses = int(answer["campaign_id"]), int(answer["n_poses"])
     click.echo(
-        f"campaign {cid} {'queued' if queue else 'accepted'} ({answer['n_poses']} poses); "
+        f"campaign {cid} {'queued' if queue else 'accepted'} ({n_poses} poses); "
         f"watch it: cellcal campaign watch {cid}"
     )
 
@@ -118,35 +127,55 @@ def start(
 @JSON
 def status(sock: str | None, as_json: bool) -> None:
     """The service's state, its campaign's progress, the devices and the queue."""
-    snap = call(socket_path(sock), "GET", "/v1/status")
+    path = socket_path(sock)
+    snap = call(path, "GET", "/v1/status")
     if as_json:
         print_json(snap)
         return
-    click.echo(f"{snap['state']}: {snap['reason']}")
+    with answer_of(path, "status"):
+        lines = _status_lines(snap)
+    for line in lines:
+        click.echo(line)
+
+
+def _status_lines(snap: dict[str, Any]) -> list[str]:
+    """What ``campaign status`` prints (a status not shaped as the service's raises)."""
+    lines = [f"{snap['state']}: {snap['reason']}"]
     c = snap.get("campaign")  # the running one, else the one held, else the last one
     if c:
         # a countdown only while the campaign goes on (not pausing, paused or aborting)
         going = snap["state"] == "running" and c.get("status") != "paused"
         eta = c.get("eta_s") if going else None
         status = f" ({c['status']})" if c.get("status") else ""
-        click.echo(
+        lines.append(
             f"campaign {c['id']}{status}: {c.get('stored', 0)} of {c.get('planned', 0)} poses "
             f"stored, phase {c.get('phase')}" + (f", about {eta:.0f} s to go" if eta else "")
         )
     devices = ", ".join(f"{k} {v['state']}" for k, v in snap["devices"].items())
-    click.echo(f"devices: {devices}")
+    lines.append(f"devices: {devices}")
     queue = snap.get("queue") or []
-    click.echo(f"queue: {', '.join(map(str, queue)) if queue else 'empty'}")
+    lines.append(f"queue: {', '.join(map(str, queue)) if queue else 'empty'}")
     if snap.get("paused_campaign") is not None:
         cid = snap["paused_campaign"]
-        click.echo(
+        lines.append(
             f"to go on: cellcal campaign resume {cid}; to drop it: cellcal campaign abort {cid}"
         )
+    return lines
 
 
-def _act(sock: str | None, campaign_id: int | None, action: str, body: dict[str, Any]) -> Any:
+def _act(
+    sock: str | None, campaign_id: int | None, action: str, body: dict[str, Any]
+) -> dict[str, Any]:
+    """The service's answer to a pause, resume or abort: its ``campaign_id`` and ``state``."""
     which = "current" if campaign_id is None else str(campaign_id)
-    return call(socket_path(sock), "POST", f"/v1/campaigns/{which}/{action}", body)
+    path = socket_path(sock)
+    answer = call(path, "POST", f"/v1/campaigns/{which}/{action}", body)
+    with answer_of(path, f"answer to {action}"):
+        cid, state = answer["campaign_id"], answer["state"]
+        number = cid is None or (isinstance(cid, int) and not isinstance(cid, bool))
+        if not number or not isinstance(state, str):
+            raise TypeError(f"campaign_id {cid!r}, state {state!r}")
+    return dict(answer)
 
 
 @campaign.command("pause")
@@ -201,6 +230,12 @@ def watch(campaign_id: int | None, sock: str | None, as_json: bool) -> int:
     shown = {"state": ""}
 
     def handle(event_id: int, kind: str, data: Any) -> bool:
+        with answer_of(path, f"event {event_id} ({kind})"):
+            return _handle(event_id, kind, data)
+
+    def _handle(event_id: int, kind: str, data: Any) -> bool:
+        if not isinstance(data, dict):
+            raise TypeError(f"a JSON {type(data).__name__}, not an object")
         running = data.get("state") in ("running", "pausing", "aborting", "analysing")
         if kind == "status" and target["id"] is None and data.get("campaign") and running:
             target["id"] = int(data["campaign"]["id"])
@@ -223,7 +258,8 @@ def watch(campaign_id: int | None, sock: str | None, as_json: bool) -> int:
     if not follow(path, handle):
         click.echo("the service closed the event stream (stopped?)", err=True)
         return 0
-    return EXIT_REFUSED if ended.get("status") == "refused" else 0
+    # refused by an acceptance check: 3, as cellcal run; failed (it could not start): 2
+    return {"refused": EXIT_REFUSED, "failed": EXIT_FAILED}.get(ended.get("status", ""), 0)
 
 
 def _sigma(s: dict[str, Any]) -> str:

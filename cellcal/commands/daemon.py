@@ -77,7 +77,8 @@ def _logging() -> None:
 @click.option(
     "--socket",
     "sock",
-    help="Control socket (default: $CELLCAL_SOCKET, else /run/cellcal/control.sock).",
+    help="Control socket (default: $CELLCAL_SOCKET, else /run/cellcal/control.sock); its "
+    "folder must be the service's own, writable by it alone.",
 )
 @click.option(
     "--http",

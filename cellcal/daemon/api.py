@@ -1,14 +1,17 @@
 """The control API: HTTP/1.1 and JSON on a Unix socket (aiohttp), server-sent events
 for watching. A mutating call answers ``202`` once accepted; clients learn the outcome
 from the event stream. Errors have one shape: ``{"error": {"code", "message"}}`` with
-one line of message. Every mutating call records the caller (SO_PEERCRED) in the
-campaign's events."""
+one line of message, whatever refused the request (``api_requests.py`` reads and checks
+each with bounds before anything acts on it). Every mutating call records the caller
+(SO_PEERCRED) in the campaign's events. The event stream sends a keep-alive comment
+when quiet, and drops a watcher that takes nothing in."""
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
 import json
+import logging
 import pwd
 import socket
 import struct
@@ -22,16 +25,37 @@ from typing import Any
 from aiohttp import web
 
 from cellcal import __version__
-from cellcal.config import CellConfig, config_from_dict, relative_to
+from cellcal.config import CellConfig, config_from_dict, relative_to, upgrade_stored
+from cellcal.daemon.api_requests import (
+    MAX_BODY,
+    PAUSE_FIELDS,
+    START_FIELDS,
+    RequestError,
+    StartRequest,
+    campaign_number,
+    check_deadline,
+    limit_of,
+    pause_request,
+    quote,
+    read_body,
+    start_request,
+)
 from cellcal.daemon.campaign import plan_campaign, queue_campaign
-from cellcal.daemon.control import RECENT_POSES, Control, ControlError, sigma_mm
+from cellcal.daemon.control import Control, ControlError
 from cellcal.daemon.report import list_campaigns
 from cellcal.daemon.store import Store
 from cellcal.errors import CellcalError
 
+log = logging.getLogger("cellcal.service")
+
 API_VERSION = 1
 #: Events kept for ``Last-Event-ID``.
 EVENT_BUFFER = 2000
+#: Seconds between keep-alive comments on a quiet event stream: a watcher that hears
+#: nothing for much longer knows the service is gone or hung.
+KEEPALIVE_S = 15.0
+#: Seconds a watcher may take to take in what is sent to it; a slower one is dropped.
+SEND_TIMEOUT_S = 30.0
 SO_PEERGROUPS = 59  # Linux 4.13+, not in Python's socket module
 
 
@@ -125,7 +149,7 @@ Handler = Callable[[web.Request], Awaitable[web.StreamResponse]]
 
 
 def make_app(svc: Service) -> web.Application:
-    app = web.Application(middlewares=[_errors, _allowed(svc)])
+    app = web.Application(middlewares=[_errors, _allowed(svc)], client_max_size=MAX_BODY)
     app["svc"] = svc
     app.router.add_get("/v1/info", info)
     app.router.add_get("/v1/status", status)
@@ -139,14 +163,29 @@ def make_app(svc: Service) -> web.Application:
 
 @web.middleware
 async def _errors(request: web.Request, handler: Handler) -> web.StreamResponse:
+    """Every refusal in the API's shape, whatever refused: a handler, aiohttp (no such
+    route, a method not allowed, a body too large) or a bug (500, logged)."""
     try:
         return await handler(request)
+    except RequestError as exc:
+        return _error(exc.status, exc.code, exc.message)
     except ControlError as exc:
         return _error(STATUS_OF_CODE.get(exc.code, 400), exc.code, exc.message)
     except web.HTTPNotFound:
-        return _error(404, "not-found", f"no such resource: {request.method} {request.path}")
+        where = quote(request.path)
+        return _error(404, "not-found", f"no such resource: {request.method} {where}")
     except web.HTTPMethodNotAllowed:
-        return _error(405, "invalid-params", f"{request.method} is not allowed on {request.path}")
+        where = quote(request.path)
+        return _error(405, "invalid-params", f"{request.method} is not allowed on {where}")
+    except web.HTTPException as exc:
+        if exc.status < 400:
+            raise
+        code = "forbidden" if exc.status == 403 else "invalid-params"
+        return _error(exc.status, code, f"{request.method} {quote(request.path)}: {exc.reason}")
+    except Exception as exc:
+        log.exception("%s %s failed", request.method, quote(request.path))
+        message = f"the service failed on this request ({type(exc).__name__}); see its log"
+        return _error(500, "internal", message)
 
 
 def _allowed(svc: Service) -> Any:
@@ -161,6 +200,8 @@ def _allowed(svc: Service) -> Any:
         if peer is not None and not trusted and svc.group_id not in (peer.gid, *peer.groups):
             return _error(403, "forbidden", f"{peer} is not in the service's group")
         request["peer"] = peer
+        if request.method == "POST":
+            check_deadline(request)  # a change its client gave up on is not made
         return await handler(request)
 
     return check
@@ -202,62 +243,6 @@ def _snapshot(svc: Service) -> dict[str, Any]:
     return snap
 
 
-def _r4(values: list[float | None]) -> list[float | None]:
-    return [None if v is None else round(float(v), 4) for v in values]
-
-
-def stored_poses(store: Store, campaign_id: int) -> list[dict[str, Any]]:
-    """A campaign's last stored poses (oldest first) as the event stream sends them."""
-    poses = store.last_poses(campaign_id, RECENT_POSES)
-    planned = store.campaign(campaign_id).n_poses
-    for p in poses:
-        p["planned"] = planned
-        for key in ("target_mm", "planned_q_deg", "reached_q_deg"):
-            p[key] = _r4(p[key])
-        for s in p["sensors"].values():
-            s["sigma_mm"] = sigma_mm(s["std_mm"])  # of the values stored, as when live
-            s["mean_mm"], s["std_mm"] = _r4(s["mean_mm"]), _r4(s["std_mm"])
-    return poses
-
-
-def campaign_view(
-    store: Store, held: int | None
-) -> tuple[dict[str, Any], list[dict[str, Any]], dict[str, Any] | None] | None:
-    """What the status shows at start-up, from the database: the campaign held (paused or
-    interrupted), else the last one that ran (none: None); with its last stored poses
-    and, when it ended complete or refused, its end."""
-    if held is None:
-        row = store.conn.execute("SELECT MAX(id) FROM campaigns WHERE status != 'queued'")
-        last = row.fetchone()[0]
-        if last is None:
-            return None
-        held = int(last)
-    c = store.campaign(held)
-    poses = stored_poses(store, held)
-    roles = {role: {"stored": n} for role, n in store.stored_by_role(held).items()}
-    view = {"id": held, "status": c.status, "phase": c.status, "stored": store.pose_count(held)}
-    view.update(planned=c.n_poses, roles=roles)
-    if poses:  # the last pose stored
-        last = poses[-1]
-        view.update({k: last[k] for k in ("role", "region", "target_mm", "planned_q_deg")})
-        view.update(pose_idx=last["idx"], reached_idx=last["idx"])
-        view.update(reached_q_deg=last["reached_q_deg"])
-    end: dict[str, Any] | None = None
-    if c.status in ("complete", "refused"):
-        message = store.last_event(held, "refused") if c.status == "refused" else "complete"
-        end = {"campaign_id": held, "status": c.status, "stored": view["stored"]}
-        end.update(planned=c.n_poses, message=message or c.status)
-        summary = store.latest_report(held) if c.status == "complete" else None
-        if summary is not None:
-            before, after = summary["validation_before"], summary["validation_after"]
-            end["validation_mm"] = {
-                "before": {"rms": before["rms_mm"], "max": before["max_mm"]},
-                "after": {"rms": after["rms_mm"], "max": after["max_mm"]},
-                "improvement_pct": summary["improvement_pct"],
-            }
-    return view, poses, end
-
-
 async def status(request: web.Request) -> web.Response:
     return web.json_response(_snapshot(_svc(request)))
 
@@ -281,8 +266,13 @@ async def events(request: web.Request) -> web.StreamResponse:
     backlog = svc.hub.since(last) if last is not None else []
     svc.hub.listeners.add(q)
     # A watcher that goes away ends its stream; nothing else is wrong then.
-    with contextlib.suppress(ConnectionResetError):
-        await _stream_events(svc, resp, q, backlog)
+    try:
+        with contextlib.suppress(ConnectionResetError):
+            await _stream_events(svc, resp, q, backlog)
+    except TimeoutError:  # a watcher that does not read: dropped, its descriptor freed
+        log.info("an event stream's reader took nothing for %.0f s: dropped", SEND_TIMEOUT_S)
+        if request.transport is not None:
+            request.transport.abort()
     return resp
 
 
@@ -298,7 +288,15 @@ async def _stream_events(
         if not backlog or backlog[-1][1] != "status":
             snap = json.dumps(_snapshot(svc))
             await _send(resp, (svc.hub.next_id - 1, "status", snap))
-        while (pending := await q.get()) is not None:
+        while True:
+            try:
+                async with asyncio.timeout(KEEPALIVE_S):
+                    pending = await q.get()
+            except TimeoutError:
+                await _write(resp, b": keep-alive\n\n")  # a comment: EventSource skips it
+                continue
+            if pending is None:
+                break
             await _send(resp, pending)
     finally:
         svc.hub.listeners.discard(q)
@@ -306,15 +304,18 @@ async def _stream_events(
 
 async def _send(resp: web.StreamResponse, item: tuple[int, str, str]) -> None:
     i, kind, data = item
-    await resp.write(f"id: {i}\nevent: {kind}\ndata: {data}\n\n".encode())
+    await _write(resp, f"id: {i}\nevent: {kind}\ndata: {data}\n\n".encode())
+
+
+async def _write(resp: web.StreamResponse, data: bytes) -> None:
+    """Out to one watcher, which must take it within ``SEND_TIMEOUT_S`` (TimeoutError)."""
+    async with asyncio.timeout(SEND_TIMEOUT_S):
+        await resp.write(data)
 
 
 async def campaigns(request: web.Request) -> web.Response:
     svc = _svc(request)
-    try:
-        limit = int(request.query.get("limit", "50"))
-    except ValueError:
-        raise ControlError("invalid-params", "limit must be a whole number") from None
+    limit = limit_of(request.query.get("limit", "50"))
     rows = list_campaigns(svc.store)[-limit:] if limit > 0 else []
     return web.json_response({"campaigns": [r.as_dict() for r in rows]})
 
@@ -323,10 +324,7 @@ def _campaign_id(request: web.Request, svc: Service) -> int | None:
     raw = request.match_info["id"]
     if raw == "current":
         return svc.control.current() or svc.control.blocking
-    try:
-        cid = int(raw)
-    except ValueError:
-        raise ControlError("invalid-params", f"campaign id {raw!r} is not a number") from None
+    cid = campaign_number(raw)
     if svc.store.conn.execute("SELECT 1 FROM campaigns WHERE id = ?", (cid,)).fetchone() is None:
         raise ControlError("not-found", f"no campaign {cid} in {svc.store.path}")
     return cid
@@ -343,18 +341,6 @@ async def one_campaign(request: web.Request) -> web.Response:
     return web.json_response(row)
 
 
-async def _body(request: web.Request) -> dict[str, Any]:
-    if not request.can_read_body:
-        return {}
-    try:
-        body = await request.json()
-    except (json.JSONDecodeError, UnicodeDecodeError):
-        raise ControlError("invalid-params", "the body is not JSON") from None
-    if not isinstance(body, dict):
-        raise ControlError("invalid-params", "the body must be a JSON object")
-    return body
-
-
 def _note(svc: Service, request: web.Request, cid: int, what: str) -> None:
     """The caller of a change, in the campaign's events."""
     peer: Peer | None = request.get("peer")
@@ -365,13 +351,11 @@ def _note(svc: Service, request: web.Request, cid: int, what: str) -> None:
 async def act(request: web.Request) -> web.Response:
     svc = _svc(request)
     action = request.match_info["action"]
-    body = await _body(request)
+    body = await read_body(request, PAUSE_FIELDS if action == "pause" else ())
     cid = _campaign_id(request, svc)
     status_of = _status_of(svc.store)
     if action == "pause":
-        mode = body.get("mode", "deferred")
-        if mode not in ("deferred", "immediate"):
-            raise ControlError("invalid-params", f"mode {mode!r}: deferred or immediate")
+        mode = pause_request(body).mode
         state = svc.control.pause(cid, immediate=mode == "immediate")
         cid = svc.control.current()
         what = f"pause ({mode})"
@@ -398,12 +382,11 @@ def _status_of(store: Store) -> Callable[[int], str]:
 
 async def start(request: web.Request) -> web.Response:
     svc = _svc(request)
-    body = await _body(request)
-    when = body.get("when", "now")
-    if when not in ("now", "queue"):
-        raise ControlError("invalid-params", f"when {when!r}: now or queue")
-    config = _campaign_config(svc, body)
-    if when == "now" and (svc.control.current() is not None or svc.control.blocking is not None):
+    req = start_request(await read_body(request, START_FIELDS))
+    config = _campaign_config(svc, req)
+    if req.when == "now" and (
+        svc.control.current() is not None or svc.control.blocking is not None
+    ):
         busy = svc.control.current() or svc.control.blocking
         raise ControlError(
             "invalid-state",
@@ -413,11 +396,12 @@ async def start(request: web.Request) -> web.Response:
     try:
         # Planning takes a moment (inverse kinematics): off the loop, which keeps serving.
         plan = await asyncio.to_thread(plan_campaign, config)
+        check_deadline(request)  # still wanted? (a client that gave up meanwhile: not)
         cid = queue_campaign(
             svc.store,
             config,
             plan,
-            config_path=body.get("config_name"),
+            config_path=req.config_name,
             mock=svc.mock,
             time_scale=svc.time_scale,
         )
@@ -428,25 +412,23 @@ async def start(request: web.Request) -> web.Response:
     return web.json_response({"campaign_id": cid, "n_poses": len(plan.poses)}, status=202)
 
 
-def _campaign_config(svc: Service, body: dict[str, Any]) -> CellConfig:
+def _campaign_config(svc: Service, req: StartRequest) -> CellConfig:
     """The campaign's configuration: the service's own, or the text sent, which must
-    name the devices the service holds."""
-    mock = body.get("mock")
-    if mock is not None and bool(mock) != svc.mock:
+    name the devices the service holds; checked as the engine will read it back."""
+    if req.mock is not None and req.mock != svc.mock:
         held = "the simulated cell (--mock)" if svc.mock else "real devices"
-        raise ControlError("invalid-params", f"the service runs {held}; mock = {bool(mock)} asked")
-    text = body.get("config_toml")
+        raise ControlError("invalid-params", f"the service runs {held}; mock = {req.mock} asked")
     config = svc.config
-    if text:
-        name = str(body.get("config_name") or "config")
+    name = req.config_name or "config"
+    if req.config_toml:
         try:
-            data = tomllib.loads(str(text))
+            data = tomllib.loads(req.config_toml)
             config = config_from_dict(data, name)
         except tomllib.TOMLDecodeError as exc:
             raise ControlError("invalid-params", f"{name}: not TOML ({exc})") from None
         except CellcalError as exc:
             raise ControlError("invalid-params", str(exc)) from None
-        if body.get("config_name"):
+        if req.config_name:
             config = relative_to(config, Path(name).parent, database=False)
         for section in ("robot", "sensor"):
             if getattr(config, section) != getattr(svc.config, section):
@@ -457,13 +439,17 @@ def _campaign_config(svc: Service, body: dict[str, Any]) -> CellConfig:
                 )
         # The simulated cell is the service's; the campaign brings its plan and dwell.
         config = config.model_copy(update={"simulation": svc.config.simulation})
-    seed = body.get("seed")
-    if seed is not None:
+    if req.seed is not None:
         if not svc.mock:
             raise ControlError("invalid-params", "seed is for mock mode")
-        if not isinstance(seed, int) or seed < 0:
-            raise ControlError("invalid-params", f"seed {seed!r} must be a whole number ≥ 0")
         config = config.model_copy(
-            update={"campaign": config.campaign.model_copy(update={"seed": seed})}
+            update={"campaign": config.campaign.model_copy(update={"seed": req.seed})}
         )
+    # What is queued is read back by the engine (``stored_plan``): one that would not
+    # read back is refused here, not left in the queue for the engine to trip on.
+    try:
+        stored = upgrade_stored(json.loads(config.model_dump_json()))
+        config_from_dict(stored, name, warn=None)
+    except CellcalError as exc:
+        raise ControlError("invalid-params", str(exc)) from None
     return config

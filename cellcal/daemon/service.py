@@ -4,11 +4,13 @@ engine thread (``worker.py``) runs campaigns on the devices the service holds. T
 service holds the database's run lock for its life, so a ``cellcal run`` on the same
 file is refused with a line that names the service and its pid.
 
-Start-up: lock the database, open it, mark a campaign found ``running`` or ``paused``
-``interrupted`` (the previous service died under it) and hold the queue until an
-operator resumes or aborts it, show that campaign (else the last one) as the database
-has it, listen, ``READY=1``; the devices connect in the engine
-thread meanwhile (their states in ``STATUS=``). SIGTERM, or SIGINT (Ctrl-C in the
+Start-up: check the socket's folder (the service's own, writable by it alone, else
+refused in one line), raise the open files limit and share it out between the
+connections and the engine (``connections.py``), lock the database, open it, mark a
+campaign found ``running`` or ``paused`` ``interrupted`` (the previous service died
+under it) and hold the queue until an operator resumes or aborts it, show that campaign
+(else the last one) as the database has it, listen, ``READY=1``; the devices connect in
+the engine thread meanwhile (their states in ``STATUS=``). SIGTERM, or SIGINT (Ctrl-C in the
 foreground; the twins' processes ignore it and are stopped by the service), each logged
 by its name: ``STOPPING=1``, the pose under way is abandoned, the robot stopped, the
 campaign ``interrupted``, exit 0. SIGHUP: the
@@ -19,10 +21,13 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import json
 import logging
 import os
+import pwd
 import signal
 import sqlite3
+import stat
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -33,11 +38,20 @@ from aiohttp import web
 
 from cellcal.clock import Clock, SimulatedClock, WallClock
 from cellcal.config import CellConfig, default_database, load_config
-from cellcal.daemon.api import EventHub, Service, campaign_view, make_app, stored_poses
+from cellcal.daemon.api import EventHub, Service, make_app
+from cellcal.daemon.connections import (
+    IDLE_TIMEOUT_S,
+    AcceptErrors,
+    Budget,
+    GatedSite,
+    descriptor_budget,
+    refusal,
+)
 from cellcal.daemon.control import Control
 from cellcal.daemon.locks import RunLock, robot_claim
 from cellcal.daemon.page import HttpAddress, make_page_app
 from cellcal.daemon.sdnotify import Notifier
+from cellcal.daemon.shown import campaign_view, stored_poses
 from cellcal.daemon.store import Store
 from cellcal.daemon.worker import Worker, device_names
 from cellcal.errors import CampaignError, CellcalError
@@ -104,20 +118,93 @@ def status_line(control: Control) -> str:
     return f"{snap['state']}{progress}: {snap['reason']}; devices: {devices}"
 
 
-async def _listen(runner: web.AppRunner, path: str) -> int:
-    """Listen on the Unix socket: 0660 in a 0750 folder, created under a umask so that
-    no window is open; owned by the folder's group (systemd's RuntimeDirectory)."""
+def socket_folder(path: str) -> Path:
+    """The control socket's folder, created ``0750`` if it is missing; refused unless it
+    is the service's user's (or root's) and writable by its owner alone — a folder
+    another user made first (a ``/tmp/cellcal`` made in advance) would hand that user
+    the service: the socket takes the folder's group, whose members may control it."""
     if len(os.fsencode(path)) > MAX_SOCKET_PATH:
         raise CampaignError(f"{path}: a Unix socket path is limited to 107 bytes")
     folder = Path(path).parent
     old = os.umask(0o027)
     try:
         folder.mkdir(mode=0o750, parents=True, exist_ok=True)
-        os.umask(0o117)
+    except OSError as exc:
+        raise CampaignError(f"{folder}: cannot make the socket's folder ({exc.strerror})") from None
+    finally:
+        os.umask(old)
+    me = os.geteuid()
+    info = os.lstat(folder)
+    if stat.S_ISLNK(info.st_mode) and info.st_uid in (me, 0):
+        info = os.stat(folder)  # a link of ours: the folder it names is checked
+    where = "$XDG_RUNTIME_DIR/cellcal, or systemd's RuntimeDirectory (/run/cellcal)"
+    if info.st_uid not in (me, 0):
+        raise CampaignError(
+            f"{folder}: the socket's folder belongs to {_user(info.st_uid)}, not to "
+            f"{_user(me)} who runs the service: they could take the service over; give a "
+            f"folder of the service's own with --socket, e.g. {where}"
+        )
+    if not stat.S_ISDIR(info.st_mode):
+        raise CampaignError(f"{folder}: not a folder; give the socket's folder with --socket")
+    if info.st_mode & 0o022:
+        who = "everyone" if info.st_mode & 0o002 else "its group"
+        raise CampaignError(
+            f"{folder}: the socket's folder is writable by {who} "
+            f"(mode {stat.S_IMODE(info.st_mode):04o}): they could take the service over; "
+            f"chmod 750 {folder}, or give a folder of the service's own, e.g. {where}"
+        )
+    return folder
+
+
+def _user(uid: int) -> str:
+    try:
+        return f"{pwd.getpwuid(uid).pw_name} (uid {uid})"
+    except KeyError:
+        return f"uid {uid}"
+
+
+#: What a client past the control socket's connection limit is answered.
+CONTROL_FULL = refusal(
+    "503 Service Unavailable",
+    "application/json",
+    json.dumps(
+        {
+            "error": {
+                "code": "invalid-state",
+                "message": "the control socket has all the connections it takes; try again "
+                "in a few seconds",
+            }
+        }
+    ).encode(),
+)
+#: What a browser past the status page's connection limit is answered.
+PAGE_FULL = refusal(
+    "503 Service Unavailable",
+    "text/plain; charset=utf-8",
+    b"the status page has all the connections it takes; reload in a few seconds\n",
+)
+
+
+def _runner(app: web.Application) -> web.AppRunner:
+    """A site's runner: an idle connection is closed after IDLE_TIMEOUT_S, and a request
+    whose client goes away is cancelled (nothing is done for a client that gave up)."""
+    return web.AppRunner(
+        app, shutdown_timeout=2.0, keepalive_timeout=IDLE_TIMEOUT_S, handler_cancellation=True
+    )
+
+
+async def _listen(runner: web.AppRunner, path: str, limit: int) -> int:
+    """Listen on the Unix socket (its folder checked): 0660 in a 0750 folder, created
+    under a umask so that no window is open; owned by the folder's group (systemd's
+    RuntimeDirectory)."""
+    folder = socket_folder(path)
+    old = os.umask(0o117)
+    try:
         with contextlib.suppress(FileNotFoundError):
             if Path(path).is_socket():
                 Path(path).unlink()  # a stale socket of a dead service (the run lock is ours)
-        await web.UnixSite(runner, path).start()
+        name = f"control socket {path}"
+        await GatedSite(runner, path=path, limit=limit, name=name, answer=CONTROL_FULL).start()
     finally:
         os.umask(old)
     gid = folder.stat().st_gid
@@ -182,7 +269,10 @@ class Flusher:
 
 async def serve(opts: DaemonOptions) -> int:
     """Run the service until SIGTERM; the exit code."""
+    socket_folder(opts.socket_path)  # refused before anything else is done
     loop = asyncio.get_running_loop()
+    loop.set_exception_handler(AcceptErrors())
+    budget = descriptor_budget()
     notifier = Notifier()
     hub = EventHub()
     changed = asyncio.Event()
@@ -214,11 +304,11 @@ async def serve(opts: DaemonOptions) -> int:
             if shown is not None:
                 control.show(*shown)
             app = make_app(_service(opts, control, store, hub))
-            runner = web.AppRunner(app, shutdown_timeout=2.0)
+            runner = _runner(app)
             await runner.setup()
             svc: Service = runner.app["svc"]
-            page = await _page(svc, opts.http) if opts.http is not None else None
-            svc.group_id = await _listen(runner, opts.socket_path)
+            page = await _page(svc, opts.http, budget) if opts.http is not None else None
+            svc.group_id = await _listen(runner, opts.socket_path, budget.control)
             worker = Worker(control, opts.config, nominal, opts.db_path, clock, mock=opts.mock)
             worker.start()
             stopped = asyncio.Event()
@@ -271,12 +361,20 @@ async def serve(opts: DaemonOptions) -> int:
             store.close()
 
 
-async def _page(svc: Service, http: HttpAddress) -> web.AppRunner:
+async def _page(svc: Service, http: HttpAddress, budget: Budget) -> web.AppRunner:
     """The status page's site (GET only); ``svc.http`` becomes its address."""
-    runner = web.AppRunner(make_page_app(svc, http.host), shutdown_timeout=2.0)
+    runner = _runner(make_page_app(svc, http.host))
     await runner.setup()
+    site = GatedSite(
+        runner,
+        host=http.host,
+        port=http.port,
+        limit=budget.page,
+        name="status page",
+        answer=PAGE_FULL,
+    )
     try:
-        await web.TCPSite(runner, http.host, http.port).start()
+        await site.start()
     except OSError as exc:
         await runner.cleanup()
         raise CampaignError(

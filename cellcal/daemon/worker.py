@@ -17,9 +17,10 @@ from cellcal.config import CellConfig
 from cellcal.daemon.campaign import Held, run_stored
 from cellcal.daemon.control import CONNECTING, FAULT, READY, Control, Job
 from cellcal.daemon.devices import Devices, build_devices
+from cellcal.daemon.records import CampaignEnded, CampaignStarted, Record
 from cellcal.daemon.report import report_folder, write_report
-from cellcal.daemon.store import Store
-from cellcal.errors import CellcalError
+from cellcal.daemon.store import Store, StoreError
+from cellcal.errors import CellcalError, DeviceError
 from cellcal.modelfiles import load_model
 
 log = logging.getLogger("cellcal.service")
@@ -189,32 +190,102 @@ class Worker(threading.Thread):
             hint=f"campaign {cid} is paused: cellcal campaign resume {cid}",
         )
         log.info("campaign %d: %s", cid, "resuming" if job.resume else "starting")
-        c.prepare(store.completed_indices(cid), self._dwell_wall_s(store, cid))
         message = ""
-        fault = False
+        failure: Exception | None = None
+        started = Started()
         try:
+            c.prepare(store.completed_indices(cid), self._dwell_wall_s(store, cid))
             out = run_stored(
-                store, cid, self.devices, self.clock, stop=c.stop, held=held, subscribers=[c.record]
+                store,
+                cid,
+                self.devices,
+                self.clock,
+                stop=c.stop,
+                held=held,
+                subscribers=[started, c.record],
             )
             message = f"{out.acquisition.stored} of {len(out.plan.poses)} poses stored"
         except CellcalError as exc:
-            message = str(exc)
-            fault = True
+            message, failure = str(exc), exc
         except Exception as exc:
-            message = f"{type(exc).__name__}: {exc}"
+            message, failure = f"{type(exc).__name__}: {exc}", exc
             log.exception("campaign %d failed", cid)
-            fault = True
         status = store.campaign(cid).status
-        if fault and status in ("running", "interrupted") and not c.shutting_down:
-            # Not recorded by the campaign itself (the store failed?): hold it all the same.
-            with contextlib.suppress(CellcalError):
-                store.set_status(cid, "paused")
-            status = "paused"
+        if failure is not None:
+            status = self._after_failure(store, cid, status, failure, message, started.seen)
         if status in ("complete", "refused"):
             message += self._report(store, cid)
         log.info("campaign %d %s: %s", cid, status, message)
         c.finished(cid, status, message)
-        if fault and status == "paused" and not c.shutting_down:
+        if failure is not None and status == "paused" and not c.shutting_down:
             # A device fault: let go of the devices and connect them afresh.
             self._disconnect()
             self._mark_fault(message)
+
+    def _after_failure(
+        self,
+        store: Store,
+        cid: int,
+        status: str,
+        failure: Exception,
+        message: str,
+        started: bool,
+    ) -> str:
+        """The status a campaign that failed ends in. Never one the engine takes up
+        again by itself (``queued``), or the queue would loop on it: an abort asked
+        meanwhile ends it ``aborted``; a start that failed for a reason that will not
+        change (its stored configuration, its plan: anything but a device or the
+        database) ends it ``failed`` with the reason; else (a device fault) it is held
+        ``paused`` until an operator resumes it, unless the service stops."""
+        c = self.control
+        if status not in RUNNABLE:  # complete, aborted, failed, refused: recorded
+            return status
+        ending = ""
+        if c.intent == "aborted":
+            ending, why = "aborted", f"aborted while it started ({message})"
+        elif not started and lasting(failure):
+            ending, why = "failed", f"it cannot start: {message}"
+        if ending:
+            try:
+                store.add_event(cid, "error" if ending == "failed" else "aborted", why)
+                store.set_status(cid, ending)
+            except CellcalError as exc:  # the database refuses writes: said, held
+                log.error("campaign %d: not marked %s (%s)", cid, ending, exc)
+            else:
+                if ending == "failed":
+                    log.error("campaign %d failed: %s", cid, why)
+                n = store.campaign(cid).n_poses
+                stored = store.pose_count(cid)
+                c.record(CampaignEnded(cid, ending, stored, n, why))
+                return ending
+        if c.shutting_down and not ending:
+            return status  # the next service holds it (interrupted) or takes it up, once
+        if status in ("running", "interrupted", "queued") or ending:
+            # Not recorded by the campaign itself (the store failed?): hold it all the same.
+            with contextlib.suppress(CellcalError):
+                store.set_status(cid, "paused")
+            return "paused"
+        return status
+
+
+#: Statuses the engine runs (or holds): a failure leaves none of them as it was.
+RUNNABLE = ("queued", "running", "paused", "interrupted")
+
+
+class Started:
+    """A subscriber of the campaign's records that notes its start record: a failure
+    before it is the start's (the configuration, the plan, the devices' description)."""
+
+    def __init__(self) -> None:
+        self.seen = False
+
+    def __call__(self, record: Record) -> None:
+        if isinstance(record, CampaignStarted):
+            self.seen = True
+
+
+def lasting(failure: BaseException) -> bool:
+    """A failure that the same start would meet again: not a device's (it may come
+    back), not the database's (a full disk may be freed)."""
+    causes = [failure, failure.__cause__, failure.__context__]
+    return not any(isinstance(e, (DeviceError, StoreError, OSError)) for e in causes)
