@@ -1,4 +1,19 @@
-from cellcal.cli import main
+"""``python -m cellcal``. Ctrl-C from this file's first line on is one line and exit
+130 (``cellcal.cli``, once loaded, takes over: see its docstring)."""
+
+# the interpreter's own, loaded at start-up: installing the handler waits for no import
+import _signal  # type: ignore[import-not-found]
+import os
+
+
+def _interrupted(signum: int, frame: object) -> None:
+    """Ctrl-C while cellcal loads: nothing to unwind."""
+    os.write(2, b"cellcal: interrupted\n")
+    os._exit(130)
+
 
 if __name__ == "__main__":  # not when a spawned process (the camera twin) imports it
+    _signal.signal(_signal.SIGINT, _interrupted)
+    from cellcal.cli import main
+
     main()

@@ -5,18 +5,68 @@ Each subcommand lives in its own module under ``cellcal.commands``. A user error
 exits 2; a result refused by an acceptance check (:class:`cellcal.errors.AcceptanceError`)
 prints one line naming the check and exits 3; success exits 0. Anything else is a bug
 and keeps its traceback.
+
+Ctrl-C (SIGINT) at any moment ends with one line, ``cellcal: interrupted``, and exit
+130 — never a traceback. While cellcal loads (``python -m cellcal`` from the first line
+of ``__main__``, the console script from the first lines here, before click) and once
+the command has returned, there is nothing to unwind: the line, and the process ends at
+once. While a command runs, the first Ctrl-C raises ``KeyboardInterrupt``, which unwinds
+what the command holds (files, devices, twins) to :func:`main`; a second one meanwhile
+ends at once. Commands that stop cleanly on it (``run``, ``daemon``) put their own
+handler in place while they run. Called by a program of its own (the tests), ``main``
+hands SIGINT back as it found it.
 """
 
 from __future__ import annotations
 
-import importlib
-import logging
+# the interpreter's own, loaded at start-up: installing the handler waits for no import
+import _signal  # type: ignore[import-not-found]
+import contextlib
+import os
 import sys
 
-import click
+EXIT_INTERRUPTED = 130
+INTERRUPTED = "cellcal: interrupted"
+_said = False  # the line was written
+_interrupted = False  # a KeyboardInterrupt is on its way
 
-from cellcal import __version__
-from cellcal.errors import AcceptanceError, UserError
+
+def _say_interrupted() -> None:
+    global _said
+    if not _said:
+        _said = True
+        os.write(2, f"{INTERRUPTED}\n".encode())
+
+
+def _interrupted_now(signum: int, frame: object) -> None:
+    """Ctrl-C with nothing to unwind (cellcal loading, or ending): the line, exit 130."""
+    for stream in (sys.stdout, sys.stderr):
+        with contextlib.suppress(Exception):  # a write this signal interrupted, a pipe gone
+            stream.flush()
+    _say_interrupted()
+    os._exit(EXIT_INTERRUPTED)
+
+
+def _is_the_program() -> bool:
+    """Whether this process is the ``cellcal`` console script (not a program that
+    imports this module: the tests)."""
+    main_module = sys.modules.get("__main__")
+    name = os.path.basename(sys.argv[0]) if sys.argv else ""
+    return name in ("cellcal", "cellcal.exe") and getattr(main_module, "__name__", "") == "__main__"
+
+
+if _is_the_program():
+    _signal.signal(_signal.SIGINT, _interrupted_now)
+
+import atexit  # noqa: E402 - after the handler: Ctrl-C while they load is one line
+import importlib  # noqa: E402
+import signal  # noqa: E402
+import threading  # noqa: E402
+
+import click  # noqa: E402
+
+from cellcal import __version__  # noqa: E402
+from cellcal.errors import AcceptanceError, UserError  # noqa: E402
 
 EXIT_USER_ERROR = 2
 EXIT_REFUSED = 3
@@ -149,30 +199,78 @@ def cli(verbose: int) -> None:
     grows) identifies the robot's kinematic errors from laser-tracker and photogrammetry
     campaigns. Lengths are millimetres and angles degrees at every boundary.
     """
+    import logging
+
     level = {0: logging.ERROR, 1: logging.WARNING}.get(verbose, logging.INFO)
     logging.basicConfig(level=level, format="cellcal: %(name)s: %(message)s", force=True)
 
 
+def _interrupt_once(signum: int, frame: object) -> None:
+    """Ctrl-C while a command runs: ``KeyboardInterrupt`` (unwound to :func:`main`); a
+    second one before that is done ends at once."""
+    global _interrupted
+    if _interrupted:
+        _interrupted_now(signum, frame)
+    _interrupted = True
+    raise KeyboardInterrupt
+
+
 def main(argv: list[str] | None = None) -> None:
-    """Console-script entry point; turns user errors into one line and exit code 2."""
+    """Console-script entry point; turns user errors into one line and exit code 2, and
+    Ctrl-C into one line and exit code 130."""
+    global _said, _interrupted
+    _said = _interrupted = False
+    program = argv is None
+    here = threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGINT, _interrupt_once) if here else None
     try:
-        rv = cli.main(args=argv, prog_name="cellcal", standalone_mode=False)
+        code = _run(sys.argv[1:] if argv is None else list(argv), program)
+    except KeyboardInterrupt:
+        if here:  # nothing more to interrupt: the line, and the end
+            signal.signal(signal.SIGINT, signal.SIG_IGN)
+        _said = True
+        click.echo(INTERRUPTED, err=True)
+        code = EXIT_INTERRUPTED
+    finally:
+        if here:
+            # The program ends now: a Ctrl-C while it does is the line and exit 130.
+            signal.signal(signal.SIGINT, _interrupted_now if program else previous)
+    if program and _said:
+        # The interpreter ends a process whose KeyboardInterrupt went through code run
+        # for an extension (pybind11's eval) with SIGINT itself (exit -2), caught or not:
+        # the at-exit work, then exit 130.
+        atexit._run_exitfuncs()
+        for stream in (sys.stdout, sys.stderr):
+            with contextlib.suppress(Exception):
+                stream.flush()
+        os._exit(EXIT_INTERRUPTED)
+    sys.exit(code)
+
+
+def _run(args: list[str], program: bool) -> int:
+    """The command's exit code; its errors as one line."""
+    try:
+        with cli.make_context("cellcal", args) as ctx:
+            rv = cli.invoke(ctx)
+    except click.exceptions.Exit as exc:
+        return exc.exit_code
     except UserError as exc:
         click.echo(f"cellcal: error: {exc}", err=True)
-        sys.exit(EXIT_USER_ERROR)
+        return EXIT_USER_ERROR
     except AcceptanceError as exc:
         click.echo(f"cellcal: refused: {exc}", err=True)
-        sys.exit(EXIT_REFUSED)
+        return EXIT_REFUSED
     except click.exceptions.NoArgsIsHelpError as exc:
         click.echo(exc.ctx.get_help() if exc.ctx else "", err=False)
-        sys.exit(0)
+        return 0
     except click.ClickException as exc:
         msg = " ".join(exc.format_message().split())
         click.echo(f"cellcal: error: {msg}", err=True)
-        sys.exit(EXIT_USER_ERROR)
-    except click.exceptions.Abort:
-        click.echo("cellcal: interrupted", err=True)
-        sys.exit(130)
+        return EXIT_USER_ERROR
+    except (click.exceptions.Abort, EOFError):
+        raise KeyboardInterrupt from None
     except BrokenPipeError:
-        sys.exit(0)
-    sys.exit(rv if isinstance(rv, int) else 0)
+        if program:  # the reader has gone: nothing more to say, not even at exit
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 0
+    return rv if isinstance(rv, int) else 0

@@ -16,6 +16,7 @@ from cellcal.commands.service_client import socket_path
 from cellcal.config import load_config
 from cellcal.daemon.page import parse_http
 from cellcal.daemon.service import DaemonOptions, serve
+from cellcal.daemon.store_connection import database_path
 from cellcal.errors import InputError
 
 #: syslog priorities journald reads from a ``<N>`` prefix (SyslogLevelPrefix=yes).
@@ -113,7 +114,7 @@ def daemon(
     if http_allow_remote and http is None:
         raise InputError("--http-allow-remote goes with --http HOST:PORT")
     address = parse_http(http, http_allow_remote) if http is not None else None
-    db = db_path or config.storage.database
+    db = database_path(db_path if db_path is not None else config.storage.database)
     Path(db).parent.mkdir(parents=True, exist_ok=True)
     _logging()
     opts = DaemonOptions(

@@ -9,6 +9,7 @@ from cellcal.calib.iso9283 import CYCLES
 from cellcal.commands.output import TIME_SCALE, print_json
 from cellcal.commands.run import cell_config
 from cellcal.daemon.iso_campaign import AFTER, BEFORE, STAGES, run_iso9283
+from cellcal.daemon.store_connection import database_path
 
 
 @click.command("iso9283")
@@ -42,7 +43,7 @@ def iso9283(
     config, source = cell_config(config_path, mock)
     out = run_iso9283(
         config,
-        db_path or config.storage.database,
+        database_path(db_path if db_path is not None else config.storage.database),
         model_spec,
         mock=mock,
         cycles=cycles,

@@ -17,6 +17,7 @@ import click
 from cellcal.commands.output import SEED, TIME_SCALE, print_json
 from cellcal.config import CellConfig, default_database, load_config
 from cellcal.daemon.stop_request import StopRequest
+from cellcal.daemon.store_connection import database_path
 from cellcal.errors import InputError
 
 if TYPE_CHECKING:
@@ -277,8 +278,10 @@ def run(
     have them)."""
     if report_dir is not None and Path(report_dir).exists() and not Path(report_dir).is_dir():
         raise InputError(f"--report {report_dir}: exists and is not a folder")
-    if db_path is not None and not Path(db_path).resolve().parent.is_dir():
-        raise InputError(f"--db {db_path}: folder {Path(db_path).parent} does not exist")
+    if db_path is not None:
+        database_path(db_path)  # an empty path, :memory:, a URI: one line, before anything
+        if not Path(db_path).resolve().parent.is_dir():
+            raise InputError(f"--db {db_path}: folder {Path(db_path).parent} does not exist")
     stop = StopRequest()
 
     def on_signal(signum: int, frame: FrameType | None) -> None:
@@ -297,12 +300,13 @@ def run(
                     "--resume takes only --db, --time-scale, --accept, --report, --residuals "
                     "and --json"
                 )
-            if Path(db_path or default_database()).is_file():  # else one line says so
+            db = db_path if db_path is not None else default_database()
+            if Path(db).is_file():  # else one line says so
                 click.echo(f"resuming campaign {resume_id}: connecting the devices…", err=True)
             from cellcal.daemon.campaign import resume_campaign
 
             outcome = resume_campaign(
-                db_path or default_database(),
+                db,
                 resume_id,
                 time_scale=time_scale,
                 stop=stop,
@@ -313,12 +317,13 @@ def run(
             config, source = cell_config(config_path, mock)
             if not mock and (seed is not None or time_scale is not None):
                 raise InputError("--seed and --time-scale apply to mock mode (--mock)")
+            db = db_path if db_path is not None else database_path(config.storage.database)
             click.echo(f"{config.name}: planning the poses and {devices}…", err=True)
             from cellcal.daemon.campaign import start_campaign
 
             outcome = start_campaign(
                 config,
-                db_path or config.storage.database,
+                db,
                 config_path=source,
                 mock=mock,
                 seed=seed,

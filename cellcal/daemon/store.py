@@ -23,6 +23,13 @@ the pose's transaction.
 The schema version is SQLite's ``user_version``; :data:`MIGRATIONS` bring an older file
 up to date when it is opened (schema 1 held the acquisition only; 2 added the analysis
 tables).
+
+What is no campaign database is refused when it is opened, in one line naming the file
+(``store_connection``, ``store_schema``): a path that cannot be a database file (empty,
+``:memory:``, a URI), a file that is not SQLite, a ``user_version`` that is not a
+cellcal schema or does not fit the tables, a table or column missing, a damaged page
+(``PRAGMA quick_check``, about a second a gigabyte); nothing is written to a file that
+is refused. Damage met later, wherever a statement runs, is one such line too.
 """
 
 from __future__ import annotations
@@ -30,17 +37,26 @@ from __future__ import annotations
 import contextlib
 import json
 import sqlite3
-from collections.abc import Callable, Iterable
+from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
-from urllib.parse import quote
 
 import numpy as np
 import sqlite_utils
 
 from cellcal import __version__
 from cellcal.calib.geometry import Array
+from cellcal.daemon.store_connection import (
+    StoreError,
+    Transaction,
+    damaged,
+    database_path,
+    loads,
+    open_reader,
+    open_writer,
+    writing,
+)
 from cellcal.daemon.store_results import AnalysisTables, StatusReads
 from cellcal.daemon.store_schema import (
     COV_COLUMNS,
@@ -49,18 +65,23 @@ from cellcal.daemon.store_schema import (
     SCHEMA_VERSION,
     UPPER,
     floats,
+    schema_problem,
     sql_value,
     symmetric,
     utc_now,
 )
 from cellcal.drivers.base import Series
-from cellcal.errors import CampaignError, UserError
+from cellcal.errors import CampaignError
 
-__all__ = ["MIGRATIONS", "SCHEMA_VERSION", "CampaignRow", "PoseData", "Store", "StoreError"]
-
-
-class StoreError(UserError):
-    """A database that cannot be opened or used (not SQLite, newer schema, locked)."""
+__all__ = [
+    "MIGRATIONS",
+    "SCHEMA_VERSION",
+    "CampaignRow",
+    "PoseData",
+    "Store",
+    "StoreError",
+    "database_path",
+]
 
 
 @dataclass(frozen=True)
@@ -110,36 +131,55 @@ class Store(AnalysisTables, StatusReads):
     status's reads: :class:`StatusReads`)."""
 
     def __init__(self, path: str | Path, *, readonly: bool = False) -> None:
-        self.path = str(path)
+        self.path = database_path(path)
         self.readonly = readonly
-        if readonly:
-            self.conn = _open_readonly(self.path)
-            self.db = sqlite_utils.Database(self.conn)
-            return
+        self._wal = False
+        conn = open_reader(self.path) if readonly else open_writer(self.path)
         try:
-            conn = sqlite3.connect(self.path, isolation_level=None, timeout=10.0)
-            conn.execute("PRAGMA journal_mode=WAL")
-            conn.execute("PRAGMA synchronous=FULL")
-            conn.execute("PRAGMA foreign_keys=ON")
-            version = conn.execute("PRAGMA user_version").fetchone()[0]
-        except sqlite3.OperationalError as exc:
-            raise StoreError(f"{self.path}: {_write_error(exc)}") from None
-        except sqlite3.DatabaseError as exc:
-            raise StoreError(f"{self.path}: not a cellcal database ({exc})") from None
-        self.conn = conn
-        self.db = sqlite_utils.Database(conn)
+            self.conn = conn
+            self.db = sqlite_utils.Database(conn)
+            self._verify()
+        except BaseException:
+            conn.close()
+            raise
+
+    def _verify(self) -> None:
+        """Refuse a file that is no cellcal database of a schema this cellcal reads, or
+        a damaged one (one line saying what it is); a writer then switches it to WAL and
+        brings an older schema up to date. Nothing is written to a file that is refused."""
+        version = self.schema_version
         if version > SCHEMA_VERSION:
             raise StoreError(
                 f"{self.path}: schema version {version} is newer than this cellcal "
                 f"understands ({SCHEMA_VERSION}); upgrade cellcal"
             )
-        if version == 0 and self.db.table_names():
-            raise StoreError(f"{self.path}: an SQLite file that is not a cellcal database")
-        if version >= 1 and not {"campaigns", "poses", "samples"} <= set(self.db.table_names()):
-            raise StoreError(
-                f"{self.path}: an SQLite file of another program (schema version {version} "
-                "but no cellcal tables)"
-            )
+        names = self.conn.execute("SELECT name FROM sqlite_master WHERE type = 'table'")
+        tables = {
+            str(name): {
+                str(r[0])
+                for r in self.conn.execute("SELECT name FROM pragma_table_info(?)", (name,))
+            }
+            for (name,) in names.fetchall()
+        }
+        problem = schema_problem(tables, version)
+        if problem is None and self.readonly and version == 0:
+            problem = "not a cellcal database (an empty SQLite file)"
+        if problem is not None:
+            raise StoreError(f"{self.path}: {problem}")
+        # Every page, before a reader trusts the file or a writer adds to it: about a
+        # second for a gigabyte.
+        check = self.conn.execute("PRAGMA quick_check(1)").fetchone()
+        if check is None or check[0] != "ok":
+            detail = " ".join(str(check[0] if check else "no answer").split())
+            detail = detail.removeprefix("*** in database main *** ")
+            raise StoreError(f"{self.path}: {damaged(self.path, detail)}")
+        if self.readonly:
+            return
+        with writing():
+            self.conn.execute("PRAGMA journal_mode=WAL")
+            self._wal = True
+            self.conn.execute("PRAGMA synchronous=FULL")
+            self.conn.execute("PRAGMA foreign_keys=ON")
         self.migrate(version)
 
     def migrate(self, version: int) -> None:
@@ -148,16 +188,16 @@ class Store(AnalysisTables, StatusReads):
                 MIGRATIONS[v](self.db)
                 self.conn.execute(f"PRAGMA user_version = {v + 1}")
 
-    def transaction(self) -> _Transaction:
-        return _Transaction(self.conn)
+    def transaction(self) -> Transaction:
+        return Transaction(self.conn)
 
     def close(self) -> None:
         """Close; a writer leaves the file in rollback-journal mode when it is the last
         connection, so that a user who may not write the folder can still read it (a WAL
         database needs its -shm file, which such a reader cannot create)."""
-        if not self.readonly:
+        if self._wal:
             # Another open connection keeps it WAL until the last one closes.
-            with contextlib.suppress(sqlite3.Error):
+            with contextlib.suppress(sqlite3.Error, StoreError):
                 self.conn.execute("PRAGMA journal_mode=DELETE")
         self.conn.close()
 
@@ -233,7 +273,7 @@ class Store(AnalysisTables, StatusReads):
             seed=row[3],
             time_scale=row[4],
             model=row[5],
-            sensors=tuple(json.loads(row[6])),
+            sensors=tuple(loads(self.path, row[6], f"campaign {campaign_id}'s sensors")),
             n_poses=row[7],
             samples_per_pose=row[8],
             plan_digest=row[9],
@@ -383,7 +423,8 @@ class Store(AnalysisTables, StatusReads):
             std[sensor][k] = floats((sx, sy, sz))
             n[sensor][k] = cnt
             cov[sensor][k] = symmetric(floats(c))
-        q = np.radians(np.array([json.loads(p[4]) for p in poses])) if poses else np.zeros((0, 0))
+        reached = [loads(self.path, p[4], f"pose {p[1]}'s joints") for p in poses]
+        q = np.radians(np.array(reached, dtype=np.float64)) if poses else np.zeros((0, 0))
         return PoseData(
             idx=np.array([p[1] for p in poses], dtype=int),
             role=tuple(p[2] for p in poses),
@@ -402,73 +443,3 @@ class Store(AnalysisTables, StatusReads):
         if self.schema_version < 3:
             return ", ".join("NULL" for _ in COV_COLUMNS)
         return ", ".join(f"s.{c}" for c in COV_COLUMNS)
-
-
-def _open_readonly(path: str) -> sqlite3.Connection:
-    """A read-only connection that needs no write access to the file or its folder."""
-    if not Path(path).is_file():
-        raise StoreError(f"{path}: no such database")
-    uri = f"file:{quote(str(Path(path).resolve()))}"
-    try:
-        conn = sqlite3.connect(f"{uri}?mode=ro", uri=True, isolation_level=None)
-        version = conn.execute("PRAGMA user_version").fetchone()[0]
-    except sqlite3.OperationalError:
-        # A WAL file whose -shm cannot be created here: read it as an immutable file.
-        conn = sqlite3.connect(f"{uri}?immutable=1", uri=True, isolation_level=None)
-        version = conn.execute("PRAGMA user_version").fetchone()[0]
-    except sqlite3.DatabaseError as exc:
-        raise StoreError(f"{path}: not a cellcal database ({exc})") from None
-    tables = {r[0] for r in conn.execute("SELECT name FROM sqlite_master WHERE type='table'")}
-    if not 1 <= version <= SCHEMA_VERSION or not {"campaigns", "poses", "samples"} <= tables:
-        conn.close()
-        raise StoreError(f"{path}: not a cellcal database (or one of another version)")
-    return conn
-
-
-class _Transaction:
-    """``BEGIN IMMEDIATE`` … ``COMMIT``, or ``ROLLBACK`` on any exception. Inside an
-    open transaction it does nothing: the outer one commits or rolls back the whole."""
-
-    def __init__(self, conn: sqlite3.Connection) -> None:
-        self.conn = conn
-        self.outer = False
-
-    def __enter__(self) -> sqlite3.Connection:
-        if not self.conn.in_transaction:
-            _writing(lambda: self.conn.execute("BEGIN IMMEDIATE"))
-            self.outer = True
-        return self.conn
-
-    def __exit__(self, exc_type: object, exc: object, tb: object) -> None:
-        if not self.outer:
-            return
-        if exc_type is None:
-            _writing(lambda: self.conn.execute("COMMIT"))
-            return
-        with contextlib.suppress(sqlite3.Error):
-            self.conn.execute("ROLLBACK")
-        if isinstance(exc, sqlite3.OperationalError):
-            raise _write_error(exc) from None
-
-
-def _write_error(exc: sqlite3.Error) -> StoreError:
-    """A failed write as one line with its likely cause; what was committed is kept."""
-    text = str(exc)
-    if "full" in text:
-        why = "the disk is full"
-    elif "readonly" in text or "read-only" in text:
-        why = "the database file or its folder is read-only"
-    elif "locked" in text:
-        why = "another program holds the database locked"
-    else:
-        why = text
-    return StoreError(
-        f"cannot write to the database: {why} ({text}); every pose committed before is kept"
-    )
-
-
-def _writing(step: Callable[[], object]) -> None:
-    try:
-        step()
-    except sqlite3.OperationalError as exc:
-        raise _write_error(exc) from None

@@ -14,6 +14,7 @@ import numpy as np
 
 from cellcal import __version__
 from cellcal.calib.geometry import Array
+from cellcal.daemon.store_connection import loads
 from cellcal.daemon.store_schema import COV_COLUMNS, UPPER, utc_now
 
 
@@ -28,6 +29,7 @@ class AnalysisTables:
     in the caller's (one analysis is stored whole or not at all)."""
 
     conn: sqlite3.Connection
+    path: str
     #: the store's: BEGIN IMMEDIATE … COMMIT (nested: the outer one's)
     transaction: Callable[[], _Transaction]
 
@@ -131,13 +133,17 @@ class AnalysisTables:
             "SELECT summary FROM reports WHERE campaign_id = ? ORDER BY id DESC LIMIT 1",
             (campaign_id,),
         ).fetchone()
-        return None if row is None else dict(json.loads(row[0]))
+        if row is None:
+            return None
+        summary = loads(self.path, row[0], f"campaign {campaign_id}'s report")
+        return dict(summary) if isinstance(summary, dict) else {}
 
 
 class StatusReads:
     """What the service's status shows of a stored campaign (read only)."""
 
     conn: sqlite3.Connection
+    path: str
 
     def pose_count(self, campaign_id: int) -> int:
         row = self.conn.execute(
@@ -196,8 +202,8 @@ class StatusReads:
                     "region": region,
                     "stored": total - k,
                     "target_mm": [x, y, z],
-                    "planned_q_deg": json.loads(planned),
-                    "reached_q_deg": json.loads(reached),
+                    "planned_q_deg": loads(self.path, planned, f"pose {idx}'s joints"),
+                    "reached_q_deg": loads(self.path, reached, f"pose {idx}'s joints"),
                     "seconds": round(float(seconds), 3),
                     "retries": sum(int(s[8]) for s in stats) + int(asked_again.get(idx, 0)),
                     "sensors": sensors,

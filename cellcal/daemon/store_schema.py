@@ -13,6 +13,8 @@ and columns are public (``docs/database.md``) and are never renamed.
 
 from __future__ import annotations
 
+import functools
+import sqlite3
 from collections.abc import Callable, Iterable
 from datetime import UTC, datetime
 
@@ -200,3 +202,64 @@ MIGRATIONS: tuple[Callable[[sqlite_utils.Database], None], ...] = (
     _schema_3,
     _schema_4,
 )
+
+
+#: The tables every campaign database has; a file without any of them is another's.
+CORE_TABLES = ("campaigns", "poses", "samples")
+
+
+@functools.cache
+def expected_columns(version: int) -> dict[str, frozenset[str]]:
+    """The tables and columns of schema ``version`` (the migrations run on a database in
+    memory)."""
+    conn = sqlite3.connect(":memory:")
+    try:
+        db = sqlite_utils.Database(conn)
+        for migrate in MIGRATIONS[:version]:
+            migrate(db)
+        return {t: frozenset(c.name for c in db[t].columns) for t in db.table_names()}
+    finally:
+        conn.close()
+
+
+def schema_problem(tables: dict[str, set[str]], version: int) -> str | None:
+    """What is wrong with a file's ``tables`` (name → columns) for the schema its
+    ``user_version`` says, in words; None when they fit. A newer version is the caller's
+    to refuse (it may be a newer cellcal's file)."""
+    if version < 0:
+        return (
+            f"not a cellcal database: its user_version {version} is no schema version "
+            f"(cellcal's are 1 to {SCHEMA_VERSION})"
+        )
+    if version == 0:
+        return "not a cellcal database (an SQLite file of another program)" if tables else None
+    if version > SCHEMA_VERSION:
+        return None
+    if not set(CORE_TABLES) & set(tables):
+        return (
+            f"not a cellcal database: an SQLite file of another program (schema version "
+            f"{version} but no cellcal tables)"
+        )
+    missing = []
+    for table, columns in sorted(expected_columns(version).items()):
+        if table not in tables:
+            missing.append(f"table {table}")
+        elif lacking := sorted(columns - tables[table]):
+            missing.append(f"{table}.{', '.join(lacking)}")
+    if missing:
+        return (
+            f"not a complete cellcal database of schema {version}: no {'; no '.join(missing)} "
+            "(changed by another program, or damaged?)"
+        )
+    fits = [
+        v
+        for v in range(version, SCHEMA_VERSION + 1)
+        if all(c <= tables.get(t, set()) for t, c in expected_columns(v).items())
+    ]
+    if fits[-1] > version:
+        return (
+            f"its user_version says schema {version} but its tables are schema {fits[-1]}'s: "
+            f"the version was changed by another program (PRAGMA user_version = {fits[-1]} "
+            "puts it right)"
+        )
+    return None

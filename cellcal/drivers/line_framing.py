@@ -1,5 +1,6 @@
 """Line framing over a byte transport: ``\\n``-terminated ASCII lines, a ``\\r`` before
-the ``\\n`` dropped, at most 256 bytes a line (a longer one is reported, not split)."""
+the ``\\n`` dropped, at most 256 bytes a line (a longer one is reported, not split, and
+never held whole: its head is kept, the rest counted and dropped)."""
 
 from __future__ import annotations
 
@@ -9,15 +10,19 @@ from dataclasses import dataclass
 from cellcal.drivers.transport import Transport
 
 MAX_LINE = 256
+#: how many first bytes of an unfinished line :attr:`LineReader.head` shows
+HEAD = 16
 
 
 @dataclass(frozen=True)
 class Line:
     """A received line (without its terminator); ``overlong`` if it exceeded the limit
-    (its content is then truncated)."""
+    (its content is then truncated); ``size``, the bytes it took on the wire (its
+    terminator and what was dropped of it included)."""
 
     raw: bytes
     overlong: bool = False
+    size: int = 0
 
 
 class LineReader:
@@ -25,12 +30,22 @@ class LineReader:
         self.transport = transport
         self.max_line = max_line
         self._buf = bytearray()
-        self._discarding = False
+        self._dropped = 0  # bytes of the current overlong line not kept
 
     def reset(self) -> None:
         """Forget buffered bytes (after a reconnect)."""
         self._buf.clear()
-        self._discarding = False
+        self._dropped = 0
+
+    @property
+    def pending(self) -> int:
+        """Bytes received of a line not finished yet (dropped ones included)."""
+        return len(self._buf) + self._dropped
+
+    @property
+    def head(self) -> bytes:
+        """The first bytes of the line not finished yet."""
+        return bytes(self._buf[:HEAD])
 
     def read_line(self, timeout: float) -> Line | None:
         """The next line, or None if none completed within ``timeout`` seconds."""
@@ -40,15 +55,16 @@ class LineReader:
             if nl >= 0:
                 raw = bytes(self._buf[:nl])
                 del self._buf[: nl + 1]
-                if self._discarding:
-                    self._discarding = False
-                    return Line(raw[: self.max_line], overlong=True)
-                if len(raw) > self.max_line + 1:
-                    return Line(raw[: self.max_line], overlong=True)
-                return Line(raw[:-1] if raw.endswith(b"\r") else raw)
+                size, dropped = nl + 1 + self._dropped, self._dropped
+                self._dropped = 0
+                if raw.endswith(b"\r"):
+                    raw = raw[:-1]
+                if dropped or len(raw) > self.max_line:
+                    return Line(raw[: self.max_line], overlong=True, size=size)
+                return Line(raw, size=size)
             if len(self._buf) > self.max_line + 1:
                 # An endless line: keep reading, but do not hold it all.
-                self._discarding = True
+                self._dropped += len(self._buf) - self.max_line
                 del self._buf[self.max_line :]
             left = deadline - time.monotonic()
             if left <= 0:

@@ -11,15 +11,21 @@ Faults, and what the driver does about them:
 
 * every request has a timeout; no answer → reconnect and retry once, then an error;
 * garbled or unexpected lines are counted (``garbage``) and logged, never taken for
-  data; ``EVT`` lines are recorded (``events``) wherever they appear;
+  data (a banner or noise before an answer is skipped); ``EVT`` lines are recorded
+  (``events``) wherever they appear. A device that sends more than ``JUNK_LIMIT``
+  bytes that are not the protocol in one wait, or no answer but such bytes, talks but
+  not the protocol: one :class:`TrackerProtocolError` line saying how many bytes and
+  their first ones, never "unreachable"; so is a series that does not end in time;
 * a series of ``n`` points is re-taken until it has ``n``, in at most ``2 n`` attempts
   (a point kept, or one that failed: a break, a garbled point, a lost link, a series
   cut short): the points before a fault are kept and the rest asked for again. After
   ``BEAM_BROKEN`` the driver first waits for the beam (``EVT BEAM OK`` or ``STAT?``);
-  the break after ``beam_retries`` of them ends the series. A series still short is returned
-  with what it has and a note saying why (the campaign stores it with a
-  ``short-series`` event); with no point at all, a broken beam is a
-  :class:`BeamBrokenError` (the pose is kept without the tracker);
+  the break after ``beam_retries`` of them ends the series. An empty series (``END 0``,
+  no STOP asked for) ends the re-takes: the tracker answers but does not measure. A
+  series still short is returned with what it has and a note saying why (the campaign
+  stores it with a ``short-series`` event); with no point at all, a broken beam is a
+  :class:`BeamBrokenError` (the pose is kept without the tracker), an empty series one
+  :class:`TrackerError` line;
 * a dropped connection or an unplugged device: reconnect with exponential backoff
   (``reconnects`` attempts), repeat the handshake, carry on; points already received
   are kept.
@@ -38,52 +44,38 @@ from pydantic import Field
 from cellcal.clock import Clock, WallClock
 from cellcal.device_options import SensorOptions
 from cellcal.drivers.base import DeviceContext, Series, label
-from cellcal.drivers.line_framing import LineReader
+from cellcal.drivers.line_framing import Line, LineReader
 from cellcal.drivers.tracker_protocol import (
     BeamBrokenError,
     End,
+    Environment,
     Err,
     Evt,
     Garbage,
+    Junk,
+    Message,
     Ok,
     Point,
     TrackerBadParameterError,
     TrackerError,
-    TrackerTimeoutError,
+    TrackerIdentity,
+    TrackerProtocolError,
+    TrackerSilentError,
+    TrackerStatus,
     error_for,
     parse_line,
 )
 from cellcal.drivers.transport import SerialUrlTransport, Transport, TransportError
 from cellcal.errors import DeviceError
 
+__all__ = ["Environment", "LineTracker", "LineTrackerOptions", "TrackerIdentity", "TrackerStatus"]
+
 log = logging.getLogger("cellcal.tracker")
 
 REFLECTORS = ("RRR15", "RRR05", "RRR0875", "TBR05")
-
-
-@dataclass(frozen=True)
-class TrackerIdentity:
-    maker: str
-    model: str
-    serial: str
-    firmware: str
-
-
-@dataclass(frozen=True)
-class TrackerStatus:
-    ready: bool
-    beam: bool
-    meteo: bool
-    init: bool
-
-
-@dataclass(frozen=True)
-class Environment:
-    """Air temperature (°C), pressure (hPa), relative humidity (%)."""
-
-    temperature_c: float
-    pressure_hpa: float
-    humidity_pct: float
+#: Bytes that are not the protocol, in one wait for an answer or one series, past which
+#: the device is said to talk something else (a banner or noise before are skipped).
+JUNK_LIMIT = 65536
 
 
 @dataclass
@@ -91,6 +83,11 @@ class _Received:
     host: list[float] = field(default_factory=list)
     device: list[float] = field(default_factory=list)
     xyz: list[tuple[float, float, float]] = field(default_factory=list)
+
+
+def request_of(n: int, rate_hz: float) -> str:
+    """The request of a series of ``n`` points at ``rate_hz``."""
+    return f"MEAS {n} {rate_hz:g}"
 
 
 def _fields(payload: str) -> dict[str, str]:
@@ -173,9 +170,13 @@ class LineTracker:
         environment if configured)."""
         self._open_with_backoff()
         try:
-            self._handshake()
-        except (TransportError, TrackerTimeoutError) as exc:
-            self._reconnect(exc)
+            try:
+                self._handshake()
+            except (TransportError, TrackerSilentError) as exc:
+                self._reconnect(exc)
+        except BaseException:
+            self.transport.close()
+            raise
 
     def close(self) -> None:
         self.transport.close()
@@ -220,7 +221,7 @@ class LineTracker:
                 self.lines.reset()
                 self._handshake()
                 return
-            except (TransportError, TrackerTimeoutError) as exc:
+            except (TransportError, TrackerSilentError) as exc:
                 last = exc
         raise TransportError(
             f"{self.where}: unreachable after {self.reconnects} reconnection attempts ({last})"
@@ -236,23 +237,38 @@ class LineTracker:
             self.garbage += 1
             log.warning("%s: ignored %r while %s", self.label, msg, context)
 
+    def _junk(self, junk: Junk, line: Line, msg: Message, waiting: str) -> None:
+        """Count a line that is not the protocol; past :data:`JUNK_LIMIT` bytes of them
+        in one wait, the device talks but not the protocol: say so, with what it sent."""
+        if isinstance(msg, Garbage):
+            junk.add(line.raw, line.size)
+            if junk.size > JUNK_LIMIT:
+                raise junk.error(self.where, waiting)
+
+    def _timed_out(self, junk: Junk, waiting: str, silence: str, timeout: float) -> DeviceError:
+        """The error of a wait that ended without its answer: a device that sent what is
+        not the protocol (an unfinished line longer than a line included) is said to;
+        else a timeout (a link that stalls, even within a line)."""
+        pending = self.lines.pending
+        if junk.size or pending > self.lines.max_line:
+            return junk.error(self.where, waiting, pending=pending, head=self.lines.head)
+        return TrackerSilentError(f"{self.where}: {silence} within {timeout:g} s")
+
     def _reply(self, request: str, timeout: float) -> Ok:
         deadline = time.monotonic() + timeout
+        junk = Junk()
+        waiting = f"waiting for the answer to {request!r}"
         while True:
             line = self.lines.read_line(max(0.0, deadline - time.monotonic()))
             if line is None:
-                raise TrackerTimeoutError(
-                    f"{self.where}: no answer to {request!r} within {timeout:g} s"
-                )
-            if line.overlong:
-                self._note(Garbage(line.raw, "line too long"), f"waiting for {request!r}")
-                continue
-            msg = parse_line(line.raw)
+                raise self._timed_out(junk, waiting, f"no answer to {request!r}", timeout)
+            msg = parse_line(line.raw) if not line.overlong else Garbage(line.raw, "too long")
             if isinstance(msg, Ok):
                 return msg
             if isinstance(msg, Err):
                 raise error_for(msg, request, f"{self.label}")
-            self._note(msg, f"waiting for {request!r}")
+            self._note(msg, waiting)
+            self._junk(junk, line, msg, waiting)
 
     def _request(self, request: str, timeout: float | None = None, *, retry: bool = True) -> Ok:
         """Send one request and return its OK; on a broken link or a timeout reconnect
@@ -261,7 +277,7 @@ class LineTracker:
         try:
             self.lines.write_line(request)
             return self._reply(request, t)
-        except (TransportError, TrackerTimeoutError) as exc:
+        except (TransportError, TrackerSilentError) as exc:
             if not retry:
                 raise
             self._reconnect(exc)
@@ -337,7 +353,7 @@ class LineTracker:
         tracker says it took (``END c``: fewer than ``k`` when it was stopped, more than
         were received when some came garbled); raises BeamBrokenError after keeping the
         points before the break."""
-        request = f"MEAS {k} {rate_hz:g}"
+        request = request_of(k, rate_hz)
         self.lines.write_line(request)
         ok = self._reply(request, self.timeout)
         if ok.payload.strip() != str(k):
@@ -348,26 +364,31 @@ class LineTracker:
         # garbage but never finishes the series must not hold the measurement forever.
         budget = self.timeout + 1.5 * k / rate_hz + 2.0
         deadline = time.monotonic() + budget
+        junk, heard = Junk(), 0
+        waiting = f"measuring {request!r} ({expected} of {k} points)"
         while True:
             left = deadline - time.monotonic()
             if left <= 0:
-                raise TrackerTimeoutError(
-                    f"{self.label}: series of {k} points not finished within {budget:.3g} s "
-                    f"({expected} received; the tracker talks but does not measure)"
+                if junk.size > 0:
+                    raise junk.error(self.where, waiting)
+                raise TrackerProtocolError(
+                    f"{self.where}: {request!r}: the series was not finished within "
+                    f"{budget:.3g} s ({expected} of {k} points received, {heard} other lines: "
+                    "the tracker talks but does not measure)"
                 )
             line = self.lines.read_line(min(line_timeout, left))
             if line is None:
                 if time.monotonic() >= deadline:
                     continue
-                raise TrackerTimeoutError(
-                    f"{self.label}: series stalled after {expected} of {k} points"
-                )
+                stalled = f"series stalled after {expected} of {k} points"
+                raise self._timed_out(junk, waiting, stalled, line_timeout)
             msg = parse_line(line.raw) if not line.overlong else Garbage(line.raw, "too long")
             if isinstance(msg, Point) and msg.i == expected:
                 got.host.append(self.clock.now())
                 got.device.append(msg.t)
                 got.xyz.append((msg.x, msg.y, msg.z))
                 expected += 1
+                waiting = f"measuring {request!r} ({expected} of {k} points)"
             elif isinstance(msg, End):
                 if not expected <= msg.count <= k:
                     raise TrackerError(f"{self.label}: END {msg.count} after {expected} points")
@@ -375,7 +396,9 @@ class LineTracker:
             elif isinstance(msg, Err):
                 raise error_for(msg, request, f"{self.label}")
             else:
-                self._note(msg, f"measuring ({expected} of {k})")
+                heard += 1
+                self._note(msg, waiting)
+                self._junk(junk, line, msg, waiting)
 
     def _drain(self, timeout: float) -> None:
         """Read what the tracker sends unasked (events) for up to ``timeout`` seconds."""
@@ -407,6 +430,7 @@ class LineTracker:
         got = _Received()
         failed = breaks = links = series = 0
         problems: list[str] = []
+        empty = ""
         while len(got.xyz) < n and len(got.xyz) + failed < 2 * n:
             k = min(n - len(got.xyz), 2 * n - len(got.xyz) - failed)
             before, mark = len(got.xyz), len(self.events)
@@ -428,7 +452,7 @@ class LineTracker:
                     problems.insert(0, str(exc).removeprefix(f"{self.label}: "))
                     break
                 continue
-            except (TransportError, TrackerTimeoutError) as exc:
+            except (TransportError, TrackerSilentError) as exc:
                 links += 1
                 if links > self.reconnects:
                     raise
@@ -443,10 +467,19 @@ class LineTracker:
             if told < k:
                 failed += 1
                 problems.append(f"series ended after {told} of {k} points")
+            if told == 0:
+                # An empty series (END 0) that no STOP asked for: the tracker answers
+                # but does not measure; asking again would get the same, 2 n times.
+                empty = f"{request_of(k, rate_hz)!r} answered an empty series (END 0)"
+                break
         self.retries += series - 1
         kept = len(got.xyz)
         why = "; ".join(problems[:3]) + ("; …" if len(problems) > 3 else "")
         if kept == 0:
+            if empty:
+                raise TrackerError(
+                    f"{self.label}: {empty}: the tracker answers but does not measure ({why})"
+                )
             if breaks:
                 raise BeamBrokenError(
                     f"{self.label}: beam broken {breaks} times; 0 of {n} points kept ({why})", 40

@@ -55,6 +55,32 @@ class Garbage:
 
 Message = Ok | Err | Evt | Point | End | Garbage
 
+
+@dataclass(frozen=True)
+class TrackerIdentity:
+    maker: str
+    model: str
+    serial: str
+    firmware: str
+
+
+@dataclass(frozen=True)
+class TrackerStatus:
+    ready: bool
+    beam: bool
+    meteo: bool
+    init: bool
+
+
+@dataclass(frozen=True)
+class Environment:
+    """Air temperature (°C), pressure (hPa), relative humidity (%)."""
+
+    temperature_c: float
+    pressure_hpa: float
+    humidity_pct: float
+
+
 _NUMBER = r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?"
 _ERR = re.compile(r"ERR (\d+) ([A-Z_]+)(?: (.*))?")
 _EVT = re.compile(r"EVT ([A-Z_]+)(?: (.*))?")
@@ -137,6 +163,43 @@ class MeteoOutOfRangeError(TrackerError):
 
 class TrackerTimeoutError(DeviceError):
     """No answer within the request's timeout."""
+
+
+class TrackerSilentError(TrackerTimeoutError):
+    """Nothing at all within the timeout: the link may be down (reconnect)."""
+
+
+class TrackerProtocolError(TrackerTimeoutError):
+    """No answer in time, but the device talks — not the protocol (garbage instead of
+    an answer, a series that never ends): the link is up, reconnecting would not help."""
+
+
+@dataclass
+class Junk:
+    """What a device sent, while one request waited for its answer, that is not a line
+    of the protocol: how many bytes, how many lines, and the first bytes of the first."""
+
+    size: int = 0
+    lines: int = 0
+    head: bytes = b""
+
+    def add(self, raw: bytes, size: int) -> None:
+        self.size += size
+        self.lines += 1
+        if not self.head:
+            self.head = raw[:16]
+
+    def error(
+        self, where: str, waiting: str, *, pending: int = 0, head: bytes = b""
+    ) -> TrackerProtocolError:
+        """The one line that says so; ``pending``/``head``: an unfinished line too."""
+        total = self.size + pending
+        first = self.head or head
+        return TrackerProtocolError(
+            f"{where}: sent {total} bytes that are not the tracker line protocol while "
+            f"{waiting} (first bytes: {first!r}); is it a tracker that speaks it (the "
+            "bridge, the baud rate)?"
+        )
 
 
 ERRORS: dict[int, type[TrackerError]] = {

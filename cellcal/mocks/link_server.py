@@ -11,7 +11,8 @@ gone or the server stops) and ``stop``, the server's stop event: serve until it 
 The handler ends its connection by returning or by letting ``LinkClosedError`` out. It
 raises ``DropLinkError`` to drop the connection (fault injection): a TCP connection is
 shut down (FIN), a pty stops answering (its input is read and dropped) until the client
-closes and reopens it. Any other exception is logged and ends the connection the same way.
+closes and reopens it. Any other exception is logged and ends the connection the same way,
+so does a client that reads none of its replies for ``WRITE_STALL_S`` (with a log line).
 
 ``stop()`` sets the stop event (several servers may share one), joins the threads, which
 close the sockets and the pty; ``connections`` counts the connections served.
@@ -40,6 +41,9 @@ _log = logging.getLogger("cellcal.mocks.link_server")
 
 POLL_S = 0.05  # the longest a serving loop waits before it looks at the stop flag
 JOIN_S = 2.0  # how long ``stop`` waits for the threads by default
+#: A client that takes none of a reply for this long (one sending requests faster than it
+#: reads) is closed: else it holds its connection's thread, and all it holds, for ever.
+WRITE_STALL_S = 10.0
 _READ = 65536
 
 LinkHandler = Callable[["Link"], None]
@@ -51,6 +55,10 @@ class LinkClosedError(Exception):
 
 class DropLinkError(Exception):
     """Raised by a handler: drop the connection now (fault injection)."""
+
+
+class SlowReaderError(LinkClosedError):
+    """The client has taken none of a reply for :data:`WRITE_STALL_S`: it is closed."""
 
 
 # ---------------------------------------------------------------------------- links
@@ -93,10 +101,12 @@ class Link(abc.ABC):
         (``PtyLink``)."""
 
     def write(self, data: bytes) -> None:
-        """Send all of ``data``; ``LinkClosedError`` when the link is gone or stopping."""
+        """Send all of ``data``; ``LinkClosedError`` when the link is gone or stopping,
+        ``SlowReaderError`` when the client takes none of it for :data:`WRITE_STALL_S`."""
         view = memoryview(data)
         out = select.poll()
         out.register(self.fd, select.POLLOUT)
+        moved = time.monotonic()
         while view:
             if self.stop.is_set():
                 raise LinkClosedError
@@ -108,8 +118,16 @@ class Link(abc.ABC):
             except OSError as exc:
                 raise LinkClosedError from exc
             view = view[sent:]
-            if view:
-                out.poll(int(POLL_S * 1000))
+            if not view:
+                return
+            now = time.monotonic()
+            if sent:
+                moved = now
+            elif now - moved > WRITE_STALL_S:
+                raise SlowReaderError(
+                    f"{len(view)} bytes of replies not taken for {WRITE_STALL_S:g} s"
+                )
+            out.poll(int(POLL_S * 1000))
 
 
 class SocketLink(Link):
@@ -366,15 +384,22 @@ class _LinkServer:
 
     def _spawn(self, target: Callable[..., None], *args: object, name: str) -> None:
         thread = threading.Thread(target=target, args=args, name=name, daemon=True)
-        with self._lock:
+        with self._lock:  # started first: ``threads`` drops a thread not alive
+            thread.start()
             self._threads.append(thread)
-        thread.start()
 
     def _run(self, link: Link, drop: str) -> bool:
         """Run the handler over one connection; False when it dropped the connection
         (``DropLinkError``, logged with ``drop``) or failed."""
         try:
             self.handler(link)
+        except SlowReaderError as exc:
+            self.log.warning(
+                "%s: the client does not read its replies (%s); closing the connection",
+                self.name,
+                exc,
+            )
+            return False
         except LinkClosedError:
             return True  # the peer went away or the server is stopping: a normal end
         except DropLinkError:

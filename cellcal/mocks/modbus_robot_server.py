@@ -24,13 +24,16 @@ Modbus Messaging on TCP/IP Implementation Guide v1.0b):
   delimits it); the connection goes on with the next frame.
 * A length field below 2 or above 254 is a framing error: the connection is closed
   (after the answers to the frames before it).
+* What a connection holds is bounded: an unfinished frame (at most 260 bytes) and the
+  answers to one read (64 KiB) of requests; a client that reads none of them for
+  ``link_server.WRITE_STALL_S`` is closed, with a log line.
 """
 
 from __future__ import annotations
 
 import logging
 import math
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -80,13 +83,35 @@ def xyzabc(T_base_flange: np.ndarray) -> np.ndarray:
     return out
 
 
+class _LastRequests(list[ModbusRequest]):
+    """The record of requests of a long client, bounded: past ``keep`` (and a quarter
+    more, so that trimming is rare) the oldest go."""
+
+    def __init__(self, keep: int) -> None:
+        super().__init__()
+        self.keep = max(1, keep)
+
+    def append(self, request: ModbusRequest) -> None:
+        super().append(request)
+        if len(self) > self.keep + self.keep // 4:
+            del self[: len(self) - self.keep]
+
+
 class ModbusRobotSimulator(ModbusRobotController):
     """A robot controller behind Modbus TCP; see the module docstring. The constructor,
     inspection and fault injection are the controller's
-    (:class:`~cellcal.mocks.modbus_robot_state.ModbusRobotController`)."""
+    (:class:`~cellcal.mocks.modbus_robot_state.ModbusRobotController`); ``requests``
+    keeps the last :attr:`REQUEST_LOG` (a twin polled every 2 ms for days would else
+    hold every request it ever served)."""
+
+    REQUEST_LOG = 100_000
 
     _server: TcpLinkServer | None = None
     _address: tuple[str, int] | None = None
+
+    def __init__(self, **kw: Any) -> None:
+        super().__init__(**kw)
+        self._requests = _LastRequests(self.REQUEST_LOG)
 
     @property
     def address(self) -> tuple[str, int]:

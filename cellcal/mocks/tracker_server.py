@@ -28,6 +28,7 @@ import math
 import re
 import threading
 import time
+from collections import deque
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Protocol
 
@@ -121,8 +122,11 @@ class MockTracker:
     """A simulated laser tracker serving the tracker line protocol v1.
 
     ``time_scale`` 0 streams points as fast as possible; > 0 waits
-    (1/rate)·time_scale wall seconds between points.
+    (1/rate)·time_scale wall seconds between points. ``requests`` keeps the last
+    :attr:`REQUEST_LOG` request lines (a long client's do not pile up).
     """
+
+    REQUEST_LOG = 10000
 
     def __init__(
         self,
@@ -156,7 +160,7 @@ class MockTracker:
         self._clock = float(clock_start)
         self._owner: TrackerSession | None = None
         self._sessions: set[TrackerSession] = set()
-        self._requests: list[str] = []
+        self._requests: deque[str] = deque(maxlen=self.REQUEST_LOG)
         self._events_sent = 0
         self._tcp = TcpLinkServer(self._serve, name="mock-tracker", stop=self._stop, log=log)
         self._pty = PtyLinkServer(self._serve, name="mock-tracker", stop=self._stop, log=log)
@@ -170,7 +174,8 @@ class MockTracker:
 
     @property
     def requests(self) -> list[str]:
-        """The request lines received (empty lines not), oldest first; a copy."""
+        """The last :attr:`REQUEST_LOG` request lines received (empty lines not), oldest
+        first; a copy."""
         with self._lock:
             return list(self._requests)
 

@@ -9,7 +9,9 @@ so a ``STOP`` is heard while a series streams.
 
 Choices where the spec leaves room (the protocol spec is the contract; these fill gaps):
 
-* A request line is at most 256 bytes, not counting ``\\n`` and one ``\\r`` before it.
+* A request line is at most 256 bytes, not counting ``\\n`` and one ``\\r`` before it; a
+  longer one is dropped as it comes (never held whole), said in a log line and answered
+  ``ERR 3`` when it ends.
 * Lines that are empty or only ASCII whitespace are ignored (no reply). Commands are
   case-sensitive. Tokens are separated by ASCII whitespace.
 * A line whose first word is not a request gets ``ERR 4 UNKNOWN_COMMAND``; a known
@@ -218,6 +220,7 @@ class TrackerSession:
                 if len(self.inbuf) > MAX_LINE + 1:  # room for a "\r" before the "\n"
                     if not self.discarding:
                         self.tracker._record(bytes(self.inbuf[:MAX_LINE]))
+                        self._overlong()
                     self.discarding = True
                     self.inbuf.clear()
                 return
@@ -231,9 +234,16 @@ class TrackerSession:
                 raw = raw[:-1]
             if len(raw) > MAX_LINE:
                 self.tracker._record(raw[:MAX_LINE])
+                self._overlong()
                 self._reply(LINE_TOO_LONG)
                 continue
             self._request(raw)
+
+    def _overlong(self) -> None:
+        log.warning(
+            "mock tracker: a request line longer than %d bytes: dropped (ERR 3 when it ends)",
+            MAX_LINE,
+        )
 
     def _request(self, raw: bytes) -> None:
         tokens = raw.split()

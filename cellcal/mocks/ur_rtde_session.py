@@ -18,6 +18,8 @@ What it answers (UR's RTDE guide; UR's and SDU's clients parse it so):
 * ``I``: types, ``NOT_FOUND`` / ``IN_USE`` (a name another open connection owns);
   input recipe ids are 1, 2, 3, ... per connection in the order asked, whatever their
   outcome, as ur_rtde hard-codes them.
+* Recipe ids are one byte: a connection has at most 255 output and 255 input recipes;
+  one more is refused (recipe id 0; inputs all ``NOT_FOUND``), with a log line.
 * ``S``: refused (0) without a valid output recipe, as the controller does; else 1.
   ``P``: 1. Data packages of each output recipe go out on the controller cycles its
   frequency picks (:class:`~cellcal.mocks.ur_rtde_codec.Decimation`): at 125 Hz every
@@ -39,6 +41,8 @@ from cellcal.mocks.ur_fields import INPUT_TYPES, OUTPUT_TYPES, Fields
 log = logging.getLogger("cellcal.mocks.ur")
 
 CONTROLLER_VERSION = (5, 11, 1, 108318)
+#: recipe ids are one byte: the recipes a connection may set up, of each kind
+MAX_RECIPES = 255
 
 
 @dataclass
@@ -139,7 +143,16 @@ class RtdeSession:
                 types.append(OUTPUT_TYPES[name])
                 getters.append(getter)
         rid = 0
-        if names and "NOT_FOUND" not in types:
+        fits = names and "NOT_FOUND" not in types
+        if fits and self.protocol >= 2 and len(self.outputs) >= MAX_RECIPES:
+            log.warning(
+                "UR simulator %s: connection %d asks for a %dth output recipe: refused",
+                self.host,
+                self.cid,
+                MAX_RECIPES + 1,
+            )
+            return [rtde.frame(rtde.SETUP_OUTPUTS, rtde.setup_outputs_reply(2, 0, types))]
+        if fits:
             if self.protocol < 2:
                 self.outputs.clear()
             rid = len(self.outputs) + 1
@@ -152,6 +165,14 @@ class RtdeSession:
 
     def _setup_inputs(self, payload: bytes) -> bytes:
         names = rtde.parse_names(payload)
+        if len(self.inputs) >= MAX_RECIPES:
+            log.warning(
+                "UR simulator %s: connection %d asks for a %dth input recipe: refused",
+                self.host,
+                self.cid,
+                MAX_RECIPES + 1,
+            )
+            return rtde.setup_inputs_reply(0, ["NOT_FOUND"] * len(names))
         types: list[str] = []
         for name in names:
             owner = self.owners.get(name)

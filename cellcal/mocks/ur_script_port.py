@@ -50,6 +50,10 @@ SCRIPT_PORT = 30003
 REALTIME_DOUBLES = 152
 REALTIME_SIZE = 4 + 8 * REALTIME_DOUBLES  # 1220
 _PACKET = struct.Struct(f">i{REALTIME_DOUBLES}d")
+#: the longest script line kept, bytes (a longer one is dropped as it comes)
+MAX_LINE = 65536
+#: the longest program kept without its ``end``, bytes (ur_rtde's control script: ~60 KB)
+MAX_PROGRAM = 4 * 1024 * 1024
 _PROGRAM_START = re.compile(r"(def|sec)\s+([A-Za-z_][A-Za-z0-9_]*)\s*\(\s*\)\s*:")
 
 
@@ -99,26 +103,56 @@ def realtime_packet(c: Controller) -> bytes:
 
 
 class ScriptReader:
-    """The URScript arriving on one connection, line by line."""
+    """The URScript arriving on one connection, line by line; bounded: a line longer
+    than :data:`MAX_LINE` bytes is dropped as it comes, a program longer than
+    :data:`MAX_PROGRAM` bytes without its ``end`` is dropped, each said in a log line."""
 
     def __init__(self, ctl: Controller) -> None:
         self.ctl = ctl
         self.buf = bytearray()
+        self.dropping = False  # the rest of an overlong line
         self.program: list[str] | None = None
+        self.size = 0  # bytes of the program so far
         self.name = ""
 
     def feed(self, data: bytes) -> None:
         self.buf += data
-        while b"\n" in self.buf:
-            raw, _, rest = self.buf.partition(b"\n")
-            self.buf = bytearray(rest)
+        start = 0
+        while (nl := self.buf.find(b"\n", start)) >= 0:
+            raw = bytes(self.buf[start:nl])
+            start = nl + 1
+            if self.dropping:
+                self.dropping = False
+                continue
             self._line(raw.decode("utf-8", "replace").rstrip("\r"))
+        del self.buf[:start]
+        if len(self.buf) > MAX_LINE:
+            if not self.dropping:
+                log.warning(
+                    "UR simulator %s: a script line longer than %d bytes: dropped",
+                    self.ctl.host,
+                    MAX_LINE,
+                )
+            self.dropping = True
+            self.buf.clear()
 
     def _line(self, line: str) -> None:
+        if self.program is not None:
+            self.size += len(line) + 1
+            if self.size > MAX_PROGRAM:
+                log.warning(
+                    "UR simulator %s: program %r longer than %d bytes and no end: an endless "
+                    "program, dropped",
+                    self.ctl.host,
+                    self.name,
+                    MAX_PROGRAM,
+                )
+                self.program = None
         if self.program is None:
             m = _PROGRAM_START.match(line)
             if m is not None:
                 self.program = [line]
+                self.size = len(line) + 1
                 self.name = m.group(2) if m.group(1) == "def" else ""
             elif line.strip():
                 log.info("UR simulator %s: script line ignored: %.80s", self.ctl.host, line)

@@ -1,0 +1,110 @@
+"""Ctrl-C at any moment of a command (issue 29): while the interpreter starts, while
+cellcal imports, while the command runs, while it ends — the outcome is exit 130 with
+one line on stderr (``cellcal: interrupted``, or ``run``'s line saying how to resume),
+or the command's normal completion; never a traceback.
+
+No hook in cellcal: the test sends SIGINT to a ``python -m cellcal …`` child (and to the
+console script) at increasing delays after it started, and checks every outcome. A
+child the signal finds before Python could run any of its code ends killed by SIGINT
+with nothing said, which is what a shell reports as 130 too."""
+
+from __future__ import annotations
+
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+import cellcal
+
+ROOT = Path(__file__).resolve().parents[2]
+TRACKER_CELL = ROOT / "config" / "mock-cell-tracker.toml"
+PACKAGE = str(Path(cellcal.__file__).resolve().parent)
+#: seconds after the start: the interpreter's start, cellcal's imports, the command
+DELAYS = (0.0, 0.003, 0.006, 0.01, 0.015, 0.02, 0.03, 0.04, 0.06, 0.08, 0.1, 0.15, 0.2, 0.3)
+
+
+def _interrupt(argv: list[str], delay: float, cwd: Path) -> subprocess.CompletedProcess[str]:
+    child = subprocess.Popen(
+        argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=cwd
+    )
+    time.sleep(delay)
+    child.send_signal(signal.SIGINT)
+    out, err = child.communicate(timeout=120)
+    return subprocess.CompletedProcess(argv, child.returncode, out, err)
+
+
+def _check(done: subprocess.CompletedProcess[str], delay: float) -> str:
+    """The outcome's kind; fails on a traceback or an outcome that is none of the three."""
+    err = done.stderr
+    where = f"SIGINT after {delay} s: exit {done.returncode}, stderr {err[-2000:]!r}"
+    if "Traceback" in err or "KeyboardInterrupt" in err:
+        # Python's own start (its site-packages, finding the package) runs before any
+        # line of cellcal: a traceback there names no file of the package
+        assert PACKAGE not in err, where
+        return "before cellcal"
+    if done.returncode == 0:
+        return "completed"
+    if done.returncode == -signal.SIGINT:
+        assert err == "", where  # killed before Python ran anything
+        return "killed"
+    assert done.returncode == 130, where
+    lines = err.strip().splitlines()
+    assert len(lines) >= 1 and "interrupted" in lines[-1], where
+    said = [line for line in lines if line.startswith("cellcal:")]
+    if "campaign" in lines[-1]:
+        # run stops cleanly: it says it heard the signal, then how to resume
+        assert said == ["cellcal: SIGINT: finishing cleanly…", lines[-1]], where
+    else:
+        assert lines == ["cellcal: interrupted"], where
+    return "interrupted"
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(300)
+@pytest.mark.parametrize(
+    "args",
+    [["--version"], ["models"], ["models", "--json"], ["plan", "--config", str(TRACKER_CELL)]],
+    ids=["version", "models", "models-json", "plan"],
+)
+def test_sigint_at_any_moment_of_a_short_command(tmp_path: Path, args: list[str]) -> None:
+    kinds = [
+        _check(_interrupt([sys.executable, "-m", "cellcal", *args], d, tmp_path), d) for d in DELAYS
+    ]
+    assert "interrupted" in kinds or "completed" in kinds, kinds
+
+
+@pytest.mark.slow
+@pytest.mark.twin
+@pytest.mark.timeout(600)
+def test_sigint_at_any_moment_of_a_campaign(tmp_path: Path) -> None:
+    kinds = []
+    for k, d in enumerate((*DELAYS, 0.5, 0.8, 1.2)):
+        db = tmp_path / f"c{k}.db"
+        argv = [sys.executable, "-m", "cellcal", "run", "--config", str(TRACKER_CELL), "--mock"]
+        kinds.append(_check(_interrupt([*argv, "--db", str(db)], d, tmp_path), d))
+    assert "interrupted" in kinds, kinds
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(300)
+def test_sigint_at_any_moment_of_the_console_script(tmp_path: Path) -> None:
+    script = Path(sys.executable).parent / "cellcal"
+    if not script.exists():
+        pytest.skip("no cellcal console script beside this interpreter")
+    for d in DELAYS:
+        _check(_interrupt([str(script), "models"], d, tmp_path), d)
+
+
+def test_an_interrupt_in_process_leaves_the_callers_handler(tmp_path: Path) -> None:
+    """``main`` called in a process of its caller (the tests) hands SIGINT back as it
+    found it."""
+    from tests.inprocess import cellcal as run_inprocess
+
+    before = signal.getsignal(signal.SIGINT)
+    done = run_inprocess("models")
+    assert done.returncode == 0
+    assert signal.getsignal(signal.SIGINT) is before
