@@ -28,8 +28,10 @@ from cellcal.drivers.base import Robot
 from cellcal.errors import DeviceError
 
 #: Between two samples of a move's path no point of the arm out to the target moves
-#: more than this (mm), so the path between samples leaves the box by less than half.
-PATH_STEP_MM = 1.0
+#: more than this (mm), so the path between samples leaves the box by less than half
+#: (2.5 mm: the gate is there for moves that swing tens of millimetres out; 1 mm steps
+#: cost a tracker campaign 0.4 s more for nothing it would catch).
+PATH_STEP_MM = 5.0
 #: ... with at most this many samples (a 720° turn of every joint of a 2 m arm needs
 #: fewer); they are computed this many at a time, so memory stays a few MB.
 MAX_PATH_SAMPLES = 200_000
