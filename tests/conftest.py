@@ -42,6 +42,7 @@ SPREAD = frozenset(
         "tests/daemon/test_service.py",
         "tests/drivers/test_photogrammetry_sensor.py",
         "tests/daemon/test_shown_campaign.py",
+        "tests/daemon/test_hostile_services.py",
     }
 )
 
