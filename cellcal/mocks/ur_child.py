@@ -42,6 +42,9 @@ from cellcal.mocks.ur_rtde_session import RtdeSession
 from cellcal.mocks.ur_script_port import SCRIPT_PORT, ScriptReader, realtime_packet
 
 log = logging.getLogger("cellcal.mocks.ur")
+#: Replies waiting for a client that reads none of them: past this (bytes) the client is
+#: closed (a client that asks and never reads would grow them without bound).
+MAX_UNREAD = 1 << 20
 
 RTDE_BACKLOG = 262144  # bytes of unsent RTDE data past which packages are dropped
 MAX_CATCH_UP = 25  # cycles run back to back when the loop is late (50 ms)
@@ -223,6 +226,13 @@ class ChildLoop:
     def _queue(self, conn: _Conn, data: bytes) -> None:
         if conn.closed:
             return
+        if len(conn.outbuf) + len(data) > MAX_UNREAD:
+            log.warning(
+                "UR simulator %s: %s connection %d does not read its replies; closing",
+                self.host, conn.kind, conn.cid,
+            )  # fmt: skip
+            self._close(conn)
+            return
         conn.outbuf += data
         self._flush(conn)
 
@@ -278,6 +288,10 @@ class ChildLoop:
                 self._flush(conn)
                 self._close(conn)
         if len(conn.inbuf) > 4096:
+            log.warning(
+                "UR simulator %s: dashboard connection %d sent a line over 4096 bytes; closing",
+                self.host, conn.cid,
+            )  # fmt: skip
             self._close(conn)
 
 

@@ -233,3 +233,18 @@ def test_an_rtde_client_asking_for_endless_recipes_is_refused_not_fatal(
         (reply,) = session.handle(rtde.SETUP_INPUTS, b"input_int_register_0")
     assert len(session.inputs) == 255 and reply[3] == 0
     assert _said(caplog, "input recipe", "refused")
+
+
+def test_the_ur_twin_closes_a_dashboard_client_that_never_reads() -> None:
+    """Requests sent and no reply read: past a MiB of replies waiting the UR twin closes
+    the connection (a reset on the client's next send) and keeps serving others."""
+    from tests.mocks.test_ur_server import simulator
+    from tests.mocks.test_ur_twin_wire import dashboard
+
+    host = "127.0.0.146"
+    with simulator(host):
+        client = socket.create_connection((host, 29999), timeout=5.0)
+        with client:
+            client.recv(4096)  # the greeting
+            _flood(client, b"robotmode\n" * 400, lambda: False)
+        assert dashboard(host, ["robotmode"])[1].startswith("Robotmode: ")
