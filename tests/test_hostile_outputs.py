@@ -19,22 +19,13 @@ import cv2
 import numpy as np
 import pytest
 
-from cellcal.cli import main
 from cellcal.errors import FileFormatError, InputError, UserError
 from cellcal.imagefiles import ImageFileError, read_image, write_image
 from cellcal.modelfiles import write_atomically
+from tests.test_hostile_inputs import _one_line_exit_2
 
 ROOT = Path(__file__).resolve().parents[1]
 JOINTS = "q1,q2,q3,q4,q5,q6\n0,-30,40,0,-20,0\n10,-20,30,5,-10,5\n"
-
-
-def _one_line_exit_2(capsys: pytest.CaptureFixture[str], *argv: str) -> str:
-    with pytest.raises(SystemExit) as info:
-        main(list(argv))
-    err = capsys.readouterr().err.strip().splitlines()
-    assert info.value.code == 2, err
-    assert len(err) == 1 and err[0].startswith("cellcal: error: "), err
-    return err[0]
 
 
 def _fifo(folder: Path) -> Path:

@@ -35,7 +35,7 @@ class Robot:
         self.moves = []
 
     def connect(self):
-        pass
+        """Nothing to connect: the robot is this object."""
 
     def move_joints(self, q, speed):
         self.moves.append(np.array(q))
@@ -45,10 +45,10 @@ class Robot:
         return self.q
 
     def stop(self):
-        pass
+        """It never moves by itself: nothing to stop."""
 
     def close(self):
-        pass
+        """Nothing to close."""
 
 
 def _points(q):

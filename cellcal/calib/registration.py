@@ -5,12 +5,12 @@ the paper's Sec. 3.1/4.3 is here, plus weighted, robust and batched forms. Compu
 is in float64 on centred coordinates, so float32 input and coordinates far from the
 origin (a tracker 10 km from its datum) lose nothing.
 
-Size (about 900 lines): this module predates the 500-line rule and has not been split
+Size (about 860 lines): this module predates the 500-line rule and has not been split
 yet; the natural cut is by job — the public ``fit_rigid`` and its input checks here,
 weights and robust loops, statistics (covariance, leave-one-out), and the batched form
-in modules of their own, as ``rigid_solvers.py`` and ``characteristic_line.py`` already
-are. It is left whole until a change works on registration, so that its tests (which
-pin Table 4 and the accuracy bounds) guard one move at a time.
+in modules of their own, as ``rigid_solvers.py``, ``characteristic_line.py`` and
+``ransac.py`` already are. It is left whole until a change works on registration, so
+that its tests (which pin Table 4 and the accuracy bounds) guard one move at a time.
 """
 
 from __future__ import annotations

@@ -104,6 +104,13 @@ class RobotModel:
         hi = np.array([j.q_max for j in self.joints])
         return lo, hi
 
+    def joint_outside_limits(self, q: Array, slack: float = 1e-9) -> int | None:
+        """The index of the first joint reading of ``q`` (rad) outside its limits by more
+        than ``slack`` (rad), or None."""
+        lo, hi = self.limits
+        bad = np.flatnonzero((q < lo - slack) | (q > hi + slack))
+        return int(bad[0]) if len(bad) else None
+
     @property
     def reading_matrix(self) -> Array:
         """A (n×n): joint angles (before θ) = A · readings. Identity unless a joint has a

@@ -84,10 +84,8 @@ def _check(path: str, info: os.stat_result) -> None:
 def _open_or_create(path: str, shared: bool) -> int | None:
     """The existing file (never through a link), else a new one; None when another
     process created it in between."""
-    try:
+    with contextlib.suppress(FileNotFoundError):
         return os.open(path, _OPEN)
-    except FileNotFoundError:
-        pass
     try:
         fd = os.open(path, _OPEN | os.O_CREAT | os.O_EXCL, 0o666)
     except FileExistsError:

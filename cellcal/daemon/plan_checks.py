@@ -41,9 +41,8 @@ def check_inputs(
     home = np.asarray(home_q, dtype=np.float64)
     lo, hi = model.limits
     if home.shape == (model.dof,):
-        bad = np.flatnonzero((home < lo - 1e-9) | (home > hi + 1e-9))
-        if len(bad):
-            j = int(bad[0])
+        j = model.joint_outside_limits(home)
+        if j is not None:
             raise InputError(
                 f"robot.home_deg: joint {j + 1} at {np.degrees(home[j]):.6g}° is outside its "
                 f"limits {np.degrees(lo[j]):.6g}..{np.degrees(hi[j]):.6g}°"

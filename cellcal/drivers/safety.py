@@ -152,9 +152,8 @@ class GuardedRobot:
 
     def _check_limits(self, q: Array, what: str) -> None:
         lo, hi = self.model.limits
-        bad = np.flatnonzero((q < lo - 1e-9) | (q > hi + 1e-9))
-        if len(bad):
-            j = int(bad[0])
+        j = self.model.joint_outside_limits(q)
+        if j is not None:
             raise SafetyError(
                 f"{what}: joint {j + 1} to {math.degrees(q[j]):.3f}° is "
                 f"outside [{math.degrees(lo[j]):.1f}°, {math.degrees(hi[j]):.1f}°]"

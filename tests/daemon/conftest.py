@@ -4,6 +4,7 @@ in mock mode (the bundled cell's tracker alone), in a short folder under /tmp.""
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import socket
@@ -92,6 +93,12 @@ class Daemon:
         self.notify = notify
         self.time_scale = time_scale
         self.proc: subprocess.Popen[str] | None = None
+
+    def kill(self) -> None:
+        """SIGKILL the service if it still runs, and reap it."""
+        if self.proc is not None and self.proc.poll() is None:
+            self.proc.kill()
+            self.proc.wait(10)
 
     def start(self) -> None:
         env = dict(os.environ)
@@ -183,6 +190,16 @@ def daemon() -> Iterator[Callable[..., Daemon]]:
 
     yield make
     for d in made:
-        if d.proc is not None and d.proc.poll() is None:
-            d.proc.kill()
-            d.proc.wait(10)
+        d.kill()
+
+
+@contextlib.contextmanager
+def serving(d: Daemon) -> Iterator[Daemon]:
+    """``d`` started; at the end killed if it still runs, and its folder removed (for
+    module fixtures, which cannot use ``folder`` and ``daemon``)."""
+    try:
+        d.start()
+        yield d
+    finally:
+        d.kill()
+        subprocess.run(["rm", "-rf", str(d.folder)], check=False)

@@ -27,7 +27,7 @@ from pathlib import Path
 import pytest
 
 from cellcal.commands.service_client import call
-from tests.daemon.conftest import Daemon
+from tests.daemon.conftest import Daemon, serving
 
 pytestmark = [pytest.mark.twin, pytest.mark.slow, pytest.mark.timeout(180)]
 
@@ -63,15 +63,8 @@ def service() -> Iterator[LimitedDaemon]:
         resource.setrlimit(resource.RLIMIT_NOFILE, (min(hard, 4 * FLOOD), hard))
     folder = Path(tempfile.mkdtemp(prefix="cc-svc-", dir="/tmp"))
     address = f"127.0.0.{random.randint(2, 254)}"
-    d = LimitedDaemon(folder, None, 0.02, ["--http", f"{address}:0"])
-    try:
-        d.start()
+    with serving(LimitedDaemon(folder, None, 0.02, ["--http", f"{address}:0"])) as d:
         yield d
-    finally:
-        if d.proc is not None and d.proc.poll() is None:
-            d.proc.kill()
-            d.proc.wait(10)
-        subprocess.run(["rm", "-rf", str(folder)], check=False)
 
 
 def _page(d: Daemon) -> tuple[str, int]:

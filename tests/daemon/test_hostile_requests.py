@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import json
 import socket
-import subprocess
 import tempfile
 import time
 from collections.abc import Iterator
@@ -23,7 +22,7 @@ from typing import Any
 import pytest
 
 from cellcal.daemon.api_requests import SEED_MAX, start_request
-from tests.daemon.conftest import Daemon, small_cell
+from tests.daemon.conftest import Daemon, serving, small_cell
 
 pytestmark = [pytest.mark.twin, pytest.mark.slow, pytest.mark.timeout(180)]
 
@@ -57,15 +56,8 @@ def request(
 @pytest.fixture(scope="module")
 def service() -> Iterator[Daemon]:
     folder = Path(tempfile.mkdtemp(prefix="cc-svc-", dir="/tmp"))
-    d = Daemon(folder, None, 0.02, config=small_cell(folder))
-    try:
-        d.start()
+    with serving(Daemon(folder, None, 0.02, config=small_cell(folder))) as d:
         yield d
-    finally:
-        if d.proc is not None and d.proc.poll() is None:
-            d.proc.kill()
-            d.proc.wait(10)
-        subprocess.run(["rm", "-rf", str(folder)], check=False)
 
 
 def _deep(n: int) -> bytes:
