@@ -13,6 +13,7 @@ import numpy as np
 from cellcal.calib.error_model import Groups, ParameterSpec, State, predict
 from cellcal.calib.geometry import Array
 from cellcal.calib.identifiability import Identifiability
+from cellcal.calib.parameter_choice import Choice
 from cellcal.calib.robot_model import RobotModel
 
 
@@ -83,6 +84,9 @@ class CalibrationResult:
     #: computes before anything is measured); ``condition_number`` is the fit's own,
     #: each coordinate weighted by 1/σ of its measurement
     condition_number_equal_weights: float = float("nan")
+    #: how the k-fold held-out error chose among the noise-hidden parameters (None: none
+    #: were hidden, or the fit was robust)
+    parameter_choice: Choice | None = None
 
     @property
     def targets(self) -> tuple[str, ...]:

@@ -266,26 +266,31 @@ def jacobian(
     ``orientation`` N×6×P, rows 3–5 the angular velocity of the target's orientation."""
     g = groups if groups is not None else Groups.single(len(q))
     Rp, tp, tool = _per_point(state, g, len(q))
-    k = target_kinematics(state.model, q, tool)
-    m = np.einsum("nij,nj->ni", Rp, k.p) + tp
+    kin = [col for col, sp in enumerate(specs) if sp.kind in KINEMATIC_KINDS]
+    k = target_kinematics(state.model, q, tool, jacobian=bool(kin), angular=orientation)
+    one = len(state.Rs) == 1  # one session: one rotation for every row
+    R0 = state.Rs[0]
+    m = (k.p @ R0.T if one else np.einsum("nij,nj->ni", Rp, k.p)) + tp
     N = len(q)
     J = np.zeros((N, 6 if orientation else 3, len(specs)))
-    assert k.W_rows is not None
 
-    def turn(v: Array) -> Array:  # base-frame vectors (N×3) into the sensor frame
-        out: Array = np.einsum("nij,nj->ni", Rp, v)
+    def turn(v: Array) -> Array:  # base-frame vectors (N×3×K) into the sensor frame
+        out: Array = np.matmul(R0, v) if one else np.matmul(Rp, v)
         return out
 
+    if kin:
+        c = [5 * (specs[col].joint - 1) + ROW_PARAMS.index(specs[col].kind) for col in kin]
+        J[:, :3, kin] = turn(k.J_rows[:, :, c])
+        if orientation:
+            assert k.W_rows is not None
+            J[:, 3:, kin] = turn(k.W_rows[:, :, c])
+    flange = turn(k.R_flange)  # columns: the flange axes in the sensor frame
     for col, sp in enumerate(specs):
         if sp.kind in KINEMATIC_KINDS:
-            c = 5 * (sp.joint - 1) + ROW_PARAMS.index(sp.kind)
-            J[:, :3, col] = turn(k.J_rows[:, :, c])
-            if orientation:
-                J[:, 3:, col] = turn(k.W_rows[:, :, c])
             continue
         if sp.kind in ("tool", "tool_rot"):
             rows = g.target == sp.group
-            v = turn(k.R_flange[:, :, sp.axis])
+            v = flange[:, :, sp.axis]
             if sp.kind == "tool":
                 J[rows, :3, col] = v[rows]
             elif orientation:
@@ -294,8 +299,11 @@ def jacobian(
         rows = g.session == sp.group
         e = np.zeros(3)
         e[sp.axis] = 1.0
-        if sp.kind == "frame_rot":
-            J[rows, :3, col] = np.cross(e, m[rows] - state.pivots[sp.group])
+        if sp.kind == "frame_rot":  # e × (m − pivot)
+            v = m[rows] - state.pivots[sp.group]
+            a, b = (sp.axis + 1) % 3, (sp.axis + 2) % 3
+            J[rows, a, col] = -v[:, b]
+            J[rows, b, col] = v[:, a]
             if orientation:
                 J[rows, 3:, col] = e
         else:

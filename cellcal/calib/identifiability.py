@@ -186,12 +186,18 @@ def _limit(spec: ParameterSpec) -> float:
     return math.radians(DETERMINED_DEG) if spec.is_angle else DETERMINED_MM
 
 
-def weakly_determined(J: Array, sigma0: float, ident: Identifiability) -> Identifiability:
+def weakly_determined(
+    J: Array, sigma0: float, ident: Identifiability, spare: Sequence[int] = ()
+) -> Identifiability:
     """``ident`` with every kinematic or target-offset parameter whose standard
     uncertainty σ₀·√((JᵀJ)⁻¹)ᵢᵢ exceeds its limit moved to nominal, worst first (dropping
-    one lowers the others' uncertainty). ``J``: the weighted Jacobian (M×P over all of
-    ``ident.specs``) at the solution; ``sigma0``: the a-posteriori noise (weighted)."""
+    one lowers the others' uncertainty). ``J``: the weighted Jacobian at the solution, or
+    its R factor, over the columns ``ident.identified`` in that order; ``sigma0``: the
+    a-posteriori noise (weighted); ``spare``: indices never left out."""
     specs = ident.specs
+    full = np.zeros((J.shape[0], len(specs)))
+    full[:, list(ident.identified)] = J
+    J = full
     keep = list(ident.identified)
     weak: list[int] = []
     while keep:
@@ -204,7 +210,9 @@ def weakly_determined(J: Array, sigma0: float, ident: Identifiability) -> Identi
         ratio = np.array(
             [
                 std[k] / _limit(specs[i])
-                if not specs[i].kind.startswith("frame") and specs[i].kind != "tool_rot"
+                if not specs[i].kind.startswith("frame")
+                and specs[i].kind != "tool_rot"
+                and i not in spare
                 else 0.0
                 for k, i in enumerate(keep)
             ]

@@ -6,7 +6,7 @@ are unknown at the start. It starts from a closed-form registration of the nomin
 model's positions to the measurements (SVD, then a linear solve for the target offset),
 fits the sensor frame and target offset alone (the "before" model: nominal
 geometry, best-fit frames), chooses the identifiable parameters from the Jacobian at
-that point, and runs Levenberg–Marquardt (scipy.optimize.least_squares) on them.
+that point, and runs Levenberg–Marquardt (cellcal.calib.levenberg) on them.
 Standard uncertainties come from the a-posteriori covariance σ₀²(JᵀJ)⁻¹. Several
 targets (one offset each), several sessions (one sensor frame each) and measured
 orientations are carried by ``cellcal.calib.observations.Data``.
@@ -20,6 +20,7 @@ from collections.abc import Collection, Sequence
 import numpy as np
 from scipy.optimize import least_squares
 
+from cellcal.calib import levenberg
 from cellcal.calib.acceptance import (
     ACCURACY_CLASS_MM,
     Finding,
@@ -51,6 +52,7 @@ from cellcal.calib.observations import (
     register_sessions,
     weights,
 )
+from cellcal.calib.parameter_choice import FOLDS, Choice, choose
 from cellcal.calib.robot_model import RobotModel
 from cellcal.errors import (
     AcceptanceError,
@@ -75,15 +77,16 @@ ILL_CONDITIONED = 1e3
 # --------------------------------------------------------------------------- the fit
 
 
-def _least_squares(
+def _robust_fit(
     state: State,
     specs: tuple[ParameterSpec, ...],
     data: Data,
     w: Array,
-    robust: str | None = None,
-    f_scale: float = 1.0,
-) -> tuple[State, Array, int]:
-    """Levenberg–Marquardt (or TRF with a robust loss) over ``specs`` from ``state``."""
+    robust: str,
+    f_scale: float,
+) -> levenberg.Fit:
+    """TRF with a robust loss over ``specs`` from ``state`` (scipy: the loss's
+    reweighting is what it is made for)."""
 
     def fun(x: Array) -> Array:
         out: Array = (data.residuals(apply(state, specs, x)) * w).ravel()
@@ -94,24 +97,30 @@ def _least_squares(
         out: Array = -(J * w[:, :, None]).reshape(-1, len(specs))
         return out
 
-    x0 = np.zeros(len(specs))
-    kwargs: dict[str, object] = {"xtol": 1e-12, "ftol": 1e-12, "gtol": 1e-12}
-    if robust is None:
-        res = least_squares(fun, x0, jac=jac, method="lm", x_scale="jac", **kwargs)
-    else:
-        res = least_squares(
-            fun, x0, jac=jac, method="trf", loss=robust, f_scale=f_scale, x_scale="jac", **kwargs
-        )
+    res = least_squares(
+        fun,
+        np.zeros(len(specs)),
+        jac=jac,
+        method="trf",
+        loss=robust,
+        f_scale=f_scale,
+        x_scale="jac",
+        xtol=1e-12,
+        ftol=1e-12,
+        gtol=1e-12,
+    )
     if not res.success or not np.all(np.isfinite(res.x)):
         raise ConvergenceError(f"identification did not converge: {res.message}")
-    st = apply(state, specs, res.x)
-    return st, np.asarray(res.jac), int(res.nfev)
+    J = np.asarray(res.jac)
+    lin = levenberg.Linearisation(J.T @ J, np.zeros(len(specs)), float(2.0 * res.cost))
+    return levenberg.Fit(apply(state, specs, res.x), lin, int(res.nfev))
 
 
 def _frame_tool_specs(specs: tuple[ParameterSpec, ...]) -> tuple[ParameterSpec, ...]:
     return tuple(s for s in specs if s.kind not in KINEMATIC_KINDS)
 
 
+@levenberg.one_blas_thread
 def fit_frames(
     model: RobotModel,
     q: Array,
@@ -131,10 +140,11 @@ def _fit_frames(model: RobotModel, data: Data, w: Array) -> State:
     specs = _frame_tool_specs(
         parameter_specs(model, groups=data.groups, orientation=data.orientations is not None)
     )
-    J = data.jacobian(state, specs)
-    ident = analyse((J * w[:, :, None]).reshape(-1, len(specs)), specs)
+    lin = levenberg.linearise(state, specs, data, w)
+    ident = analyse(lin.R, specs)
     sel = tuple(specs[i] for i in ident.identified)
     lost = {s.group for s in specs if s.kind == "tool" and s not in sel}
+    at: levenberg.Linearisation | None = lin.subset(list(ident.identified))
     if lost:
         # The poses do not determine a whole target offset: keep its nominal value (the
         # closed-form start may have given it any value) and register again.
@@ -143,8 +153,8 @@ def _fit_frames(model: RobotModel, data: Data, w: Array) -> State:
         k = target_kinematics(model, data.q, tools[data.groups.target], jacobian=False)
         Rs, ts = register_sessions(k.p, data.measured, data.groups)
         state = State(model, tools, Rs, ts, state.pivots, state.tool_rotations)
-    state, _, _ = _least_squares(state, sel, data, w)
-    return state
+        at = None
+    return levenberg.fit(state, sel, data, w, at).state
 
 
 def _nominal_offsets(
@@ -167,6 +177,7 @@ def _nominal_offsets(
     return State(model, tools, Rs, ts, state.pivots, state.tool_rotations)
 
 
+@levenberg.one_blas_thread
 def frames_rms(model: RobotModel, q: Array, measured: Array, groups: Groups | None = None) -> float:
     """RMS position residual (mm) of the model with best-fit frames; joint limits not
     checked (for trying reinterpretations of data that do not fit)."""
@@ -209,6 +220,7 @@ def _sigma0(residuals: Array, w: Array, dof: int) -> float:
     return float(np.sqrt(np.sum((residuals * w) ** 2) / max(dof, 1)))
 
 
+@levenberg.one_blas_thread
 def calibrate(
     nominal: RobotModel,
     q: Array,
@@ -294,11 +306,8 @@ def calibrate(
         )
         _refuse_or_note([finding], accept, warnings, accepted)
 
-    def weighted(state: State) -> Array:
-        out: Array = (data.jacobian(state, specs) * w[:, :, None]).reshape(-1, len(specs))
-        return out
-
-    ident = analyse(weighted(baseline), specs, fixed=pinned)
+    base = levenberg.linearise(baseline, specs, data, w)
+    ident = analyse(base.R, specs, fixed=pinned)
     sel = tuple(specs[i] for i in ident.identified)
     equations = w.size
     if len(sel) >= equations:
@@ -308,33 +317,70 @@ def calibrate(
         )
     # Identifiability as a matter of degree: fit, estimate the noise, leave at nominal
     # what the noise hides, and fit again from the baseline without it.
+    # The first fit only has to estimate σ₀ and the Jacobian at the solution: it stops
+    # once no estimate would move by a tenth of its uncertainty, or after a few passes.
     start = _nominal_offsets(baseline, specs, sel, data)
+    first: levenberg.Fit | None = None
+    nfev = 0
     try:
-        point, _, nfev = _least_squares(start, sel, data, w)
+        at = base.subset(list(ident.identified)) if start is baseline else None
+        first = levenberg.fit(
+            start, sel, data, w, at, tol=levenberg.COARSE, limit=levenberg.COARSE_PASSES
+        )
+        nfev = first.passes
         for _ in range(2 if six else 0):
-            w = balance(w, data.residuals(point))
-            point, _, more = _least_squares(start, sel, data, w)
-            nfev += more
+            w = balance(w, data.residuals(first.state))
+            first = levenberg.fit(
+                start, sel, data, w, tol=levenberg.COARSE, limit=levenberg.COARSE_PASSES
+            )
+            nfev += first.passes
+        at_point = first.lin
     except ConvergenceError:
-        point, nfev = baseline, 0
-    ident = weakly_determined(
-        weighted(point), _sigma0(data.residuals(point), w, equations - len(sel)), ident
-    )
+        at_point = levenberg.linearise(baseline, sel, data, w)
+    sigma0_first = math.sqrt(at_point.cost / max(equations - len(sel), 1))
+    ident = weakly_determined(at_point.R, sigma0_first, ident)
     sel = tuple(specs[i] for i in ident.identified)
-    P = len(sel)
     try:
-        state, Jw, more = _least_squares(_nominal_offsets(baseline, specs, sel, data), sel, data, w)
+        if first is not None and not ident.weak:  # the same set: go on to convergence
+            final = levenberg.fit(first.state, sel, data, w, first.lin)
+        else:
+            final = levenberg.fit(_nominal_offsets(baseline, specs, sel, data), sel, data, w)
     except ConvergenceError:
         raise diagnosis("the identification did not converge") from None
-    nfev += more
+    nfev += final.passes
+    choice: Choice | None = None
+    if ident.weak and first is not None and robust is None:
+
+        def plausible(st: State, chosen: tuple[ParameterSpec, ...]) -> bool:
+            far = st.tools[int(np.argmax(np.linalg.norm(st.tools, axis=1)))]
+            return not assess(nominal, estimates_preview(st, nominal, chosen), far)
+
+        if plausible(final.state, sel):
+            choice = choose(ident, at_point.R, sigma0_first, final.state, data, w, plausible)
+            if choice.freed:
+                ident = choice.ident
+                sel = tuple(specs[i] for i in ident.identified)
+                final = levenberg.fit(final.state, sel, data, w)
+                nfev += final.passes
+            if choice.tempting:
+                names = ", ".join(n for n, _ in choice.tempting)
+                best = min(cv for _, cv in choice.tempting)
+                warnings.append(
+                    f"freeing {names} would lower the {FOLDS}-fold held-out error from "
+                    f"{choice.chosen_mm:.4g} to as little as {best:.4g} (mm, weighted) but puts "
+                    "a correction beyond manufacturing tolerance: left at nominal (an "
+                    "unmodelled error, or the wrong model?)"
+                )
+    P = len(sel)
     if robust is not None:
-        r = np.linalg.norm(data.residuals(state) * w, axis=1)
+        r = np.linalg.norm(data.residuals(final.state) * w, axis=1)
         f_scale = 2.5 * max(float(np.median(r)) / 1.5382, 1e-12)
         try:
-            state, Jw, more = _least_squares(state, sel, data, w, robust, f_scale)
+            final = _robust_fit(final.state, sel, data, w, robust, f_scale)
         except ConvergenceError:
             raise diagnosis(f"the robust ({robust}) identification did not converge") from None
-        nfev += more
+        nfev += final.passes
+    state = final.state
     lost_tool = [
         s.name for s in specs if s.kind == "tool" and s not in sel and s.name not in pinned
     ]
@@ -360,14 +406,17 @@ def calibrate(
 
     # the same poses' condition number with every coordinate weighted alike, as the plan
     # computes it before anything is measured (positions only)
-    equal = data.jacobian(baseline, specs)[:, :3, :].reshape(-1, len(specs))
+    equal = base.R
+    if sigma is not None or six:
+        ones = np.ones((N, 3))
+        equal = levenberg.linearise(baseline, specs, Data(q, measured, g), ones).R
     cond_equal = condition_number(equal, ident.identified)
     full = data.residuals(state)
     residuals = full[:, :3]
     dof = equations - P
     sigma0 = _sigma0(full, w, dof)
     try:
-        cov: Array = np.asarray(sigma0**2 * np.linalg.inv(Jw.T @ Jw), dtype=np.float64)
+        cov: Array = np.asarray(sigma0**2 * np.linalg.inv(final.lin.G), dtype=np.float64)
         std = np.sqrt(np.clip(np.diag(cov), 0.0, None))
     except np.linalg.LinAlgError:
         cov = np.full((P, P), np.nan)
@@ -436,6 +485,7 @@ def calibrate(
         covariance_specs=sel,
         pivots=state.pivots,
         condition_number_equal_weights=cond_equal,
+        parameter_choice=choice,
     )
 
 

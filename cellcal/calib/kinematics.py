@@ -40,16 +40,12 @@ class TargetKinematics:
     W_rows: Array | None = None
 
 
-def _cross(u: Array, v: Array) -> Array:
-    out: Array = np.cross(u, v)
-    return out
-
-
 def target_kinematics(
-    model: RobotModel, q: Array, tool: Array, *, jacobian: bool = True
+    model: RobotModel, q: Array, tool: Array, *, jacobian: bool = True, angular: bool = False
 ) -> TargetKinematics:
     """Target positions for joint readings ``q`` (N×n, rad) and target offset ``tool`` (mm;
-    one offset, or one per pose: N×3)."""
+    one offset, or one per pose: N×3); with ``jacobian`` their derivatives, and with
+    ``angular`` also those of the flange orientation (``W_rows``)."""
     q = np.atleast_2d(np.asarray(q, dtype=np.float64))
     N, n = q.shape
     if n != model.dof:
@@ -106,19 +102,26 @@ def target_kinematics(
         return TargetKinematics(
             p=p, R_flange=R, J_rows=np.zeros((N, 3, 0)), axes=np.zeros((N, 3, 0))
         )
+    # θ, α and β turn about an axis through a point: ∂p = axis × (p − point), all rows at
+    # once; d and a move along a direction.
+    turns = [(0, 0, 1), (3, 4, 5), (4, 6, 7)]  # (column in the row, axis, point) of rec
+    axis = np.stack([r[a] for r in rec for _, a, _ in turns], axis=2)  # N×3×3n
+    arm = p[:, :, None] - np.stack([r[o] for r in rec for _, _, o in turns], axis=2)
+    cross = np.empty_like(axis)
+    cross[:, 0] = axis[:, 1] * arm[:, 2] - axis[:, 2] * arm[:, 1]
+    cross[:, 1] = axis[:, 2] * arm[:, 0] - axis[:, 0] * arm[:, 2]
+    cross[:, 2] = axis[:, 0] * arm[:, 1] - axis[:, 1] * arm[:, 0]
+    rows = np.arange(n)
     J = np.empty((N, 3, 5 * n))
-    W = np.zeros((N, 3, 5 * n))
-    axes = np.empty((N, 3, n))
-    for i, (z_th, o_th, d_dir, a_dir, al_axis, al_org, be_axis, be_org) in enumerate(rec):
-        J[:, :, 5 * i + 0] = _cross(z_th, p - o_th)
-        J[:, :, 5 * i + 1] = d_dir
-        J[:, :, 5 * i + 2] = a_dir
-        J[:, :, 5 * i + 3] = _cross(al_axis, p - al_org)
-        J[:, :, 5 * i + 4] = _cross(be_axis, p - be_org)
-        W[:, :, 5 * i + 0] = z_th
-        W[:, :, 5 * i + 3] = al_axis
-        W[:, :, 5 * i + 4] = be_axis
-        axes[:, :, i] = z_th
+    W = np.zeros((N, 3, 5 * n)) if angular else None
+    for k, (col, _, _) in enumerate(turns):
+        J[:, :, 5 * rows + col] = cross[:, :, k::3]
+        if W is not None:
+            W[:, :, 5 * rows + col] = axis[:, :, k::3]
+    del arm, cross
+    J[:, :, 5 * rows + 1] = np.stack([r[2] for r in rec], axis=2)
+    J[:, :, 5 * rows + 2] = np.stack([r[3] for r in rec], axis=2)
+    axes = np.ascontiguousarray(axis[:, :, 0::3])
     return TargetKinematics(p=p, R_flange=R, J_rows=J, axes=axes, W_rows=W)
 
 

@@ -157,9 +157,10 @@ def initial_state(
     Rp = Rs[g.session]
     A = np.zeros((N, 3, 3 * T + 3 * S))
     RR = np.einsum("nij,njk->nik", Rp, k.R_flange)
-    for n in range(N):
-        A[n, :, 3 * g.target[n] : 3 * g.target[n] + 3] = RR[n]
-        A[n, :, 3 * T + 3 * g.session[n] : 3 * T + 3 * g.session[n] + 3] = np.eye(3)
+    rows = np.arange(N)
+    for c in range(3):
+        A[rows, :, 3 * g.target + c] = RR[:, :, c]
+        A[rows, c, 3 * T + 3 * g.session + c] = 1.0
     b = measured - np.einsum("nij,nj->ni", Rp, k.p - k.R_flange @ model.tool)
     sol, _, rank, _ = np.linalg.lstsq(A.reshape(-1, A.shape[2]), b.reshape(-1), rcond=1e-9)
     tools = sol[: 3 * T].reshape(T, 3) if rank == A.shape[2] else np.tile(model.tool, (T, 1))
@@ -206,8 +207,13 @@ class Data:
         return out
 
     def jacobian(self, state: State, specs: tuple[ParameterSpec, ...]) -> Array:
-        _, J = jacobian(state, self.q, specs, self.groups, self.orientations is not None)
-        return J
+        return self.jacobian_and_positions(state, specs)[1]
+
+    def jacobian_and_positions(
+        self, state: State, specs: tuple[ParameterSpec, ...]
+    ) -> tuple[Array, Array]:
+        """Predicted positions (N×3) and the Jacobian (N×3×P or N×6×P), from one pass."""
+        return jacobian(state, self.q, specs, self.groups, self.orientations is not None)
 
     def subset(self, rows: Index) -> Data:
         o = None if self.orientations is None else self.orientations[rows]

@@ -18,6 +18,7 @@ from cellcal.calib.identification import (
 )
 from cellcal.calib.observations import on_a_line
 from cellcal.calib.outliers import OUTLIER_Z, PointResidual, point_residuals
+from cellcal.calib.parameter_choice import FOLDS
 from cellcal.calib.validation import (
     Validation,
     cross_validate,
@@ -51,6 +52,23 @@ def at_nominal_text(res: CalibrationResult) -> str:
     return "; ".join(parts) or "none"
 
 
+def choice_text(res: CalibrationResult) -> str | None:
+    """How the k-fold held-out error chose among the noise-hidden parameters."""
+    c = res.parameter_choice
+    if c is None:
+        return None
+    freed = ", ".join(c.freed) if c.freed else "none"
+    line = (
+        f"{FOLDS}-fold held-out error of the noise-hidden parameters' choice: "
+        f"{c.rule_mm:.4g} left out, {c.chosen_mm:.4g} chosen (freed: {freed})"
+    )
+    if c.tempting:
+        line += "; lower but beyond tolerance: " + ", ".join(
+            f"{n} {cv:.4g}" for n, cv in c.tempting
+        )
+    return line
+
+
 def echo_points(points: tuple[PointResidual, ...], title: str) -> None:
     """The per-point table: name, residual vector, length, robust z, flag (mm)."""
     width = max([len(p.name) for p in points] + [5])
@@ -77,6 +95,9 @@ def _report(
         f"identified {len(res.identified)} of {n_all} parameters, plus the sensor frame; "
         f"left at nominal: {at_nominal_text(res)}"
     )
+    chosen = choice_text(res)
+    if chosen is not None:
+        click.echo(chosen)
     line = f"condition number {res.condition_number:.3g}"
     if res.identifiability.correlated:
         pairs = ", ".join(f"{a}–{b} (ρ {r:+.3f})" for a, b, r in res.identifiability.correlated)
@@ -334,6 +355,18 @@ def calibrate(
                 "outside_mm": PAPER_OUTSIDE_MM,
             },
             "at_nominal": {p.name: p.at_nominal for p in res.parameters if not p.identified},
+            "parameter_choice": None
+            if res.parameter_choice is None
+            else {
+                "folds": FOLDS,
+                "rule_mm": res.parameter_choice.rule_mm,
+                "chosen_mm": res.parameter_choice.chosen_mm,
+                "freed": list(res.parameter_choice.freed),
+                "tried": [
+                    {"name": n, "kfold_mm": cv, "plausible": ok}
+                    for n, cv, ok in res.parameter_choice.tried
+                ],
+            },
             "points": [p.as_dict() for p in points],
             "outliers": [p.name for p in points if p.outlier],
             "warnings": list(res.warnings),
