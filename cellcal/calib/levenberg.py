@@ -45,7 +45,7 @@ STEP_TOL = 1e-3
 #: A looser stop, and a budget of passes, for a fit whose estimates serve only to judge
 #: which parameters to keep (σ₀ and the Jacobian there change little after a few passes).
 COARSE = 0.1
-COARSE_PASSES = 12
+COARSE_PASSES = 6
 #: Passes allowed per parameter (MINPACK's default budget: a curved valley, as an
 #: over-parameterised real robot has, can take a few hundred).
 PASSES_PER_PARAMETER = 100
@@ -117,24 +117,40 @@ def linearise(
     state: State, specs: tuple[ParameterSpec, ...], data: Data, w: Array, chunk: int = CHUNK
 ) -> Linearisation:
     """One pass over the poses: JᵀJ, Jᵀr and ‖r‖² (weighted) at ``state``."""
+    return linearise_folds(state, specs, data, w, 1, chunk)[0]
+
+
+def linearise_folds(
+    state: State,
+    specs: tuple[ParameterSpec, ...],
+    data: Data,
+    w: Array,
+    folds: int,
+    chunk: int = CHUNK,
+) -> list[Linearisation]:
+    """One pass over the poses, its sums kept apart per fold (pose i in fold i mod
+    ``folds``): the whole problem's are their sums."""
     P = len(specs)
     N = len(data.q)
-    G = np.zeros((P, P))
-    g = np.zeros(P)
-    cost = 0.0
+    G = np.zeros((folds, P, P))
+    g = np.zeros((folds, P))
+    cost = np.zeros(folds)
     for start in range(0, N, chunk):
         rows = np.arange(start, min(N, start + chunk))
         sub = data.subset(rows) if chunk < N else data
         m, J = sub.jacobian_and_positions(state, specs)
         r = sub.measured - m if sub.orientations is None else sub.residuals(state)
         ww = w[rows]
-        rw = (r * ww).reshape(-1)
+        r *= ww
         J *= ww[:, :, None]
-        Jw = J.reshape(-1, P)
-        G += Jw.T @ Jw
-        g += Jw.T @ rw
-        cost += float(rw @ rw)
-    return Linearisation(G, g, cost)
+        for k in range(folds):
+            mine = slice(None) if folds == 1 else (rows % folds) == k
+            Jw = J[mine].reshape(-1, P)
+            rw = r[mine].reshape(-1)
+            G[k] += Jw.T @ Jw
+            g[k] += Jw.T @ rw
+            cost[k] += float(rw @ rw)
+    return [Linearisation(G[k], g[k], float(cost[k])) for k in range(folds)]
 
 
 def _solve(lin: Linearisation, scale: Array, damping: float) -> Array:
@@ -147,6 +163,11 @@ def _solve(lin: Linearisation, scale: Array, damping: float) -> Array:
         x = np.linalg.lstsq(A, lin.g / d, rcond=None)[0]
     out: Array = x / d
     return out
+
+
+def solve_step(lin: Linearisation) -> Array:
+    """The Gauss–Newton step: argmin ‖Jδ − r‖²."""
+    return _solve(lin, lin.scale, 0.0)
 
 
 def remaining_step(lin: Linearisation) -> float:

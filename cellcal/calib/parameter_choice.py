@@ -21,8 +21,6 @@ import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
-import numpy as np
-
 from cellcal.calib import levenberg
 from cellcal.calib.error_model import ParameterSpec, State
 from cellcal.calib.geometry import Array
@@ -65,19 +63,21 @@ def kfold_rms(
     w: Array,
     folds: int = FOLDS,
 ) -> float:
-    """RMS of the weighted residuals of each fold's poses under a fit of ``sel`` to the
-    other folds (each fit starting from ``state``)."""
-    N = len(data.q)
+    """RMS (per pose, weighted) of each fold's residuals predicted by a fit of ``sel`` to
+    the other folds. The fits are Gauss–Newton steps from ``state`` (a fit to all the
+    poses) on the other folds' normal equations — one pass over the poses for all folds,
+    exact to first order: removing a fifth of the poses moves the solution by about its
+    uncertainty, where the model is linear to far below the noise."""
+    parts = levenberg.linearise_folds(state, sel, data, w, folds)
+    G = sum(p.G for p in parts)
+    g = sum(p.g for p in parts)
     total = 0.0
-    count = 0
-    for k in range(folds):
-        test = np.arange(k, N, folds)
-        train = np.setdiff1d(np.arange(N), test)
-        fit = levenberg.fit(state, sel, data.subset(train), w[train])
-        r = data.subset(test).residuals(fit.state) * w[test]
-        total += float(np.sum(r[:, :3] ** 2))
-        count += len(test)
-    return math.sqrt(total / max(count, 1))
+    for p in parts:
+        train = levenberg.Linearisation(G - p.G, g - p.g, 0.0)
+        delta = levenberg.solve_step(train)
+        # the fold's residuals after the step: r − J·δ
+        total += p.cost - 2.0 * float(delta @ p.g) + float(delta @ p.G @ delta)
+    return math.sqrt(max(total, 0.0) / max(len(data.q), 1))
 
 
 def choose(
@@ -116,7 +116,7 @@ def choose(
             if n_train * w.shape[1] < EQUATIONS_PER_PARAMETER * len(sel):
                 continue
             try:
-                full = levenberg.fit(state, sel, data, w).state
+                full = levenberg.fit(state, sel, data, w, tol=levenberg.COARSE).state
                 ok = plausible(full, sel)
                 cv = kfold_rms(full, sel, data, w)
             except CellcalError:
