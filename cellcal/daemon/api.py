@@ -4,7 +4,9 @@ from the event stream. Errors have one shape: ``{"error": {"code", "message"}}``
 one line of message, whatever refused the request (``api_requests.py`` reads and checks
 each with bounds before anything acts on it). Every mutating call records the caller
 (SO_PEERCRED) in the campaign's events. The event stream sends a keep-alive comment
-when quiet, and drops a watcher that takes nothing in."""
+when quiet, and drops a watcher that takes nothing in, or that falls behind by more
+than ``WATCHER_BACKLOG`` events (what waits for each watcher is bounded: a slow one
+neither grows the service nor holds up the campaign, which never waits for a watcher)."""
 
 from __future__ import annotations
 
@@ -56,30 +58,66 @@ EVENT_BUFFER = 2000
 KEEPALIVE_S = 15.0
 #: Seconds a watcher may take to take in what is sent to it; a slower one is dropped.
 SEND_TIMEOUT_S = 30.0
+#: Events that may wait for one watcher; one further behind is dropped. Half the replay
+#: buffer: a dropped watcher that reconnects with ``Last-Event-ID`` finds what it missed.
+WATCHER_BACKLOG = EVENT_BUFFER // 2
 SO_PEERGROUPS = 59  # Linux 4.13+, not in Python's socket module
 
 
+#: What an event stream's queue holds: an event (id, kind, data), or its end: ``None``
+#: (the service stops) or :data:`BEHIND` (the watcher fell behind and is dropped).
+Item = tuple[int, str, str] | None | str
+BEHIND = "behind"
+
+
 class EventHub:
-    """The event stream's buffer and its listeners (loop thread only)."""
+    """The event stream's buffer and its listeners (loop thread only). Each listener's
+    queue holds at most :data:`WATCHER_BACKLOG` events: publishing never waits, and a
+    listener that falls further behind is dropped at once — its queue emptied and ended,
+    its ``drop`` called (which closes its connection)."""
 
     def __init__(self) -> None:
         self.next_id = 1
         self.buffer: deque[tuple[int, str, str]] = deque(maxlen=EVENT_BUFFER)
-        self.listeners: set[asyncio.Queue[tuple[int, str, str] | None]] = set()
+        self.listeners: dict[asyncio.Queue[Item], Callable[[], None]] = {}
+        self.dropped = 0  # listeners dropped for falling behind
+
+    def listen(self, drop: Callable[[], None] = lambda: None) -> asyncio.Queue[Item]:
+        """A new listener's queue, bounded; ``drop``: called if it falls behind."""
+        q: asyncio.Queue[Item] = asyncio.Queue(maxsize=WATCHER_BACKLOG)
+        self.listeners[q] = drop
+        return q
 
     def publish(self, kind: str, data: dict[str, Any]) -> None:
         item = (self.next_id, kind, json.dumps(data, separators=(",", ":")))
         self.next_id += 1
         self.buffer.append(item)
-        for q in self.listeners:
-            q.put_nowait(item)
+        for q in list(self.listeners):
+            try:
+                q.put_nowait(item)
+            except asyncio.QueueFull:
+                drop = self.listeners.pop(q)
+                self.dropped += 1
+                _end(q, BEHIND)
+                drop()
 
     def since(self, last_id: int) -> list[tuple[int, str, str]]:
         return [e for e in self.buffer if e[0] > last_id]
 
     def close(self) -> None:
+        """The service stops: each stream ends after what waits for it (a full one now)."""
         for q in self.listeners:
-            q.put_nowait(None)
+            try:
+                q.put_nowait(None)
+            except asyncio.QueueFull:
+                _end(q, None)
+
+
+def _end(q: asyncio.Queue[Item], mark: Item) -> None:
+    """End a listener's stream: what waits in its queue is dropped, ``mark`` follows."""
+    while not q.empty():
+        q.get_nowait()
+    q.put_nowait(mark)
 
 
 @dataclass(frozen=True)
@@ -255,7 +293,6 @@ async def events(request: web.Request) -> web.StreamResponse:
         headers={"Content-Type": "text/event-stream", "Cache-Control": "no-cache"}
     )
     await resp.prepare(request)
-    q: asyncio.Queue[tuple[int, str, str] | None] = asyncio.Queue()
     header = request.headers.get("Last-Event-ID")
     try:
         last = int(header) if header else None
@@ -264,8 +301,14 @@ async def events(request: web.Request) -> web.StreamResponse:
     # A new watcher starts from now (with a snapshot); one that reconnects gets what
     # it missed, as far as the buffer reaches.
     backlog = svc.hub.since(last) if last is not None else []
-    svc.hub.listeners.add(q)
-    # A watcher that goes away ends its stream; nothing else is wrong then.
+
+    def behind() -> None:  # dropped for falling behind: closed at once, a send with it
+        log.info("an event stream's reader fell %d events behind: dropped", WATCHER_BACKLOG)
+        if request.transport is not None:
+            request.transport.abort()
+
+    q = svc.hub.listen(behind)
+    # A watcher that goes away (or is dropped) ends its stream; nothing else is wrong.
     try:
         with contextlib.suppress(ConnectionResetError):
             await _stream_events(svc, resp, q, backlog)
@@ -279,9 +322,10 @@ async def events(request: web.Request) -> web.StreamResponse:
 async def _stream_events(
     svc: Service,
     resp: web.StreamResponse,
-    q: asyncio.Queue[tuple[int, str, str] | None],
+    q: asyncio.Queue[Item],
     backlog: list[tuple[int, str, str]],
 ) -> None:
+    """The backlog, a status, then what the hub publishes, until the stream's end."""
     try:
         for item in backlog:
             await _send(resp, item)
@@ -295,11 +339,11 @@ async def _stream_events(
             except TimeoutError:
                 await _write(resp, b": keep-alive\n\n")  # a comment: EventSource skips it
                 continue
-            if pending is None:
-                break
+            if pending is None or isinstance(pending, str):
+                return
             await _send(resp, pending)
     finally:
-        svc.hub.listeners.discard(q)
+        svc.hub.listeners.pop(q, None)
 
 
 async def _send(resp: web.StreamResponse, item: tuple[int, str, str]) -> None:

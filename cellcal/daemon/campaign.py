@@ -20,9 +20,14 @@ from cellcal.config import CellConfig, config_from_dict, upgrade_stored
 from cellcal.daemon.analysis import CampaignSummary, analyse
 from cellcal.daemon.devices import Devices, build_devices
 from cellcal.daemon.engine import Acquisition, PhaseWatcher, acquire
-from cellcal.daemon.locks import RunLock, robot_claim
+from cellcal.daemon.locks import RunLock, claimed_address, robot_claim
 from cellcal.daemon.plan import CALIBRATION, VALIDATION, Plan, make_plan, plan_identifiability
-from cellcal.daemon.plan_checks import LIMITS_EVENT, limits_record, same_limits
+from cellcal.daemon.plan_checks import (
+    LIMITS_EVENT,
+    limits_record,
+    refuse_moves_outside,
+    same_limits,
+)
 from cellcal.daemon.records import (
     CampaignEnded,
     CampaignEvent,
@@ -79,6 +84,9 @@ def _plan(config: CellConfig) -> tuple[Plan, RobotModel]:
             f"{n_cal} calibration poses give {3 * n_cal} equations for {needed} identifiable "
             f"parameters; plan at least {needed // 3 + 1} (campaign.grid)"
         )
+    # ... and one whose moves the safety gate would refuse on the way.
+    poses = [(p.idx, p.q) for p in plan.poses]
+    refuse_moves_outside(config.campaign, nominal, home, poses, target_offset)
     return plan, nominal
 
 
@@ -249,10 +257,17 @@ def start_campaign(
     if clock is None:
         clock = SimulatedClock(time_scale) if mock else WallClock()
     claim = robot_claim(config, _holder(db_path), needed=not mock and devices is None)
-    with RunLock(db_path), claim:
+    with RunLock(db_path), claim as held:
         own = devices is None
         if devices is None:
-            devices = build_devices(config, nominal, clock, mock=mock, seed=config.simulation.seed)
+            devices = build_devices(
+                config,
+                nominal,
+                clock,
+                mock=mock,
+                seed=config.simulation.seed,
+                robot_address=claimed_address(held),
+            )
         try:
             store = Store(db_path)
         except BaseException:
@@ -421,7 +436,7 @@ def resume_campaign(
             if row.status in ("complete", "aborted"):
                 raise CampaignError(f"campaign {campaign_id} is already {row.status}")
             config, plan, nominal = stored_plan(store, campaign_id)
-            claims.enter_context(robot_claim(config, _holder(db_path), needed=not row.mock))
+            held = claims.enter_context(robot_claim(config, _holder(db_path), needed=not row.mock))
             stored = len(store.completed_indices(campaign_id))
             scale = time_scale if time_scale is not None else (row.time_scale or 0.0)
             # The simulated clock goes on from the last stored pose; the noise is fresh.
@@ -437,6 +452,7 @@ def resume_campaign(
                 mock=row.mock,
                 seed=config.simulation.seed,
                 noise_stream=stored,
+                robot_address=claimed_address(held),
             )
             stream = _stream(store, subscribers)
             try:

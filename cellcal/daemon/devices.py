@@ -1,7 +1,8 @@
 """The one factory that turns a configuration into devices: a loop over the configured
 devices, each built by its family (``cellcal/families.py``).
 
-Real mode: each device's driver, from its options, at its configured address. Mock
+Real mode: each device's driver, from its options, at its configured address (the
+robot at the address its claim resolved, when given). Mock
 mode (the only place allowed to build simulated devices): the simulated cell, and for
 each device its family's twin — a protocol-level server on a loopback address that
 serves what the configured device would — with the *same* driver built from the options
@@ -101,8 +102,13 @@ def build_devices(
     mock: bool,
     seed: int | None,
     noise_stream: int = 0,
+    robot_address: str | None = None,
 ) -> Devices:
-    """Connect the configured devices, or in mock mode their twins'."""
+    """Connect the configured devices, or in mock mode their twins'. ``robot_address``
+    (real mode): where the robot's driver connects instead of ``robot.address`` as
+    written — the address the robot's claim resolved it to
+    (:func:`cellcal.daemon.locks.claimed_address`), so that a name is not resolved a
+    second time, perhaps to another machine."""
     cell = None
     if mock:
         from cellcal.mocks.simulated_cell import SimulatedCell
@@ -113,8 +119,11 @@ def build_devices(
     servers: list[Closeable] = []
     opened: list[PositionSensor] = []
     try:
+        robot_options = config.robot
+        if robot_address and not mock:
+            robot_options = robot_options.model_copy(update={"address": robot_address})
         robot = _guarded(
-            _build(config.robot, context, mock=mock, time_scale=time_scale, servers=servers),
+            _build(robot_options, context, mock=mock, time_scale=time_scale, servers=servers),
             config,
             nominal,
         )

@@ -34,6 +34,7 @@ from cellcal.clock import Clock
 from cellcal.daemon.plan import Plan, PlannedPose
 from cellcal.daemon.records import CampaignEvent, PoseStored, RecordStream
 from cellcal.drivers.base import PositionSensor, Robot, Series
+from cellcal.drivers.safety import SafetyError
 from cellcal.errors import DeviceError, NoTargetError
 
 log = logging.getLogger("cellcal.engine")
@@ -164,12 +165,15 @@ def _visit(
     """One pose, measured; None if a stop request came first."""
     t_start = clock.now()
     phase("move", pose, t_start)
-    robot.move_joints(pose.q, speed)
+    try:
+        robot.move_joints(pose.q, speed)
+    except SafetyError as exc:  # the gate knows joints, the engine which pose they are
+        raise exc.at_pose(pose.idx) from None
     reached = robot.actual_joints()
     if float(np.max(np.abs(reached - pose.q))) > IN_POSITION_TOL:
         raise DeviceError(
-            f"{robot.name}: reports {np.degrees(reached).round(3).tolist()}° after a "
-            f"move to {np.degrees(pose.q).round(3).tolist()}° (pose {pose.idx})"
+            f"pose {pose.idx}: {robot.name}: reports {np.degrees(reached).round(3).tolist()}° "
+            f"after a move to {np.degrees(pose.q).round(3).tolist()}°"
         )
     phase("dwell", pose, clock.now())
     if stop.is_set() or clock.wait(stop, dwell_s):

@@ -30,8 +30,9 @@ from cellcal.config import CellConfig
 from cellcal.daemon.campaign import config_digest, note_devices, queue_campaign
 from cellcal.daemon.devices import build_devices
 from cellcal.daemon.engine import acquire
-from cellcal.daemon.locks import RunLock, robot_claim
+from cellcal.daemon.locks import RunLock, claimed_address, robot_claim
 from cellcal.daemon.plan import Plan, PlannedPose
+from cellcal.daemon.plan_checks import refuse_moves_outside
 from cellcal.daemon.records import CampaignEnded, CampaignEvent, CampaignStarted, RecordStream
 from cellcal.daemon.store import Store
 from cellcal.daemon.store_writer import StoreWriter
@@ -114,6 +115,10 @@ def iso_plan(config: CellConfig, calibrated: LoadedModel, cycles: int) -> Plan:
         for _ in range(cycles):
             for k in range(5):
                 poses.append(PlannedPose(len(poses), role, f"P{k + 1}", points[k], q[k]))
+    # The moves as the safety gate will check them (its target: the reference sensor's).
+    gate_offset = np.asarray(config.reference_sensor.target_offset_mm, dtype=np.float64)
+    moves = [(p.idx, p.q) for p in poses]
+    refuse_moves_outside(config.campaign, nominal, home, moves, gate_offset)
     return Plan(tuple(poses), ())
 
 
@@ -136,8 +141,15 @@ def run_iso9283(
     reference = config.reference_sensor.name
     clock = SimulatedClock(time_scale) if mock else WallClock()
     holder = f"cellcal iso9283 on {Path(db_path).resolve()}"
-    with RunLock(db_path), robot_claim(config, holder, needed=not mock):
-        devices = build_devices(config, nominal, clock, mock=mock, seed=config.simulation.seed)
+    with RunLock(db_path), robot_claim(config, holder, needed=not mock) as held:
+        devices = build_devices(
+            config,
+            nominal,
+            clock,
+            mock=mock,
+            seed=config.simulation.seed,
+            robot_address=claimed_address(held),
+        )
         try:
             store = Store(db_path)
             try:

@@ -8,7 +8,10 @@ file, so a refusal names it.
 - :class:`RobotClaim`: one process per robot, whatever the database: two campaigns never
   drive one robot. The claim is keyed on where the driver connects — the address
   resolved to its IP addresses and port (``localhost``, ``127.1`` and ``0x7f000001`` are
-  all 127.0.0.1), or a device's node — never on how the address is spelled. The claims
+  all 127.0.0.1; a UR controller on its RTDE port and its Modbus port alike, so that
+  the ``ur`` and the ``modbus`` driver meet on one arm), or a device's node — never on
+  how the address is spelled, and the driver then connects to the address the claim
+  resolved (:attr:`RobotClaim.address`), not to the name resolved again. The claims
   live in ``/run/lock`` (``$CELLCAL_LOCK_DIR`` elsewhere), a folder every user may write
   and the service's unit leaves writable. A mock robot is the process's own twin:
   nothing to claim.
@@ -33,7 +36,7 @@ import stat
 from pathlib import Path
 
 from cellcal.config import CellConfig
-from cellcal.daemon.robot_endpoint import robot_endpoint
+from cellcal.daemon.robot_endpoint import RobotEndpoint, robot_endpoint
 from cellcal.errors import CampaignError
 
 DEFAULT_LOCK_DIR = "/run/lock"
@@ -194,15 +197,24 @@ def _slug(key: str) -> str:
 
 class RobotClaim:
     """One process per robot: ``cellcal-robot-<endpoint>.lock`` in the lock folder, one
-    for each address the robot's host resolves to (``tcp-127.0.0.1-502``), or for a
-    device its node (``dev-188-0``)."""
+    for each address the robot's host resolves to and each port the robot is reached
+    on (``tcp-127.0.0.1-502``; a UR's ``tcp-127.0.0.1-30004`` and ``-502``), or for a
+    device its node (``dev-188-0``). Once held, :attr:`address` is where the driver is
+    to connect: the address the claim resolved."""
 
     def __init__(self, driver: str, address: str, holder: str) -> None:
         self.driver = driver
-        self.address = address
+        self.configured = address
         self.holder = holder
         self.locks: list[_Lock] = []
         self.previous = ""
+        self.endpoint: RobotEndpoint | None = None
+
+    @property
+    def address(self) -> str | None:
+        """The robot's address for its driver, as the claim resolved it (None before
+        the claim is held, or for a driver that takes its address as configured)."""
+        return (self.endpoint.connect or None) if self.endpoint is not None else None
 
     @property
     def fd(self) -> int | None:
@@ -218,9 +230,9 @@ class RobotClaim:
             raise CampaignError(
                 f"{folder}: no such folder for the robot claims (set CELLCAL_LOCK_DIR)"
             )
-        endpoint = robot_endpoint(self.driver, self.address)
-        robot = f"the {self.driver} robot at {self.address or 'its default address'}"
-        if endpoint.shown and endpoint.shown != self.address:
+        endpoint = robot_endpoint(self.driver, self.configured)
+        robot = f"the {self.driver} robot at {self.configured or 'its default address'}"
+        if endpoint.shown and endpoint.shown != self.configured:
             robot += f" ({endpoint.shown})"
         refusal = robot + " is claimed by"
         try:
@@ -233,12 +245,14 @@ class RobotClaim:
             self.__exit__()
             raise
         self.previous = next((lock.previous for lock in self.locks if lock.previous), "")
+        self.endpoint = endpoint
         return self
 
     def __exit__(self, *exc: object) -> None:
         for lock in reversed(self.locks):
             lock.__exit__()
         self.locks = []
+        self.endpoint = None
 
 
 def _database(db_path: str) -> tuple[os.stat_result, bool]:
@@ -351,9 +365,17 @@ class RunLock:
 
 def robot_claim(
     config: CellConfig, holder: str, *, needed: bool
-) -> contextlib.AbstractContextManager[object]:
+) -> contextlib.AbstractContextManager[RobotClaim | None]:
     """The claim on the configuration's robot when ``needed``: not in mock mode (the
-    twin is the process's own), nor on devices a caller holds (and has claimed)."""
+    twin is the process's own), nor on devices a caller holds (and has claimed). It
+    gives the claim held (None when not needed): :func:`claimed_address` of it is where
+    the driver connects."""
     if not needed:
         return contextlib.nullcontext()
     return RobotClaim(config.robot.driver, config.robot.address, holder)
+
+
+def claimed_address(claim: RobotClaim | None) -> str | None:
+    """Where the claimed robot's driver connects (``build_devices(robot_address=…)``):
+    the address its claim resolved; None without a claim (mock mode, devices held)."""
+    return claim.address if claim is not None else None

@@ -1,11 +1,15 @@
 """What a plan must not start with, checked before any work (pure): a robot model
 without finite, plausible joint limits, a home outside them, and a plan whose work is
 out of proportion (too many grid points, validation regions or poses to solve, an
-optimal selection too large). Each is refused with one line naming the bound."""
+optimal selection too large). Each is refused with one line naming the bound. And what
+a campaign must not start with once its plan is made: a move between its poses that
+leaves the workspace box on the way (:func:`refuse_moves_outside`), which the safety
+gate would refuse in the middle of the campaign."""
 
 from __future__ import annotations
 
 import json
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -13,7 +17,7 @@ from cellcal.calib.geometry import Array
 from cellcal.calib.pose_selection import SELECTION_BUDGET
 from cellcal.calib.robot_model import RobotModel, require_limits
 from cellcal.config import CampaignConfig
-from cellcal.daemon.plan_region import REGION_CANDIDATES, REGION_MAX_DRAWS, WORKSPACE
+from cellcal.daemon.plan_region import REGION_CANDIDATES, REGION_MAX_DRAWS, WORKSPACE, box
 from cellcal.drivers.safety import PathExcursion, path_excursion
 from cellcal.errors import CampaignError, InputError
 
@@ -110,6 +114,49 @@ def moves_outside(
             out[k] = far
         here = row
     return out
+
+
+def refuse_moves_outside(
+    cfg: CampaignConfig,
+    model: RobotModel,
+    home_q: Array,
+    poses: Sequence[tuple[int, Array]],
+    target_offset: Array,
+) -> None:
+    """Refuse, in one line, a campaign whose plan moves out of the workspace box on the
+    way from one pose to the next (``poses``: each pose's number, as the engine numbers
+    them, and its joints, rad, in the order visited from ``home_q``), as the safety gate
+    samples the move: the first such move, from which pose to which and by how far,
+    how many there are and the worst."""
+    if not poses:
+        return
+    lo, hi = box(cfg)
+    q = np.array([p[1] for p in poses], dtype=np.float64).reshape(len(poses), -1)
+    out = moves_outside(model, home_q, q, target_offset, lo, hi)
+    if not out:
+        return
+    k, first = next(iter(out.items()))
+    start = "home (robot.home_deg)" if k == 0 else f"pose {poses[k - 1][0]}"
+    if first.fraction == 0.0:
+        when = "at its start"
+    elif first.fraction == 1.0:
+        when = "at its end"
+    else:
+        when = f"on the way, {100 * first.fraction:.0f} % into the joint move"
+    at = np.round(first.where_mm, 1).tolist()
+    worst = max(out.values(), key=lambda e: e.excess_mm)
+    more = (
+        f"; {len(out)} of its {len(poses)} moves leave it, the worst by "
+        f"{worst.excess_mm:.1f} mm (cellcal plan lists them)"
+        if len(out) > 1
+        else ""
+    )
+    raise CampaignError(
+        f"the plan's joint move from {start} to pose {poses[k][0]} leaves the workspace "
+        f"box by {first.excess_mm:.1f} mm {when} (its {first.point} at {at} mm), which "
+        f"the safety gate refuses{more}: widen campaign.workspace_min_mm/max_mm or move "
+        "the cube; nothing was moved"
+    )
 
 
 def limits_record(limits_deg: tuple[tuple[float, float], ...]) -> str:

@@ -8,6 +8,12 @@ driver hands the text to the system's resolver. So the address is resolved the s
 address as IPv4; the unspecified address, which connects to this host, as loopback)
 with its port. A serial device is its node (major:minor) whatever the path to it (a
 ``/dev/serial/by-id`` link, a symlink of one's own).
+
+A robot is one robot however cellcal reaches it: a UR controller through ur_rtde (its
+RTDE port) or through its Modbus TCP server (the ``modbus`` driver, port 502) is one
+claim (:data:`SAME_ROBOT_PORTS`). And the driver connects to the address the claim was
+resolved to (:attr:`RobotEndpoint.connect`), never resolves the name a second time: a
+name that resolved otherwise meanwhile would reach a machine nobody claimed.
 """
 
 from __future__ import annotations
@@ -26,15 +32,23 @@ from cellcal.errors import CampaignError
 #: controller's ports are fixed (RTDE 30004, dashboard 29999, script 30003): its claim
 #: is its host at the RTDE port.
 DEFAULT_PORTS = {"modbus": 502, "ur": 30004}
+#: The other ports of a driver's robot that its claim covers: a UR controller serves
+#: Modbus TCP on 502 too, which the ``modbus`` driver reaches (its default port), so the
+#: same arm configured with either driver is one claim.
+SAME_ROBOT_PORTS = {"ur": (502,)}
 
 
 @dataclass(frozen=True)
 class RobotEndpoint:
-    """A robot's endpoint: ``keys`` (one per resolved address, or the device's node),
-    and ``shown``, the canonical form for messages (``127.0.0.1:502``)."""
+    """A robot's endpoint: ``keys`` (one per resolved address and port the robot is
+    reached on, or the device's node), ``shown``, the canonical form for messages
+    (``127.0.0.1:502``), and ``connect``: the address its driver is to connect to, the
+    one the host resolved to first, in the driver's form (``127.0.0.1:502``, a UR's
+    host alone; "" where the driver takes the address as configured: a device, a URL)."""
 
     keys: tuple[str, ...]
     shown: str
+    connect: str = ""
 
 
 def _canonical(ip: str) -> str:
@@ -94,6 +108,16 @@ def robot_endpoint(driver: str, address: str) -> RobotEndpoint:
             f"robot.address {address!r}: cannot resolve {host!r} ({why}); the robot's "
             "claim is keyed on the address it resolves to"
         ) from None
+    first = _canonical(_address(found[0][4])) if found else ""
     ips = sorted({_canonical(_address(info[4])) for info in found})
-    shown = ", ".join(f"[{ip}]:{port}" if ":" in ip else f"{ip}:{port}" for ip in ips)
-    return RobotEndpoint(tuple(f"tcp-{ip}-{port}" for ip in ips), shown)
+    shown = ", ".join(_joined(ip, port) for ip in ips)
+    ports = (port, *(p for p in SAME_ROBOT_PORTS.get(driver, ()) if p != port))
+    keys = tuple(f"tcp-{ip}-{p}" for ip in ips for p in ports)
+    if "://" in address or not first or driver not in DEFAULT_PORTS:
+        return RobotEndpoint(keys, shown)  # a driver whose address form is not known
+    return RobotEndpoint(keys, shown, first if driver == "ur" else _joined(first, port))
+
+
+def _joined(ip: str, port: int) -> str:
+    """``ip:port``, an IPv6 address in brackets."""
+    return f"[{ip}]:{port}" if ":" in ip else f"{ip}:{port}"

@@ -48,7 +48,7 @@ from cellcal.daemon.connections import (
     refusal,
 )
 from cellcal.daemon.control import Control
-from cellcal.daemon.locks import RunLock, robot_claim
+from cellcal.daemon.locks import RunLock, claimed_address, robot_claim
 from cellcal.daemon.page import HttpAddress, make_page_app
 from cellcal.daemon.sdnotify import Notifier
 from cellcal.daemon.shown import campaign_view, stored_poses
@@ -292,7 +292,7 @@ async def serve(opts: DaemonOptions) -> int:
     holder = f"the cellcal service on {opts.db_path}"
     with (
         RunLock(opts.db_path, "the cellcal service") as lock,
-        robot_claim(opts.config, holder, needed=not opts.mock),
+        robot_claim(opts.config, holder, needed=not opts.mock) as claim,
     ):
         store = Store(opts.db_path)
         try:
@@ -309,7 +309,15 @@ async def serve(opts: DaemonOptions) -> int:
             svc: Service = runner.app["svc"]
             page = await _page(svc, opts.http, budget) if opts.http is not None else None
             svc.group_id = await _listen(runner, opts.socket_path, budget.control)
-            worker = Worker(control, opts.config, nominal, opts.db_path, clock, mock=opts.mock)
+            worker = Worker(
+                control,
+                opts.config,
+                nominal,
+                opts.db_path,
+                clock,
+                mock=opts.mock,
+                robot_address=claimed_address(claim),
+            )
             worker.start()
             stopped = asyncio.Event()
             for signum in (signal.SIGTERM, signal.SIGINT):

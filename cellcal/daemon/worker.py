@@ -9,6 +9,7 @@ from __future__ import annotations
 import contextlib
 import json
 import logging
+import re
 import threading
 
 from cellcal.calib.robot_model import RobotModel
@@ -39,7 +40,9 @@ def device_names(config: CellConfig) -> list[str]:
 
 
 def faulty_device(config: CellConfig, message: str) -> str | None:
-    """Which device a connection error names, if any."""
+    """Which device a connection error names, if any (after the pose it was at, which
+    the engine names first: ``pose 3: robot: …``)."""
+    message = re.sub(r"^pose \d+: ", "", message)
     for name in device_names(config)[1:]:
         if f"sensor {name}" in message or message.startswith((f"{name}:", f"{name} at ")):
             return name
@@ -61,8 +64,11 @@ class Worker(threading.Thread):
         clock: Clock,
         *,
         mock: bool,
+        robot_address: str | None = None,
     ) -> None:
         super().__init__(name="engine", daemon=True)
+        #: where the robot's driver connects: the address the service's claim resolved
+        self.robot_address = robot_address
         self.control = control
         self.config = config
         self.nominal = nominal
@@ -127,6 +133,7 @@ class Worker(threading.Thread):
                 mock=self.mock,
                 seed=self.config.simulation.seed,
                 noise_stream=self.connections,
+                robot_address=self.robot_address,
             )
         except CellcalError as exc:
             if c.shutting_down:  # stopping: a device that did not connect is no news

@@ -43,6 +43,11 @@ BOX_TOLERANCE_MM = 1e-6
 class SafetyError(DeviceError):
     """A move refused before it was sent."""
 
+    def at_pose(self, idx: int) -> SafetyError:
+        """The same refusal naming the pose of the plan the move was to, as the engine
+        names poses (``pose 3: robot: refused …``), so that an operator finds it."""
+        return SafetyError(f"pose {idx}: {self}")
+
 
 @dataclass(frozen=True)
 class PathExcursion:

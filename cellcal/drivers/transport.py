@@ -94,9 +94,22 @@ class Transport(Protocol):
         ...
 
 
+#: At most this many bytes are taken from the port at once: whatever has arrived, after
+#: the first byte was waited for; what a caller did not ask for waits in the transport.
+CHUNK = 4096
+#: A wait for the first byte is cut into slices of at most this long (s).
+SLICE_S = 0.05
+
+
 class SerialUrlTransport:
     """A pyserial ``serial_for_url`` port (serial device, pty path, ``socket://`` or
-    ``rfc2217://``); any other URL kind is refused here, before anything is opened."""
+    ``rfc2217://``); any other URL kind is refused here, before anything is opened.
+
+    A read waits for the first byte (in slices of :data:`SLICE_S`, until its timeout),
+    then takes without waiting whatever else has arrived, up to :data:`CHUNK` bytes, and
+    keeps what the caller did not ask for for the next read: two calls to the port for a
+    burst of bytes, where pyserial's ``socket://`` port, whose ``in_waiting`` says only
+    whether something waits, gave one byte a call."""
 
     def __init__(self, url: str, *, baudrate: int = 115200, connect_timeout: float = 5.0) -> None:
         check_address(url)
@@ -104,6 +117,7 @@ class SerialUrlTransport:
         self.baudrate = baudrate
         self.connect_timeout = connect_timeout
         self._port: serial.SerialBase | None = None
+        self._pending = bytearray()  # received, not yet read
 
     @property
     def is_open(self) -> bool:
@@ -117,7 +131,7 @@ class SerialUrlTransport:
             port = serial.serial_for_url(
                 self.url,
                 baudrate=self.baudrate,
-                timeout=0.05,
+                timeout=SLICE_S,
                 write_timeout=self.connect_timeout,
                 do_not_open=True,
             )
@@ -127,6 +141,7 @@ class SerialUrlTransport:
         self._port = port
 
     def close(self) -> None:
+        self._pending.clear()  # what came before a reconnect is not the new link's
         if self._port is not None:
             with contextlib.suppress(serial.SerialException, OSError):
                 self._port.close()
@@ -142,17 +157,28 @@ class SerialUrlTransport:
             raise TransportError(f"{self.url}: write failed ({exc})") from None
 
     def read(self, max_bytes: int, timeout: float) -> bytes:
-        if self._port is None:
+        port = self._port
+        if port is None:
             raise TransportError(f"{self.url}: not open")
-        deadline = time.monotonic() + max(timeout, 0.0)
-        try:
-            while True:
-                self._port.timeout = max(0.0, min(0.05, deadline - time.monotonic()))
-                waiting = max(1, min(max_bytes, self._port.in_waiting or 1))
-                data = bytes(self._port.read(waiting))
-                if data:
-                    return data
-                if time.monotonic() >= deadline:
-                    return b""
-        except (serial.SerialException, OSError) as exc:
-            raise TransportError(f"{self.url}: connection lost ({exc})") from None
+        if not self._pending:
+            deadline = time.monotonic() + max(timeout, 0.0)
+            try:
+                while True:
+                    port.timeout = max(0.0, min(SLICE_S, deadline - time.monotonic()))
+                    first = bytes(port.read(1))
+                    if first:
+                        break
+                    if time.monotonic() >= deadline:
+                        return b""
+            except (serial.SerialException, OSError) as exc:
+                raise TransportError(f"{self.url}: connection lost ({exc})") from None
+            self._pending += first
+            # The rest of what has arrived, without waiting; a link lost after these
+            # bytes: they are read, and the next read says it is lost.
+            with contextlib.suppress(serial.SerialException, OSError):
+                port.timeout = 0
+                self._pending += port.read(CHUNK - 1)
+        n = max(1, max_bytes)
+        data = bytes(self._pending[:n])
+        del self._pending[:n]
+        return data
