@@ -6,17 +6,21 @@ STAMP  := $(VENV)/.installed
 
 .PHONY: demo demo-registration test check lint types unit bench clean
 
+# Every extra but the one PyGObject is in (it builds against Debian's packages: $(ARAVIS)
+# below installs them, then `.[all,dev]`): the suite needs them all (pyproject.toml).
+EXTRAS := dev,ur,modbus,opencv,urdf,service,report
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
-	$(BIN)/python -m pip install --quiet -e '.[dev]'
+	$(BIN)/python -m pip install --quiet -e '.[$(EXTRAS)]'
 	touch $(STAMP)
 
 # Aravis, for the `aravis` camera backend and the GigE Vision camera twin: Debian's
 # packages (gcc, libc6-dev, python3-dev: PyGObject is built from source; not aravis-tools,
 # which pulls in GTK), then PyGObject from the `cameras` extra. Without root or
 # password-less sudo scripts/debs.sh prints one line saying what to run, and make carries
-# on: the Aravis tests then skip with that reason. The stamp is only made once it all works.
+# on: the Aravis tests then skip with that reason. Then every extra, `.[all,dev]` (the
+# `cameras` extra's PyGObject the last missing). The stamp is only made once it all works.
 ARAVIS_DEBS := libaravis-0.8-0 gir1.2-aravis-0.8 libgirepository1.0-dev libcairo2-dev \
 	pkg-config gcc libc6-dev python3-dev
 ARAVIS := $(VENV)/.aravis
@@ -24,7 +28,7 @@ ARAVIS_OK := $(BIN)/python -c 'import gi; gi.require_version("Aravis", "0.8")' 2
 $(ARAVIS): $(STAMP)
 	@if $(ARAVIS_OK); then touch $@; exit 0; fi; \
 	scripts/debs.sh cameras "the aravis tests skip" $(ARAVIS_DEBS) || exit 0; \
-	if $(BIN)/python -m pip install --quiet -e '.[cameras]' && $(ARAVIS_OK); then touch $@; \
+	if $(BIN)/python -m pip install --quiet -e '.[all,dev]' && $(ARAVIS_OK); then touch $@; \
 	else echo "cameras: PyGObject<3.51 does not build or import here (see above; until fixed the aravis tests skip)"; fi
 
 # The service's test tools from Debian: chromium and chromium-driver for the status page
@@ -60,6 +64,8 @@ demo-registration: $(STAMP)
 lint: $(STAMP)
 	$(BIN)/ruff check cellcal tests benchmarks
 	$(BIN)/ruff format --check cellcal tests benchmarks
+	$(BIN)/lint-imports --no-cache
+	$(BIN)/python scripts/check_sql_in_store.py cellcal
 
 types: $(STAMP)
 	$(BIN)/mypy cellcal

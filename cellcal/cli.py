@@ -67,6 +67,7 @@ import click  # noqa: E402
 
 from cellcal import __version__  # noqa: E402
 from cellcal.errors import AcceptanceError, UserError  # noqa: E402
+from cellcal.extras import needs  # noqa: E402
 
 EXIT_USER_ERROR = 2
 EXIT_REFUSED = 3
@@ -154,9 +155,13 @@ EXTRA = {
 }
 
 
-def _load(where: str) -> click.Command:
+def _load(where: str, name: str) -> click.Command:
+    """The command at ``where``; a command module that needs an optional library that
+    is not installed (the service's aiohttp, the report's matplotlib, the rig's OpenCV)
+    ends in one line naming the extra (``cellcal.extras``)."""
     module, _, attribute = where.partition(":")
-    command = getattr(importlib.import_module(module), attribute)
+    with needs(f"cellcal {name}"):
+        command = getattr(importlib.import_module(module), attribute)
     assert isinstance(command, click.Command)
     return command
 
@@ -170,11 +175,11 @@ class LazyGroup(click.Group):
     def get_command(self, ctx: click.Context, cmd_name: str) -> click.Command | None:
         if cmd_name not in COMMANDS:
             return None
-        command = _load(COMMANDS[cmd_name][0])
+        command = _load(COMMANDS[cmd_name][0], cmd_name)
         if cmd_name in EXTRA and isinstance(command, click.Group):
             name, where = EXTRA[cmd_name]
             if name not in command.commands:
-                command.add_command(_load(where), name)
+                command.add_command(_load(where, f"{cmd_name} {name}"), name)
         return command
 
     def format_commands(self, ctx: click.Context, formatter: click.HelpFormatter) -> None:
@@ -215,6 +220,16 @@ def _interrupt_once(signum: int, frame: object) -> None:
     raise KeyboardInterrupt
 
 
+def _stop_interrupted(here: bool) -> int:
+    """The line for an interrupt that reached :func:`main`; its exit code."""
+    global _said
+    if here:  # nothing more to interrupt: the line, and the end
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+    _said = True
+    click.echo(INTERRUPTED, err=True)
+    return EXIT_INTERRUPTED
+
+
 def main(argv: list[str] | None = None) -> None:
     """Console-script entry point; turns user errors into one line and exit code 2, and
     Ctrl-C into one line and exit code 130."""
@@ -225,12 +240,14 @@ def main(argv: list[str] | None = None) -> None:
     previous = signal.signal(signal.SIGINT, _interrupt_once) if here else None
     try:
         code = _run(sys.argv[1:] if argv is None else list(argv), program)
+    except Exception:
+        if not _interrupted:
+            raise
+        # Ctrl-C while an extension module initialises surfaces as that import's error
+        # ("ImportError: initialization failed", scipy's HiGHS): still the interrupt.
+        code = _stop_interrupted(here)
     except KeyboardInterrupt:
-        if here:  # nothing more to interrupt: the line, and the end
-            signal.signal(signal.SIGINT, signal.SIG_IGN)
-        _said = True
-        click.echo(INTERRUPTED, err=True)
-        code = EXIT_INTERRUPTED
+        code = _stop_interrupted(here)
     finally:
         if here:
             # The program ends now: a Ctrl-C while it does is the line and exit 130.

@@ -25,6 +25,7 @@ from cellcal.calib.outliers import PointResidual, point_residuals
 from cellcal.calib.robot_model import RobotModel, model_from_dict, model_to_dict
 from cellcal.calib.validation import Validation
 from cellcal.errors import FileFormatError
+from cellcal.extras import require
 from cellcal.outputfiles import write_atomically as write_file_atomically
 from cellcal.plainvalues import plain
 from cellcal.textfiles import read_toml
@@ -79,6 +80,7 @@ def load_model(spec: str) -> LoadedModel:
     if spec.lower().endswith(".urdf"):
         from cellcal.urdffiles import model_from_urdf  # Pinocchio, only when asked
 
+        require(f"reading URDF ({spec})", "pinocchio")
         urdf = model_from_urdf(spec)
         return LoadedModel(spec, urdf, urdf.tool, None, False)
     data = _read_toml(Path(spec), spec)

@@ -44,7 +44,7 @@ CLAIM_WAIT_S = 30.0
 RUN_WAIT_S = 1200.0
 
 
-def _shared(factory: pytest.TempPathFactory) -> Path:
+def shared_folder(factory: pytest.TempPathFactory) -> Path:
     """The folder every worker of this session sees (the workers' own temporary folders
     are beside each other in it)."""
     base = factory.getbasetemp()
@@ -55,7 +55,7 @@ def _shared(factory: pytest.TempPathFactory) -> Path:
 def producing(factory: pytest.TempPathFactory) -> Iterator[Callable[[Path], None]]:
     """For the README test: claim the campaign; the function given publishes a finished
     database; leaving without publishing says the claim failed."""
-    shared = _shared(factory)
+    shared = shared_folder(factory)
     (shared / "bundled.claim").touch()
     published: list[Path] = []
 
@@ -80,7 +80,7 @@ def bundled_database(request: pytest.FixtureRequest, folder: Path) -> tuple[Path
     when it ran (or runs) in this session, else one run here. Also whether it was run
     here (False: the README's)."""
     factory = request.getfixturevalue("tmp_path_factory")
-    shared = _shared(factory)
+    shared = shared_folder(factory)
     db = folder / "c.db"
     if (
         _readme_selected(request)

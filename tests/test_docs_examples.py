@@ -12,22 +12,34 @@ they do in a checkout, and whatever the examples write stays out of the checkout
 test checks that they wrote nothing into it). ``make`` lines are
 the set-up itself and are skipped; ``.venv/bin/cellcal`` and ``cellcal`` run this
 interpreter's cellcal.
+
+A few commands appear, word for word, in more than one document, and read nothing but
+the checkout (:data:`SHARED`): the session runs each once, and a document that comes to
+it later is handed what that run printed, its exit code and the files it wrote (across
+the parallel run's workers, in the session's shared temporary folder), and checks them
+as its own.
 """
 
 from __future__ import annotations
 
+import fcntl
+import hashlib
+import json
 import os
 import re
+import shlex
 import shutil
 import subprocess
 import sys
-from contextlib import nullcontext
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager, nullcontext
 from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
 
-from tests.bundled_campaign import producing
+from tests.bundled_campaign import producing, shared_folder
 
 pytestmark = [pytest.mark.twin, pytest.mark.slow]
 
@@ -39,6 +51,27 @@ COPIED = ("config", "examples")  # a relative database path in a config lands be
 #: read such a campaign (tests/bundled_campaign.py)
 BUNDLED_RUN = re.compile(r"^(\.venv/bin/)?cellcal run --mock\s*(#.*)?$")
 BLOCK = re.compile(r"^```(\w*)\n(.*?)^```", re.S | re.M)
+#: Commands (their words, without a comment) that several documents run, whose every
+#: input is in the checkout (config, examples, tests/data, the bundled cell) save the
+#: files they write: the tracker cell's campaigns (README, compensation.md, iso9283.md;
+#: campaign.md, database.md) and the few that only print (README and planning.md,
+#: urdf.md, calibration.md, acceptance.md, paper-errata.md). Run once per session; a
+#: document in whose folder one of the files that run wrote already exists runs it
+#: itself.
+SHARED = frozenset(
+    {
+        "cellcal run --mock --config config/mock-cell-tracker.toml --db demo.db --report report",
+        "cellcal run --mock --config config/mock-cell-tracker.toml --db doc.db",
+        "cellcal plan --mock --optimal 24 --criterion I",
+        "cellcal predict --model tests/data/urdf/ur5_robot.urdf --joints examples/ur5-joints.csv",
+        "cellcal models",
+        "cellcal calibrate --model kuka-kr5-arc --data examples/metres.csv --out robot.toml",
+        "cellcal register --src cellcal/data/paper_table4_station1.csv --dst "
+        "cellcal/data/paper_table4_station2.csv --method line --line-a P1,P2 --line-b P2,P3",
+    }
+)
+#: How long a document waits for another worker's run of a shared command, s.
+SHARED_WAIT_S = 600.0
 
 
 @dataclass(frozen=True)
@@ -118,18 +151,31 @@ def test_examples_run_literally(
     env.pop("CELLCAL_SOCKET", None)
     env.pop("STATE_DIRECTORY", None)
     env["XDG_DATA_HOME"] = str(tmp_path / ".data")  # the default database's folder
+    shared = shared_folder(tmp_path_factory) / "doc-steps"
     with producing(tmp_path_factory) if doc.name == "README.md" else nullcontext() as publish:
         for step in todo:
-            _run(step, tmp_path, env)
+            _run(step, tmp_path, env, shared)
             if publish is not None and BUNDLED_RUN.match(step.command):
                 publish(tmp_path / ".data" / "cellcal" / "cellcal.db")
     assert _untracked() == before, "an example wrote into the checkout"
 
 
-def _run(step: Step, tmp_path: Path, env: dict[str, str]) -> None:
-    """One step, run as the document shows it; what it must say, said."""
+def _run(step: Step, tmp_path: Path, env: dict[str, str], shared: Path) -> None:
+    """One step, run as the document shows it (or its shared run handed over, see
+    :data:`SHARED`); what it must say, said."""
     command = step.command.replace(".venv/bin/cellcal", "cellcal")
-    res = subprocess.run(
+    key = " ".join(shlex.split(command, comments=True))
+    if key not in SHARED:
+        _check(step, _execute(command, tmp_path, env))
+        return
+    with _shared_run(shared / hashlib.sha256(key.encode()).hexdigest()[:16], tmp_path) as run:
+        res = run.result or _execute(command, tmp_path, env)
+        _check(step, res)
+        run.keep(res)
+
+
+def _execute(command: str, tmp_path: Path, env: dict[str, str]) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
         ["bash", "-c", command],
         cwd=tmp_path,
         env=env,
@@ -138,6 +184,9 @@ def _run(step: Step, tmp_path: Path, env: dict[str, str]) -> None:
         timeout=600,
         check=False,
     )
+
+
+def _check(step: Step, res: subprocess.CompletedProcess[str]) -> None:
     said = res.stderr.strip().splitlines()
     if not step.expect:
         assert res.returncode == 0, f"{step.where}: {step.command}\n{res.stderr[-2000:]}"
@@ -146,6 +195,92 @@ def _run(step: Step, tmp_path: Path, env: dict[str, str]) -> None:
     assert res.returncode == code, f"{step.where}: {step.command}\n{res.stderr[-2000:]}"
     for line in step.expect:
         assert line in said, f"{step.where}: {step.command}\nshown: {line}\nsaid: {said}"
+
+
+class _SharedRun:
+    """A shared command's one run in the session (``folder``): what it printed and the
+    files it wrote, handed to ``tmp_path`` (``result``), or kept once checked (``keep``)."""
+
+    def __init__(self, folder: Path, tmp_path: Path, owned: bool) -> None:
+        self.folder, self.tmp_path, self.owned = folder, tmp_path, owned
+        self.result: subprocess.CompletedProcess[str] | None = None
+        self.before: tuple[dict[str, tuple[int, int]], set[str]] = ({}, set())
+        record = folder / "record.json"
+        if owned and record.exists():
+            kept = json.loads(record.read_text())
+            if not any((tmp_path / name).exists() for name in kept["files"]):
+                for name in kept["dirs"]:
+                    (tmp_path / name).mkdir(parents=True, exist_ok=True)
+                for name in kept["files"]:
+                    shutil.copyfile(folder / "files" / name, tmp_path / name)
+                self.result = subprocess.CompletedProcess(
+                    kept["args"], kept["returncode"], kept["stdout"], kept["stderr"]
+                )
+                return
+        self.before = _listing(tmp_path)
+
+    def keep(self, res: subprocess.CompletedProcess[str]) -> None:
+        if not self.owned or self.result is not None or (self.folder / "record.json").exists():
+            return
+        files, dirs = _listing(self.tmp_path)
+        written = sorted(name for name, seen in files.items() if self.before[0].get(name) != seen)
+        if any(name in self.before[0] for name in written):
+            return  # it changed a file it found: not its own output alone, not handed on
+        for name in written:
+            (self.folder / "files" / name).parent.mkdir(parents=True, exist_ok=True)
+            shutil.copyfile(self.tmp_path / name, self.folder / "files" / name)
+        kept = {
+            "args": res.args,
+            "returncode": res.returncode,
+            "stdout": res.stdout,
+            "stderr": res.stderr,
+            "files": written,
+            "dirs": sorted(dirs - self.before[1]),
+        }
+        part = self.folder / "record.json.part"
+        part.write_text(json.dumps(kept))
+        part.rename(self.folder / "record.json")
+
+
+@contextmanager
+def _shared_run(folder: Path, tmp_path: Path) -> Iterator[_SharedRun]:
+    """The shared command's folder held by this test while it copies or runs it (another
+    worker's test waits up to :data:`SHARED_WAIT_S`, then runs it without sharing)."""
+    folder.mkdir(parents=True, exist_ok=True)
+    with open(folder / "lock", "a") as lock:
+        deadline = time.monotonic() + SHARED_WAIT_S
+        while True:
+            try:
+                fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                owned = True
+                break
+            except BlockingIOError:
+                if time.monotonic() > deadline:
+                    owned = False
+                    break
+                time.sleep(0.05)
+        try:
+            yield _SharedRun(folder, tmp_path, owned)
+        finally:
+            if owned:
+                fcntl.flock(lock, fcntl.LOCK_UN)
+
+
+def _listing(folder: Path) -> tuple[dict[str, tuple[int, int]], set[str]]:
+    """The document's folder (not the linked checkout): each file's size and time, and
+    the folders, by relative path."""
+    files: dict[str, tuple[int, int]] = {}
+    dirs: set[str] = set()
+    for top, subdirs, names in os.walk(folder):
+        subdirs[:] = [d for d in subdirs if not Path(top, d).is_symlink()]
+        rel = Path(top).relative_to(folder)
+        dirs.update(str(rel / d) for d in subdirs)
+        for name in names:
+            path = Path(top, name)
+            if not path.is_symlink():
+                st = path.stat()
+                files[str(rel / name)] = (st.st_size, st.st_mtime_ns)
+    return files, dirs
 
 
 def _untracked() -> set[str]:

@@ -11,6 +11,7 @@ from __future__ import annotations
 import contextlib
 import os
 import random
+import resource
 import shutil
 import sqlite3
 import subprocess
@@ -96,10 +97,12 @@ def test_resume_report_and_list_refuse_special_names(tmp_path: Path, name: str) 
 
 @pytest.mark.twin
 @pytest.mark.parametrize(("name", "said"), [(":memory:", "memory"), ("", "empty")])
-def test_the_service_refuses_an_in_memory_database(tmp_path: Path, name: str, said: str) -> None:
+def test_the_service_refuses_an_in_memory_database(
+    tmp_path: Path, name: str, said: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
     folder = Path(tempfile.mkdtemp(prefix="cellcal-db-", dir="/tmp"))  # a short socket path
     try:
-        done = _service(folder, name, cwd=tmp_path)
+        done = _service(folder, name, monkeypatch)  # in tmp_path, the working folder
         line = _service_error(done)
         assert said in line, line
         assert not (tmp_path / ":memory:").exists()
@@ -181,39 +184,34 @@ def test_every_command_names_the_damaged_file_in_one_line(
 
 
 @pytest.mark.twin
-def test_the_service_names_the_damaged_file_at_start(damaged: tuple[Path, str]) -> None:
+def test_the_service_names_the_damaged_file_at_start(
+    damaged: tuple[Path, str], monkeypatch: pytest.MonkeyPatch
+) -> None:
     path, needle = damaged
     folder = Path(tempfile.mkdtemp(prefix="cellcal-db-", dir="/tmp"))
     try:
-        line = _service_error(_service(folder, str(path)))
+        line = _service_error(_service(folder, str(path), monkeypatch))
         assert str(path) in line and needle in line, line
     finally:
         shutil.rmtree(folder, ignore_errors=True)
 
 
-def _service(folder: Path, db: str, cwd: Path | None = None) -> subprocess.CompletedProcess[str]:
-    env = {k: v for k, v in os.environ.items() if k not in ("NOTIFY_SOCKET", "STATE_DIRECTORY")}
-    env["XDG_DATA_HOME"] = str(folder / "xdg")
-    return subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "cellcal",
-            "daemon",
-            "--config",
-            str(TRACKER_CELL),
-            "--mock",
-            "--db",
-            db,
-            "--socket",
-            str(folder / "control.sock"),
-        ],
-        capture_output=True,
-        text=True,
-        timeout=90,
-        cwd=cwd,
-        env=env,
-    )
+def _service(
+    folder: Path, db: str, monkeypatch: pytest.MonkeyPatch
+) -> subprocess.CompletedProcess[str]:
+    """The service started on ``db`` in the test's process (tests/inprocess.py), without
+    systemd, its data directory in ``folder``; the open files limit it raises at start is
+    put back. (The locked database's test starts it as a process of its own.)"""
+    monkeypatch.delenv("NOTIFY_SOCKET", raising=False)  # STATE_DIRECTORY: _private_data_dir
+    monkeypatch.setenv("XDG_DATA_HOME", str(folder / "xdg"))
+    limits = resource.getrlimit(resource.RLIMIT_NOFILE)
+    try:
+        return cellcal(
+            *("daemon", "--config", TRACKER_CELL, "--mock", "--db", db),
+            *("--socket", folder / "control.sock"),
+        )
+    finally:
+        resource.setrlimit(resource.RLIMIT_NOFILE, limits)
 
 
 def _service_error(done: subprocess.CompletedProcess[str]) -> str:

@@ -12,10 +12,11 @@ import click
 from cellcal.commands.output import NON_NEGATIVE, SEED, TIME_SCALE
 from cellcal.config import CellConfig, load_config
 from cellcal.errors import InputError
+from cellcal.extras import needs
 from cellcal.modelfiles import load_model
 
 if TYPE_CHECKING:
-    from cellcal.mocks.simulated_cell import SimulatedCell
+    from cellcal.families import SimulatedCell
 
 
 def _host_port(text: str) -> tuple[str, int]:
@@ -96,8 +97,7 @@ def mock_tracker(
 ) -> None:
     """A laser tracker of the simulated cell, speaking the tracker line protocol."""
     from cellcal.commands.run import bundled_mock_cell
-    from cellcal.mocks.simulated_cell import SimulatedCell
-    from cellcal.mocks.tracker_server import MockTracker, TrackerFaults
+    from cellcal.families import MockTracker, SimulatedCell, TrackerFaults
 
     if (listen is None) == (not use_pty):
         raise InputError("give --listen HOST:PORT or --pty")
@@ -137,7 +137,7 @@ def simulated_cell_of(
     config_path: str | None, seed: int | None
 ) -> tuple[CellConfig, SimulatedCell]:
     from cellcal.commands.run import bundled_mock_cell
-    from cellcal.mocks.simulated_cell import SimulatedCell
+    from cellcal.families import SimulatedCell
 
     config = load_config(config_path) if config_path else bundled_mock_cell()[0]
     return config, SimulatedCell(config, load_model(config.robot.model).model, seed)
@@ -181,13 +181,9 @@ def mock_modbus_robot(
     """The configured Modbus robot's twin: its map, word order and device id (docs/robots.md)."""
     import math
 
-    from cellcal.drivers.modbus_robot import ModbusRobotOptions
-    from cellcal.mocks.modbus_robot_server import (
-        ModbusRobotFaults,
-        ModbusRobotSimulator,
-        xyzabc,
-    )
-    from cellcal.mocks.twins import limits_deg
+    with needs("cellcal mock modbus-robot"):  # the driver's options: pymodbus's module
+        from cellcal.drivers.modbus_robot import ModbusRobotOptions
+    from cellcal.families import ModbusRobotFaults, ModbusRobotSimulator, limits_deg, xyzabc
 
     config, cell = simulated_cell_of(config_path, seed)
     robot = config.robot
@@ -243,7 +239,7 @@ def mock_ur(host: str, config_path: str | None, seed: int | None, time_scale: fl
     """A Universal Robots controller that the unmodified ur_rtde library can drive."""
     from importlib import resources
 
-    from cellcal.mocks.ur_server import simulator_for_cell
+    from cellcal.families import simulator_for_cell
 
     ref = resources.files("cellcal") / "data" / "mock-cell-ur10e.toml"
     with resources.as_file(ref) as bundled:

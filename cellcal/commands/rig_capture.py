@@ -8,20 +8,25 @@ import os
 import re
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import click
 
 from cellcal.commands.output import SEED
 from cellcal.config import CellConfig
-from cellcal.drivers.photogrammetry import CameraRigOptions
 from cellcal.errors import DeviceError, InputError
+from cellcal.extras import require
+
+if TYPE_CHECKING:
+    from cellcal.drivers.photogrammetry import CameraRigOptions
 
 HOSTS = re.compile(r"^127\.0\.0\.(\d{1,3})-(\d{1,3})$")
 
 
 def _rig_sensor(config: CellConfig, name: str | None, source: str) -> CameraRigOptions:
     """The configuration's photogrammetry sensor (the one named, else the first)."""
+    from cellcal.drivers.photogrammetry import CameraRigOptions
+
     rigs = [s for s in config.sensor if s.kind == "photogrammetry"]
     if name is not None:
         rigs = [s for s in rigs if s.name == name]
@@ -68,6 +73,7 @@ def rig_capture(
     """
     from cellcal.commands.run import cell_config
 
+    require("cellcal rig capture", "cv2")
     if not mock and (board_path is not None or seed is not None):
         raise InputError("--board and --seed are for --mock (the simulated cell's cameras)")
     if config_path is None and not mock:
@@ -80,7 +86,7 @@ def rig_capture(
     except OSError as exc:
         raise InputError(f"--out {out}: {exc.strerror}") from None
     if mock:
-        from cellcal.mocks.rig_capture_twin import mock_rig
+        from cellcal.families import mock_rig
 
         twin = mock_rig(config, options, board_path, n_sets, seed)
         try:
@@ -175,10 +181,9 @@ def mock_cameras(
     in a network namespace of their own, until Ctrl-C or SIGTERM: each frame rendered
     from where the simulated robot holds the target (at home), or with --board a
     ChArUco board held up at --views poses in turn (a new pose each set)."""
+    require("cellcal mock cameras", "cv2")
     from cellcal.commands.mock import simulated_cell_of, wait_for_signal
-    from cellcal.mocks.board_views import BoardScene
-    from cellcal.mocks.gige_cameras import GigECameraTwin
-    from cellcal.mocks.rig_twin import RigScene, RigTruth
+    from cellcal.families import BoardScene, GigECameraTwin, RigScene, RigTruth
     from cellcal.photofiles import read_board, read_rig, read_target
 
     if (target_path is None) == (board_path is None):

@@ -19,6 +19,7 @@ from cellcal.config import CellConfig, default_database, load_config
 from cellcal.daemon.stop_request import StopRequest
 from cellcal.daemon.store_connection import database_path
 from cellcal.errors import InputError
+from cellcal.extras import require
 
 if TYPE_CHECKING:
     from cellcal.calib.calibration_result import CalibrationResult
@@ -278,6 +279,8 @@ def run(
     have them)."""
     if report_dir is not None and Path(report_dir).exists() and not Path(report_dir).is_dir():
         raise InputError(f"--report {report_dir}: exists and is not a folder")
+    if report_dir is not None:  # before the campaign, not after it
+        require("cellcal run --report", "matplotlib")
     if db_path is not None:
         database_path(db_path)  # an empty path, :memory:, a URI: one line, before anything
         if not Path(db_path).resolve().parent.is_dir():

@@ -17,6 +17,7 @@ import click
 from cellcal.config import load_config
 from cellcal.daemon.unitfile import UNIT_NAME, render, verify
 from cellcal.errors import CampaignError, InputError
+from cellcal.extras import require
 from cellcal.outputfiles import check_output_file
 from cellcal.textfiles import read_text
 
@@ -54,6 +55,8 @@ def install(
 ) -> int:
     """Render the unit for this installation, check it with systemd-analyze verify,
     write it, and say the two commands that enable and start the service."""
+    # what the unit runs: cellcal daemon, which writes each campaign's report
+    require("the cell service", "aiohttp", "matplotlib")
     config = Path(config_path).resolve()
     if not config.is_file():
         raise InputError(f"--config {config}: no such file (write the cell's configuration first)")

@@ -31,6 +31,12 @@ from cellcal.calib.robot_model import RobotModel
 from cellcal.calib.validation import ErrorStats
 from cellcal.daemon.plan import CALIBRATION, VALIDATION
 from cellcal.daemon.store import PoseData, Store
+from cellcal.daemon.store_results import (
+    AnalysisResults,
+    CalibrationRow,
+    FusedRow,
+    RegistrationRow,
+)
 from cellcal.errors import AcceptanceError, CampaignError
 from cellcal.modelfiles import builtin_models, calibrated_toml
 
@@ -201,10 +207,26 @@ def analyse(
     *,
     accept: bool = False,
 ) -> CampaignSummary:
-    """Register, calibrate, validate; store the results; return the summary. A result
-    that fails an acceptance check raises :class:`AcceptanceError` and stores nothing of
-    the analysis (the samples stay), unless ``accept``."""
+    """Register, calibrate, validate; store the results (all in one transaction: none or
+    all of them); return the summary. A result that fails an acceptance check raises
+    :class:`AcceptanceError` and stores nothing of the analysis (the samples stay), unless
+    ``accept``."""
     data = store.pose_data(campaign_id)
+    summary, results = analysis_of(data, campaign_id, nominal, reference, accept=accept)
+    store.save_analysis(results)
+    return summary
+
+
+def analysis_of(
+    data: PoseData,
+    campaign_id: int,
+    nominal: RobotModel,
+    reference: str,
+    *,
+    accept: bool = False,
+) -> tuple[CampaignSummary, AnalysisResults]:
+    """The analysis of a campaign's stored poses (a function of ``data`` alone): its
+    summary, and the rows the store keeps of it."""
     role = np.array(data.role)
     region = np.array(data.region)
     if reference not in data.mean:
@@ -240,7 +262,7 @@ def analyse(
         alternatives=alternatives,
     )
     registrations = []
-    writes: list[tuple[str, tuple[Any, ...]]] = []
+    writes: list[RegistrationRow] = []
     for sensor in sorted(data.mean):
         mask = (role == CALIBRATION) & data.measured(sensor)
         if int(mask.sum()) < MIN_REGISTRATION_POSES:
@@ -259,7 +281,7 @@ def analyse(
             accept,
         )
         registrations.append(reg)
-        writes += [(sensor, r) for r in rows]
+        writes += rows
 
     baseline = fit_frames(nominal, q_cal, ref_m[cal], sigma(reference, cal))
     e_before = ref_m[val] - predict(baseline, data.q[val])
@@ -313,26 +335,25 @@ def analyse(
         warnings=tuple(warnings),
         spread=spread,
     )
-    # All results of one analysis in one transaction: a crash leaves none or all.
-    with store.transaction():
-        for sensor, args in writes:
-            store.add_registration(campaign_id, sensor, *args)
-        store.add_calibration(
-            campaign_id,
-            reference,
-            n_points=result.n_points,
-            rms_before_mm=result.rms_before,
-            rms_after_mm=result.rms_after,
-            condition_number=result.condition_number,
-            identified=result.identified,
-            unidentifiable=result.unidentifiable,
-            model_toml=calibrated_toml(result, None, f"campaign {campaign_id}", summary.points),
-        )
-        for pose_id, f in zip(data.pose_id, fused, strict=True):
-            if f is not None:
-                store.add_fused(campaign_id, int(pose_id), f.sensors, f.xyz, f.cov, f.chi2)
-        store.add_report(campaign_id, summary.to_dict())
-    return summary
+    calibration = CalibrationRow(
+        sensor=reference,
+        n_points=result.n_points,
+        rms_before_mm=result.rms_before,
+        rms_after_mm=result.rms_after,
+        condition_number=result.condition_number,
+        identified=tuple(result.identified),
+        unidentifiable=tuple(result.unidentifiable),
+        model_toml=calibrated_toml(result, None, f"campaign {campaign_id}", summary.points),
+    )
+    fused_rows = tuple(
+        FusedRow(int(pose_id), f.sensors, f.xyz, f.cov, f.chi2)
+        for pose_id, f in zip(data.pose_id, fused, strict=True)
+        if f is not None
+    )
+    results = AnalysisResults(
+        campaign_id, tuple(writes), calibration, fused_rows, summary.to_dict()
+    )
+    return summary, results
 
 
 def _register(
@@ -343,7 +364,7 @@ def _register(
     s: Array,
     sensor: str,
     accept: bool,
-) -> tuple[SensorRegistration, list[tuple[Any, ...]]]:
+) -> tuple[SensorRegistration, list[RegistrationRow]]:
     """One sensor registered with the nominal and with the calibrated geometry; refused
     when its samples do not follow the robot. Returns the registration and its rows."""
     check = check_data(nominal, q, m, nominal.tool)
@@ -374,8 +395,12 @@ def _register(
         target_offset_calibrated_mm=after.tool,
     )
     rows = [
-        ("nominal", len(q), _rms(e_nom), e_max_nom, base.T_sensor_base, base.tool),
-        ("calibrated", len(q), _rms(e_cal), e_max_cal, after.T_sensor_base, after.tool),
+        RegistrationRow(
+            sensor, "nominal", len(q), _rms(e_nom), e_max_nom, base.T_sensor_base, base.tool
+        ),
+        RegistrationRow(
+            sensor, "calibrated", len(q), _rms(e_cal), e_max_cal, after.T_sensor_base, after.tool
+        ),
     ]
     return reg, rows
 

@@ -270,8 +270,7 @@ async def info(request: web.Request) -> web.Response:
 
 
 def _queue(store: Store) -> list[int]:
-    rows = store.conn.execute("SELECT id FROM campaigns WHERE status = 'queued' ORDER BY id")
-    return [int(r[0]) for r in rows]
+    return store.queued_campaigns()
 
 
 def _snapshot(svc: Service) -> dict[str, Any]:
@@ -369,7 +368,7 @@ def _campaign_id(request: web.Request, svc: Service) -> int | None:
     if raw == "current":
         return svc.control.current() or svc.control.blocking
     cid = campaign_number(raw)
-    if svc.store.conn.execute("SELECT 1 FROM campaigns WHERE id = ?", (cid,)).fetchone() is None:
+    if not svc.store.has_campaign(cid):
         raise ControlError("not-found", f"no campaign {cid} in {svc.store.path}")
     return cid
 

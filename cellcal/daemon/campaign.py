@@ -37,6 +37,7 @@ from cellcal.daemon.records import (
 )
 from cellcal.daemon.stop_request import StopRequest
 from cellcal.daemon.store import Store, StoreError
+from cellcal.daemon.store_devices import DEVICE_EVENT, device_message
 from cellcal.daemon.store_writer import StoreWriter
 from cellcal.errors import AcceptanceError, CampaignError, UserError
 from cellcal.modelfiles import load_model
@@ -91,12 +92,18 @@ def _plan(config: CellConfig) -> tuple[Plan, RobotModel]:
 
 
 def note_devices(stream: RecordStream, campaign_id: int, devices: Devices) -> None:
-    """Record which sensors the campaign measures with, for the report: each driver that
-    can describe its device (a tracker: identity and air readings) says so."""
-    for setting in devices.sensors:
-        describe = getattr(setting.sensor, "describe", None)
+    """Record which devices the campaign runs with, the robot first: each one's
+    description (``store_devices.py``) and, for the report, the line a driver writes
+    of its device when it has one (a tracker: identity and air readings)."""
+    robot = getattr(devices, "robot", None)  # a holder of sensors alone (a test's) has none
+    for device in (robot, *(s.sensor for s in devices.sensors)):
+        describe = getattr(device, "describe", None)  # a test double may not describe
         if callable(describe):
-            stream.emit(CampaignEvent(campaign_id, "device", str(describe())))
+            message = device_message(describe())
+            stream.emit(CampaignEvent(campaign_id, DEVICE_EVENT, message))
+        summary = getattr(device, "summary", None)
+        if callable(summary):
+            stream.emit(CampaignEvent(campaign_id, DEVICE_EVENT, str(summary())))
 
 
 def _holder(db_path: str) -> str:

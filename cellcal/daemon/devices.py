@@ -7,7 +7,8 @@ mode (the only place allowed to build simulated devices): the simulated cell, an
 each device its family's twin — a protocol-level server on a loopback address that
 serves what the configured device would — with the *same* driver built from the options
 pointed at the twin; a family without a twin is an in-process simulation, which only
-mock mode accepts. Every robot goes behind the safety gate.
+mock mode accepts. Every robot goes behind the safety gate. Every DeviceError of the
+building and connecting names its device (``device``: "robot", a sensor's name).
 """
 
 from __future__ import annotations
@@ -23,9 +24,9 @@ from cellcal.clock import Clock
 from cellcal.config import CellConfig
 from cellcal.daemon.engine import SensorSetting
 from cellcal.device_options import RobotOptions, SensorOptions
-from cellcal.drivers.base import DeviceContext, PositionSensor, Robot
+from cellcal.drivers.base import ROBOT_NAME, DeviceContext, PositionSensor, Robot
 from cellcal.drivers.safety import GuardedRobot
-from cellcal.errors import DeviceError
+from cellcal.errors import DeviceError, device_errors
 from cellcal.families import ROBOT, Family, find, load
 
 
@@ -57,12 +58,19 @@ def family_of(options: RobotOptions | SensorOptions) -> Family:
     else:
         f = find("sensor", options.kind, options.driver)
     if f is None:  # pragma: no cover - config validation admits only registered families
-        raise DeviceError(f"no device family for driver {options.driver!r}")
+        raise DeviceError(
+            f"no device family for driver {options.driver!r}", device=device_name(options)
+        )
     return f
 
 
 def _where(options: RobotOptions | SensorOptions) -> str:
     return "robot" if isinstance(options, RobotOptions) else f"sensor {options.name}"
+
+
+def device_name(options: RobotOptions | SensorOptions) -> str:
+    """The device's name in the configuration: what its DeviceErrors name."""
+    return ROBOT_NAME if isinstance(options, RobotOptions) else options.name
 
 
 def _build(
@@ -76,22 +84,26 @@ def _build(
     """One device, by its family: in mock mode through its twin."""
     family = family_of(options)
     if mock and family.twin is not None:
-        twin = load(family.twin)(options, context.cell, time_scale)
+        with device_errors(device_name(options)):  # the twin is the device in mock mode
+            twin = load(family.twin)(options, context.cell, time_scale)
         servers.append(twin)
         options = twin.options
     elif not mock:
         if family.mock_only:
             raise DeviceError(
                 f'{_where(options)}: driver = "{family.driver}" is {family.summary}; '
-                "it needs --mock"
+                "it needs --mock",
+                device=device_name(options),
             )
         if not (options.endpoint() if isinstance(options, SensorOptions) else options.address):
             what = "controller" if family.role == "robot" else "sensor"
             raise DeviceError(
                 f"{_where(options)}.address is empty: where is the {what} "
-                f'(driver = "{family.driver}")?'
+                f'(driver = "{family.driver}")?',
+                device=device_name(options),
             )
-    return family.device_class().from_options(options, context)
+    with device_errors(device_name(options)):
+        return family.device_class().from_options(options, context)
 
 
 def build_devices(
@@ -111,7 +123,7 @@ def build_devices(
     second time, perhaps to another machine."""
     cell = None
     if mock:
-        from cellcal.mocks.simulated_cell import SimulatedCell
+        from cellcal.families import SimulatedCell
 
         cell = SimulatedCell(config, nominal, seed, noise_stream)
     context = DeviceContext(clock, cell)
@@ -130,10 +142,12 @@ def build_devices(
         sensors: list[SensorSetting] = []
         for s in config.sensor:
             sensor = _build(s, context, mock=mock, time_scale=time_scale, servers=servers)
-            sensor.connect()
+            with device_errors(s.name):
+                sensor.connect()
             opened.append(sensor)
             sensors.append(SensorSetting(sensor, s.rate_hz))
-        robot.connect()
+        with device_errors(ROBOT_NAME):
+            robot.connect()
     except BaseException:
         for sensor in opened:
             with contextlib.suppress(Exception):

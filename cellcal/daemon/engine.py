@@ -15,9 +15,10 @@ resumable and loses nothing. A device that fails once a stop was asked for ends 
 acquisition as interrupted, not as a device fault: the pose is abandoned, not measured
 again, and the failure is logged (stopping may be what made it fail). A hold request
 (the service's deferred pause) lets the pose under way finish and be stored, then
-stops. The devices are left open: whoever built them closes them. Whoever watches the
-engine's progress (the service's heartbeat and status page) is told each phase as it
-begins: ``move``, ``dwell``, ``sample``.
+stops. Every device error leaving the engine names its device (``device``: "robot", a
+sensor's name). The devices are left open: whoever built them closes them. Whoever
+watches the engine's progress (the service's heartbeat and status page) is told each
+phase as it begins: ``move``, ``dwell``, ``sample``.
 """
 
 from __future__ import annotations
@@ -33,9 +34,9 @@ import numpy as np
 from cellcal.clock import Clock
 from cellcal.daemon.plan import Plan, PlannedPose
 from cellcal.daemon.records import CampaignEvent, PoseStored, RecordStream
-from cellcal.drivers.base import PositionSensor, Robot, Series
+from cellcal.drivers.base import ROBOT_NAME, PositionSensor, Robot, Series
 from cellcal.drivers.safety import SafetyError
-from cellcal.errors import DeviceError, NoTargetError
+from cellcal.errors import DeviceError, NoTargetError, device_errors
 
 log = logging.getLogger("cellcal.engine")
 
@@ -165,15 +166,18 @@ def _visit(
     """One pose, measured; None if a stop request came first."""
     t_start = clock.now()
     phase("move", pose, t_start)
-    try:
-        robot.move_joints(pose.q, speed)
-    except SafetyError as exc:  # the gate knows joints, the engine which pose they are
-        raise exc.at_pose(pose.idx) from None
-    reached = robot.actual_joints()
+    # Every device error reaching the engine names its device (the drivers' do already).
+    with device_errors(ROBOT_NAME):
+        try:
+            robot.move_joints(pose.q, speed)
+        except SafetyError as exc:  # the gate knows joints, the engine which pose they are
+            raise exc.at_pose(pose.idx) from None
+        reached = robot.actual_joints()
     if float(np.max(np.abs(reached - pose.q))) > IN_POSITION_TOL:
         raise DeviceError(
             f"pose {pose.idx}: {robot.name}: reports {np.degrees(reached).round(3).tolist()}° "
-            f"after a move to {np.degrees(pose.q).round(3).tolist()}°"
+            f"after a move to {np.degrees(pose.q).round(3).tolist()}°",
+            device=ROBOT_NAME,
         )
     phase("dwell", pose, clock.now())
     if stop.is_set() or clock.wait(stop, dwell_s):
@@ -182,7 +186,7 @@ def _visit(
     phase("sample", pose, start)
 
     def sample(s: SensorSetting) -> Series:
-        with clock.branch(start):
+        with clock.branch(start), device_errors(s.sensor.name):
             return s.sensor.measure(samples_per_pose, s.rate_hz)
 
     retries = 0

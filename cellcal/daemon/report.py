@@ -28,71 +28,22 @@ from cellcal.daemon.analysis import mean_sigma
 from cellcal.daemon.plan import CALIBRATION, VALIDATION
 from cellcal.daemon.report_data import report_data
 from cellcal.daemon.report_html import report_html
-from cellcal.daemon.store import PoseData, Store
+from cellcal.daemon.store import CampaignRow, PoseData, Store
+from cellcal.daemon.store_queries import CampaignListing
 from cellcal.errors import CampaignError, InputError
 from cellcal.modelfiles import write_atomically
 from cellcal.outputfiles import check_output_file
 
 
-@dataclass(frozen=True)
-class CampaignListing:
-    """One line of ``cellcal campaign list``."""
-
-    id: int
-    created: str
-    status: str
-    model: str
-    sensors: tuple[str, ...]
-    n_poses: int
-    stored: int
-    rms_before_mm: float | None
-    rms_after_mm: float | None
-
-    def as_dict(self) -> dict[str, Any]:
-        return {
-            "id": self.id,
-            "created": self.created,
-            "status": self.status,
-            "model": self.model,
-            "sensors": list(self.sensors),
-            "n_poses": self.n_poses,
-            "poses_stored": self.stored,
-            "rms_before_mm": self.rms_before_mm,
-            "rms_after_mm": self.rms_after_mm,
-        }
-
-
 def list_campaigns(store: Store) -> list[CampaignListing]:
-    rows = store.conn.execute(
-        """SELECT c.id, c.created, c.status, c.model, c.sensors, c.n_poses,
-        (SELECT COUNT(*) FROM poses p WHERE p.campaign_id = c.id),
-        (SELECT summary FROM reports r WHERE r.campaign_id = c.id ORDER BY r.id DESC LIMIT 1)
-        FROM campaigns c ORDER BY c.id"""
-    ).fetchall()
-    out = []
-    for r in rows:
-        summary = json.loads(r[7]) if r[7] else {}
-        out.append(
-            CampaignListing(
-                id=int(r[0]),
-                created=str(r[1]),
-                status=str(r[2]),
-                model=str(r[3]),
-                sensors=tuple(json.loads(r[4])),
-                n_poses=int(r[5]),
-                stored=int(r[6]),
-                rms_before_mm=summary.get("rms_before_mm"),
-                rms_after_mm=summary.get("rms_after_mm"),
-            )
-        )
-    return out
+    return store.campaign_listings()
 
 
 def latest_campaign(store: Store) -> int:
-    row = store.conn.execute("SELECT MAX(id) FROM campaigns").fetchone()
-    if row is None or row[0] is None:
+    cid = store.latest_campaign_id()
+    if cid is None:
         raise CampaignError(f"{store.path}: no campaign in this database")
-    return int(row[0])
+    return cid
 
 
 def _number(v: float) -> str:
@@ -164,10 +115,7 @@ def is_iso_test(store: Store, campaign_id: int, summary: dict[str, Any] | None) 
     says so, or (interrupted) its first event does."""
     if summary is not None and "iso9283" in summary:
         return True
-    row = store.conn.execute(
-        "SELECT 1 FROM events WHERE campaign_id = ? AND kind = 'iso9283' LIMIT 1", (campaign_id,)
-    ).fetchone()
-    return row is not None
+    return store.has_event(campaign_id, "iso9283")
 
 
 def iso_plan_text(summary: dict[str, Any] | None, n_poses: int) -> str:
@@ -197,13 +145,7 @@ def iso_csv(
     attained = None
     if T is not None and sensor == s.get("reference_sensor"):
         attained = apply(invert(np.array(T, dtype=np.float64)), data.mean[sensor])
-    targets = {
-        int(i): (x, y, z)
-        for i, x, y, z in store.conn.execute(
-            "SELECT idx, target_x, target_y, target_z FROM poses WHERE campaign_id = ?",
-            (campaign_id,),
-        )
-    }
+    targets = store.pose_targets(campaign_id)
     per_stage = max(store.campaign(campaign_id).n_poses // len(ISO_STAGES), 1)
     dof = data.q.shape[1]
     head = ["name", "stage", "point", "cycle", "commanded_x", "commanded_y", "commanded_z"]
@@ -225,24 +167,14 @@ def iso_csv(
     return "\n".join(lines) + "\n"
 
 
-def _timeline(store: Store, campaign_id: int, iso: bool) -> tuple[float, dict[str, str]]:
+def _timeline(store: Store, row: CampaignRow, iso: bool) -> tuple[float, dict[str, str]]:
     """The campaign's dwell (s), and the page's rows about what it did: its plan (an ISO
     9283 test: its cube), when it was created and its poses stored (UTC), its acquisition
     time on the campaign's clock (simulated seconds in mock mode)."""
-    created, dwell, config_json = store.conn.execute(
-        "SELECT created, dwell_s, config_json FROM campaigns WHERE id = ?", (campaign_id,)
-    ).fetchone()
-    roles = store.conn.execute(
-        "SELECT role, COUNT(*) FROM poses WHERE campaign_id = ? GROUP BY role ORDER BY role",
-        (campaign_id,),
-    ).fetchall()
-    first, last, t0, t1 = store.conn.execute(
-        """SELECT MIN(stored), MAX(stored), MIN(t_start), MAX(t_end) FROM poses
-        WHERE campaign_id = ?""",
-        (campaign_id,),
-    ).fetchone()
-    out = {"created": str(created)}
-    c = json.loads(config_json).get("campaign", {})
+    times = store.campaign_times(row.id)
+    roles = store.stored_by_role(row.id).items()
+    out = {"created": times.created}
+    c = json.loads(row.config_json).get("campaign", {})
     with contextlib.suppress(KeyError, TypeError, ValueError):
         centre = ", ".join(f"{float(v):g}" for v in c["cube_centre_mm"])
         edge = float(c["cube_edge_mm"])
@@ -258,11 +190,12 @@ def _timeline(store: Store, campaign_id: int, iso: bool) -> tuple[float, dict[st
                 f"up to {float(c['orientation_variation_deg']):g}° per pose"
             )
     out["poses stored per role"] = ", ".join(f"{r}: {n}" for r, n in roles) or "none"
-    if first is not None:
-        out["first pose stored"] = str(first)
-        out["last pose stored"] = str(last)
-        out["acquisition (campaign clock)"] = f"{(t1 - t0) / 60:.1f} min"
-    return float(dwell), out
+    span = times.poses
+    if span is not None:
+        out["first pose stored"] = span.first_stored
+        out["last pose stored"] = span.last_stored
+        out["acquisition (campaign clock)"] = f"{(span.t_end - span.t_start) / 60:.1f} min"
+    return times.dwell_s, out
 
 
 @dataclass(frozen=True)
@@ -291,10 +224,7 @@ def write_report(
     row = store.campaign(cid)
     data = store.pose_data(cid)
     summary = store.latest_report(cid)
-    model = store.conn.execute(
-        "SELECT model_toml FROM calibrations WHERE campaign_id = ? ORDER BY id DESC LIMIT 1",
-        (cid,),
-    ).fetchone()
+    model = store.latest_model_toml(cid)
     try:
         folder.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
@@ -327,8 +257,8 @@ def write_report(
         files[f"measurements-{sensor}.csv"] = measurements_csv(data, sensor, CALIBRATION)
         files[f"validation-{sensor}.csv"] = measurements_csv(data, sensor, VALIDATION)
     if model is not None:
-        files["model.toml"] = str(model[0])
-    dwell_s, timeline = _timeline(store, cid, iso)
+        files["model.toml"] = model
+    dwell_s, timeline = _timeline(store, row, iso)
     page_facts = {**facts, "dwell_s": dwell_s, "iso9283": iso}
     data_for_page = report_data(store, cid, page_facts, methods=methods and not iso)
     files["index.html"] = report_html(data_for_page, timeline)

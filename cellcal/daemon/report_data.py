@@ -175,31 +175,15 @@ def report_data(
     """Everything the report shows of campaign ``campaign_id``."""
     data = store.pose_data(campaign_id)
     summary = store.latest_report(campaign_id)
-    row = store.conn.execute(
-        "SELECT model_toml FROM calibrations WHERE campaign_id = ? ORDER BY id DESC LIMIT 1",
-        (campaign_id,),
-    ).fetchone()
-    events = tuple(
-        (str(t), str(k), None if i is None else int(i), str(msg))
-        for t, k, i, msg in store.conn.execute(
-            "SELECT time, kind, pose_idx, message FROM events WHERE campaign_id = ? ORDER BY id",
-            (campaign_id,),
-        )
-    )
-    retries = {
-        str(s): int(n)
-        for s, n in store.conn.execute(
-            """SELECT s.sensor, SUM(s.retries) FROM pose_stats s JOIN poses p ON p.id = s.pose_id
-            WHERE p.campaign_id = ? GROUP BY s.sensor""",
-            (campaign_id,),
-        )
-    }
+    model_toml = store.latest_model_toml(campaign_id)
+    events = store.event_rows(campaign_id)
+    retries = store.retries_by_sensor(campaign_id)
     empty = np.zeros((0, 3))
-    if summary is None or row is None:
+    if summary is None or model_toml is None:
         return ReportData(
             campaign_id, facts, summary, None, empty, (), (), None, np.zeros(0), (), events, retries
         )
-    doc = tomllib.loads(str(row[0]))
+    doc = tomllib.loads(model_toml)
     state = _state(doc)
     nominal = load_model(str(facts["model"])).model
     reference = str(summary["reference_sensor"])

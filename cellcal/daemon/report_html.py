@@ -13,6 +13,7 @@ import numpy as np
 
 from cellcal.daemon import report_figures as figs
 from cellcal.daemon.report_data import ReportData
+from cellcal.daemon.store_devices import description_of
 
 #: Liu et al. 2018, Table 3: RMS position error after calibration per region (mm).
 PAPER_TABLE3 = {"cube": 0.200, "O1": 0.330, "O2": 0.360, "O3": 0.271, "O4": 0.335, "O5": 0.319}
@@ -349,7 +350,8 @@ def _versions(f: dict[str, Any]) -> str:
 def _campaign(d: ReportData, timeline: dict[str, Any]) -> str:
     f = d.facts
     kinds = Counter(k for _, k, _, _ in d.events)
-    devices = [m for _, k, _, m in d.events if k == "device"]
+    # the text lines; the JSON descriptions beside them are for tools
+    devices = [m for _, k, _, m in d.events if k == "device" and description_of(m) is None]
     rows = [
         ["status", f["status"]],
         ["robot model", f["model"]],

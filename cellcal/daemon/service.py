@@ -84,25 +84,18 @@ def recover(store: Store, control: Control, previous: str) -> list[int]:
     """Campaigns the previous service left ``running`` or ``paused`` become
     ``interrupted``; the latest of them — or one a SIGTERM interrupted — holds the queue."""
     who = previous or "a previous cellcal process"
-    rows = store.conn.execute(
-        "SELECT id, status FROM campaigns WHERE status IN ('running', 'paused') ORDER BY id"
-    ).fetchall()
     found = []
-    for cid, status in rows:
-        store.set_status(int(cid), "interrupted")
+    for cid, status in store.unfinished_campaigns():
+        store.set_status(cid, "interrupted")
         store.add_event(
-            int(cid),
+            cid,
             "recovered",
             f"found {status} at start-up: {who} stopped while it ran; nothing moves until "
             f"an operator resumes it (cellcal campaign resume {cid})",
         )
-        found.append(int(cid))
-    last = store.conn.execute(
-        """SELECT c.id FROM campaigns c WHERE c.status = 'interrupted' AND (SELECT kind FROM
-        events e WHERE e.campaign_id = c.id ORDER BY e.id DESC LIMIT 1) = 'service-stopped'
-        ORDER BY c.id DESC LIMIT 1"""
-    ).fetchone()
-    hold = found[-1] if found else (int(last[0]) if last else None)
+        found.append(cid)
+    stopped = store.last_stopped_by_service()
+    hold = found[-1] if found else stopped
     if hold is not None:
         control.recovered(hold)
     return found

@@ -35,11 +35,9 @@ def campaign_view(
     interrupted), else the last one that ran (none: None); with its last stored poses
     and, when it ended complete or refused, its end."""
     if held is None:
-        row = store.conn.execute("SELECT MAX(id) FROM campaigns WHERE status != 'queued'")
-        last = row.fetchone()[0]
-        if last is None:
+        held = store.last_started_campaign()
+        if held is None:
             return None
-        held = int(last)
     c = store.campaign(held)
     poses = stored_poses(store, held)
     roles = {role: {"stored": n} for role, n in store.stored_by_role(held).items()}

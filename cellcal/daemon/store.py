@@ -57,6 +57,7 @@ from cellcal.daemon.store_connection import (
     open_writer,
     writing,
 )
+from cellcal.daemon.store_queries import CampaignQueries
 from cellcal.daemon.store_results import AnalysisTables, StatusReads
 from cellcal.daemon.store_schema import (
     COV_COLUMNS,
@@ -126,9 +127,10 @@ class PoseData:
         return np.asarray(np.isfinite(self.mean[sensor]).all(axis=1))
 
 
-class Store(AnalysisTables, StatusReads):
+class Store(AnalysisTables, StatusReads, CampaignQueries):
     """One campaign database file (the analysis's tables: :class:`AnalysisTables`; the
-    status's reads: :class:`StatusReads`)."""
+    status's reads: :class:`StatusReads`; the campaign list's, the report's and the
+    queue's reads: :class:`CampaignQueries`)."""
 
     def __init__(self, path: str | Path, *, readonly: bool = False) -> None:
         self.path = database_path(path)

@@ -1,13 +1,15 @@
 """The analysis's tables of the campaign database: registrations, calibrations, fused
-positions and reports; and the reads of the service's status (a campaign's last stored
-poses). Mixins of :class:`~cellcal.daemon.store.Store`, which owns the connection and
-the transactions; the schema is ``store_schema.py``'s."""
+positions and reports, an analysis's written in one transaction
+(:meth:`AnalysisTables.save_analysis`); and the reads of the service's status (a
+campaign's last stored poses). Mixins of :class:`~cellcal.daemon.store.Store`, which owns
+the connection and the transactions; the schema is ``store_schema.py``'s."""
 
 from __future__ import annotations
 
 import json
 import sqlite3
-from collections.abc import Callable, Iterable
+from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any, Protocol
 
 import numpy as np
@@ -24,109 +26,145 @@ class _Transaction(Protocol):
     def __exit__(self, exc_type: object, exc: object, tb: object) -> None: ...
 
 
+@dataclass(frozen=True)
+class RegistrationRow:
+    """A sensor registered to the robot base with one geometry (``nominal`` or
+    ``calibrated``): its ``n`` poses' RMS and maximum residual (mm), ``T_sensor_base``
+    and the target offset (mm)."""
+
+    sensor: str
+    geometry: str
+    n: int
+    rms_mm: float
+    max_mm: float
+    T_sensor_base: Array
+    target_offset_mm: Array
+
+
+@dataclass(frozen=True)
+class CalibrationRow:
+    """The calibration from the reference sensor: the fit's numbers and the calibrated
+    model (TOML)."""
+
+    sensor: str
+    n_points: int
+    rms_before_mm: float
+    rms_after_mm: float
+    condition_number: float
+    identified: tuple[str, ...]
+    unidentifiable: tuple[str, ...]
+    model_toml: str
+
+
+@dataclass(frozen=True)
+class FusedRow:
+    """One pose's fused position (robot base frame, mm) with its covariance (3×3, mm²),
+    the sensors it came from and their agreement (squared Mahalanobis distance)."""
+
+    pose_id: int
+    sensors: tuple[str, ...]
+    xyz: Array
+    cov: Array
+    mahalanobis2: float | None
+
+
+@dataclass(frozen=True)
+class AnalysisResults:
+    """Everything one analysis of a campaign stores: written whole or not at all
+    (:meth:`AnalysisTables.save_analysis`)."""
+
+    campaign_id: int
+    registrations: tuple[RegistrationRow, ...]
+    calibration: CalibrationRow
+    fused: tuple[FusedRow, ...]
+    #: the report's summary (a JSON document)
+    summary: dict[str, Any]
+
+
 class AnalysisTables:
-    """Writes and reads the analysis's results; every write in its own transaction, or
-    in the caller's (one analysis is stored whole or not at all)."""
+    """Writes and reads the analysis's results: one analysis in one transaction (stored
+    whole or not at all), a report alone in its own."""
 
     conn: sqlite3.Connection
     path: str
     #: the store's: BEGIN IMMEDIATE … COMMIT (nested: the outer one's)
     transaction: Callable[[], _Transaction]
 
-    def add_registration(
-        self,
-        campaign_id: int,
-        sensor: str,
-        geometry: str,
-        n: int,
-        rms_mm: float,
-        max_mm: float,
-        T_sensor_base: Array,
-        target_offset_mm: Array,
-    ) -> None:
+    def save_analysis(self, results: AnalysisResults) -> None:
+        """Store an analysis's registrations, calibration, fused positions and report in
+        one transaction: a failure at any of them (or a crash) leaves none of them."""
+        cid = results.campaign_id
         with self.transaction():
-            self.conn.execute(
-                """INSERT INTO registrations (campaign_id, sensor, geometry, created, n, rms_mm,
-                max_mm, T_sensor_base, target_offset_mm) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)""",
-                (
-                    campaign_id,
-                    sensor,
-                    geometry,
-                    utc_now(),
-                    n,
-                    rms_mm,
-                    max_mm,
-                    json.dumps(np.asarray(T_sensor_base).tolist()),
-                    json.dumps(np.asarray(target_offset_mm).tolist()),
-                ),
-            )
+            for r in results.registrations:
+                self._insert_registration(cid, r)
+            self._insert_calibration(cid, results.calibration)
+            for f in results.fused:
+                self._insert_fused(cid, f)
+            self._insert_report(cid, results.summary)
 
-    def add_calibration(
-        self,
-        campaign_id: int,
-        sensor: str,
-        *,
-        n_points: int,
-        rms_before_mm: float,
-        rms_after_mm: float,
-        condition_number: float,
-        identified: Iterable[str],
-        unidentifiable: Iterable[str],
-        model_toml: str,
-    ) -> None:
-        with self.transaction():
-            self.conn.execute(
-                """INSERT INTO calibrations (campaign_id, sensor, created, n_points,
-                rms_before_mm, rms_after_mm, condition_number, identified, unidentifiable,
-                model_toml, cellcal_version) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)""",
-                (
-                    campaign_id,
-                    sensor,
-                    utc_now(),
-                    n_points,
-                    rms_before_mm,
-                    rms_after_mm,
-                    condition_number,
-                    json.dumps(list(identified)),
-                    json.dumps(list(unidentifiable)),
-                    model_toml,
-                    __version__,
-                ),
-            )
+    def _insert_registration(self, campaign_id: int, r: RegistrationRow) -> None:
+        self.conn.execute(
+            """INSERT INTO registrations (campaign_id, sensor, geometry, created, n, rms_mm,
+            max_mm, T_sensor_base, target_offset_mm) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)""",
+            (
+                campaign_id,
+                r.sensor,
+                r.geometry,
+                utc_now(),
+                r.n,
+                r.rms_mm,
+                r.max_mm,
+                json.dumps(np.asarray(r.T_sensor_base).tolist()),
+                json.dumps(np.asarray(r.target_offset_mm).tolist()),
+            ),
+        )
 
-    def add_fused(
-        self,
-        campaign_id: int,
-        pose_id: int,
-        sensors: Iterable[str],
-        xyz: Array,
-        cov: Array,
-        mahalanobis2: float | None,
-    ) -> None:
-        """One pose's fused position (robot base frame, mm) with its covariance (mm²),
-        the sensors it came from and their agreement (squared Mahalanobis distance)."""
-        with self.transaction():
-            self.conn.execute(
-                f"""INSERT INTO fused (campaign_id, pose_id, created, sensors, x, y, z,
-                {", ".join(COV_COLUMNS)}, mahalanobis2)
-                VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)""",
-                (
-                    campaign_id,
-                    pose_id,
-                    utc_now(),
-                    json.dumps(list(sensors)),
-                    *map(float, xyz),
-                    *map(float, cov[UPPER]),
-                    mahalanobis2,
-                ),
-            )
+    def _insert_calibration(self, campaign_id: int, c: CalibrationRow) -> None:
+        self.conn.execute(
+            """INSERT INTO calibrations (campaign_id, sensor, created, n_points,
+            rms_before_mm, rms_after_mm, condition_number, identified, unidentifiable,
+            model_toml, cellcal_version) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)""",
+            (
+                campaign_id,
+                c.sensor,
+                utc_now(),
+                c.n_points,
+                c.rms_before_mm,
+                c.rms_after_mm,
+                c.condition_number,
+                json.dumps(list(c.identified)),
+                json.dumps(list(c.unidentifiable)),
+                c.model_toml,
+                __version__,
+            ),
+        )
+
+    def _insert_fused(self, campaign_id: int, f: FusedRow) -> None:
+        self.conn.execute(
+            f"""INSERT INTO fused (campaign_id, pose_id, created, sensors, x, y, z,
+            {", ".join(COV_COLUMNS)}, mahalanobis2)
+            VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)""",
+            (
+                campaign_id,
+                f.pose_id,
+                utc_now(),
+                json.dumps(list(f.sensors)),
+                *map(float, f.xyz),
+                *map(float, f.cov[UPPER]),
+                f.mahalanobis2,
+            ),
+        )
+
+    def _insert_report(self, campaign_id: int, summary: dict[str, Any]) -> None:
+        self.conn.execute(
+            "INSERT INTO reports (campaign_id, created, summary) VALUES (?, ?, ?)",
+            (campaign_id, utc_now(), json.dumps(summary)),
+        )
 
     def add_report(self, campaign_id: int, summary: dict[str, Any]) -> None:
+        """A report alone (an ISO 9283 test's), in its own transaction."""
         with self.transaction():
-            self.conn.execute(
-                "INSERT INTO reports (campaign_id, created, summary) VALUES (?, ?, ?)",
-                (campaign_id, utc_now(), json.dumps(summary)),
-            )
+            self._insert_report(campaign_id, summary)
 
     def latest_report(self, campaign_id: int) -> dict[str, Any] | None:
         row = self.conn.execute(

@@ -21,7 +21,7 @@ from cellcal.daemon.devices import Devices, build_devices
 from cellcal.daemon.records import CampaignEnded, CampaignStarted, Record
 from cellcal.daemon.report import report_folder, write_report
 from cellcal.daemon.store import Store, StoreError
-from cellcal.errors import CellcalError, DeviceError
+from cellcal.errors import CellcalError, DeviceError, device_of
 from cellcal.modelfiles import load_model
 
 log = logging.getLogger("cellcal.service")
@@ -31,8 +31,7 @@ BACKOFF_S = (1.0, 2.0, 4.0, 8.0, 15.0, 30.0)
 
 
 def oldest_queued(store: Store) -> int | None:
-    row = store.conn.execute("SELECT MIN(id) FROM campaigns WHERE status = 'queued'").fetchone()
-    return None if row is None or row[0] is None else int(row[0])
+    return store.oldest_queued()
 
 
 def device_names(config: CellConfig) -> list[str]:
@@ -140,7 +139,7 @@ class Worker(threading.Thread):
                 log.info("devices: not connected, the service stops (%s)", exc)
                 return False
             message = str(exc)
-            self._mark_fault(message)
+            self._mark_fault(message, device_of(exc))
             wait = BACKOFF_S[min(self.connections, len(BACKOFF_S) - 1)]
             self.connections += 1
             log.warning("devices: %s; next attempt in %.0f s", message, wait)
@@ -152,10 +151,12 @@ class Worker(threading.Thread):
         log.info("devices ready: %s", ", ".join(device_names(self.config)))
         return True
 
-    def _mark_fault(self, message: str) -> None:
-        """The device the message names is at fault; the others wait to reconnect (all
-        at fault when none is named)."""
-        which = faulty_device(self.config, message)
+    def _mark_fault(self, message: str, device: str | None = None) -> None:
+        """The device the error names (``device``: its ``DeviceError.device``; else the
+        one its message names) is at fault; the others wait to reconnect (all at fault
+        when none is named)."""
+        names = device_names(self.config)
+        which = device if device in names else faulty_device(self.config, message)
         for name in device_names(self.config):
             state = FAULT if which in (None, name) else CONNECTING
             self.control.set_device(name, state, message if state == FAULT else "")
@@ -227,7 +228,7 @@ class Worker(threading.Thread):
         if failure is not None and status == "paused" and not c.shutting_down:
             # A device fault: let go of the devices and connect them afresh.
             self._disconnect()
-            self._mark_fault(message)
+            self._mark_fault(message, device_of(failure))
 
     def _after_failure(
         self,

@@ -2,18 +2,47 @@
 
 Drivers convert to and from device units at their edge; through these Protocols joint
 positions are radians and lengths millimetres. Every call may raise a
-:class:`~cellcal.errors.DeviceError`.
+:class:`~cellcal.errors.DeviceError`, whose ``device`` is the device's name in the
+configuration (:data:`ROBOT_NAME` for the robot, a sensor's own name). ``describe()``
+says what the device is (:class:`DeviceDescription`), for the campaign's record.
 """
 
 from __future__ import annotations
 
+import functools
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, Protocol
+from typing import Any, Concatenate, ParamSpec, Protocol, TypeVar
 
 import numpy as np
 
 from cellcal.calib.geometry import Array
 from cellcal.clock import Clock, WallClock
+from cellcal.errors import device_errors
+
+#: The robot's name in the configuration (its section, ``[robot]``: a cell has one): what
+#: its DeviceErrors and its description name, whatever its driver calls it in messages.
+ROBOT_NAME = "robot"
+
+
+@dataclass(frozen=True)
+class DeviceDescription:
+    """What a device is, for the campaign's record: its name in the configuration
+    (``device``), its family (the tag of ``cellcal/families.py``: ``ur``, ``modbus``,
+    ``laser-tracker/line-protocol``, …), where it is (``address``; None for an
+    in-process simulation) and what its protocol tells of it — ``maker``, ``model``,
+    ``firmware``, ``serial`` — each None where the protocol cannot say. ``parts``: the
+    devices it is made of, described alike (a photogrammetry rig's cameras, each
+    ``device`` the camera's name in the rig)."""
+
+    device: str
+    family: str
+    address: str | None = None
+    maker: str | None = None
+    model: str | None = None
+    firmware: str | None = None
+    serial: str | None = None
+    parts: tuple[DeviceDescription, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -24,6 +53,29 @@ class DeviceContext:
 
     clock: Clock = field(default_factory=WallClock)
     cell: Any = None
+
+
+class _Named(Protocol):
+    name: str
+
+
+_P = ParamSpec("_P")
+_R = TypeVar("_R")
+_D = TypeVar("_D", bound=_Named)
+
+
+def naming_errors(method: Callable[Concatenate[_D, _P], _R]) -> Callable[Concatenate[_D, _P], _R]:
+    """A driver's method whose DeviceErrors name the device (``device``: its ``name``)
+    when they do not yet: those of the layers below too (a transport, a camera backend),
+    which do not know it. For a driver whose ``name`` is its name in the configuration:
+    a sensor's."""
+
+    @functools.wraps(method)
+    def named(self: _D, /, *args: _P.args, **kwargs: _P.kwargs) -> _R:
+        with device_errors(self.name):
+            return method(self, *args, **kwargs)
+
+    return named
 
 
 def label(name: str, address: str) -> str:
@@ -118,6 +170,10 @@ class Robot(Protocol):
         """The joint positions the controller reports (rad)."""
         ...
 
+    def describe(self) -> DeviceDescription:
+        """What the controller is (connected: what it says of itself)."""
+        ...
+
     def stop(self) -> None: ...
 
     def close(self) -> None: ...
@@ -127,6 +183,7 @@ class PositionSensor(Protocol):
     """A sensor that measures the position of its target (laser tracker,
     photogrammetry rig)."""
 
+    #: its name in the configuration: what its DeviceErrors and its description name
     name: str
 
     def connect(self) -> None: ...
@@ -135,6 +192,10 @@ class PositionSensor(Protocol):
         """``n`` samples at ``rate_hz``; blocks for about n / rate_hz seconds. What fails
         is taken again, at most ``2 n`` attempts in all; a series still short comes back
         with what it has and a note saying why."""
+        ...
+
+    def describe(self) -> DeviceDescription:
+        """What the sensor is (connected: what it says of itself)."""
         ...
 
     def close(self) -> None: ...

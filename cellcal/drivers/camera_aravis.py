@@ -39,7 +39,7 @@ from typing import Annotated, Any, Literal
 from pydantic import Field
 
 from cellcal.clock import Clock, WallClock
-from cellcal.drivers.base import label
+from cellcal.drivers.base import DeviceDescription, label
 from cellcal.drivers.camera_aravis_link import AravisLink, Shot, load_aravis
 from cellcal.drivers.cameras import CameraOptions, Frame, FrameSet, RigOptions
 from cellcal.errors import DeviceError
@@ -250,6 +250,24 @@ class AravisRig:
                     lost[name] = shot.reason
         self._lost = set(lost)
         return FrameSet(frames=frames, lost={n: lost[n] for n in self.cameras if n in lost})
+
+    def describe(self) -> tuple[DeviceDescription, ...]:
+        """Each camera as it says of itself (:meth:`AravisLink.identity`, asked on its
+        thread, at most ``CONNECT_S`` in all); a camera not connected, lost, busy or
+        silent is its name and address only."""
+        asked: dict[str, Future[DeviceDescription]] = {}
+        for name, link in self._links.items():
+            if not link.gone and not self._workers[name].busy:
+                asked[name] = self._workers[name].submit(link.identity)
+        wait(asked.values(), timeout=CONNECT_S)
+        out = []
+        for cam in self.options.cameras:
+            future = asked.get(cam.name)
+            if future is not None and future.done() and future.exception() is None:
+                out.append(future.result())
+            else:
+                out.append(DeviceDescription(cam.name, "aravis", cam.address))
+        return tuple(out)
 
     def close(self) -> None:
         """Stop acquisition and release every camera; safe to call twice. Waits up to

@@ -7,13 +7,13 @@ from __future__ import annotations
 import ctypes
 import logging
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from cellcal.clock import Clock
-from cellcal.drivers.base import label
+from cellcal.drivers.base import DeviceDescription, label
 from cellcal.drivers.cameras import Frame
 from cellcal.errors import DeviceError
 
@@ -213,6 +213,35 @@ class AravisLink:
                 log.info("%s: stop_acquisition: %s", self.where, _text(exc))
         self.stream = None
         self.cam = None
+
+    def identity(self) -> DeviceDescription:
+        """The camera as it says of itself (GenICam's DeviceVendorName, DeviceModelName,
+        serial number, DeviceFirmwareVersion — else GigE Vision's device version, which
+        cameras fill with their firmware's): what it does not say stays None, as does
+        all of it for a camera not open."""
+        described = DeviceDescription(self.options.name, "aravis", self.options.address)
+        cam = self.cam
+        if cam is None:
+            return described
+        a = load_aravis()
+
+        def said(ask: Any, *args: str) -> str | None:
+            try:
+                value = ask(*args)
+            except a.GLib.Error:
+                return None
+            text = "" if value is None else str(value).strip()
+            return text or None
+
+        return replace(
+            described,
+            maker=said(cam.get_vendor_name),
+            model=said(cam.get_model_name),
+            firmware=said(cam.get_string, "DeviceFirmwareVersion")
+            or said(cam.get_string, "DeviceVersion"),
+            # Aravis before 0.8.8 has no serial number getter: DeviceID, SFNC's older name
+            serial=said(getattr(cam, "get_device_serial_number", cam.get_device_id)),
+        )
 
     # ------------------------------------------------------------------ frames
 

@@ -19,6 +19,7 @@ from pydantic import Field
 
 from cellcal.calib.marker_corners import grey
 from cellcal.clock import Clock, WallClock
+from cellcal.drivers.base import DeviceDescription
 from cellcal.drivers.cameras import CameraOptions, Frame, FrameSet, RigOptions
 from cellcal.errors import DeviceError, FileFormatError
 from cellcal.imagefiles import Image, set_folders
@@ -104,6 +105,11 @@ class FilesRig:
                 device_time=path.stat().st_mtime,
             )
         return FrameSet(frames=frames, lost=lost)
+
+    def describe(self) -> tuple[DeviceDescription, ...]:
+        """Each camera's name and its image's file name in a set: a recording tells
+        nothing of the cameras that made it."""
+        return tuple(DeviceDescription(n, "files", self._files[n]) for n in self.cameras)
 
     def close(self) -> None:
         self._sets, self._next = [], 0

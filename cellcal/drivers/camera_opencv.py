@@ -23,7 +23,7 @@ from pydantic import Field
 
 from cellcal.calib.marker_corners import grey
 from cellcal.clock import Clock, WallClock
-from cellcal.drivers.base import label
+from cellcal.drivers.base import DeviceDescription, label
 from cellcal.drivers.cameras import CameraOptions, Frame, FrameSet, RigOptions
 from cellcal.errors import DeviceError
 
@@ -122,6 +122,10 @@ class OpenCVRig:
                 lost[cam.name] = f"{reason} after {cam.retries + 1} attempt(s)"
                 log.warning("%s: %s", label(f"camera {cam.name}", cam.address), lost[cam.name])
         return FrameSet(frames=frames, lost=lost)
+
+    def describe(self) -> tuple[DeviceDescription, ...]:
+        """Each camera's name and address: VideoCapture tells nothing of the device."""
+        return tuple(DeviceDescription(c.name, "opencv", c.address) for c in self.options.cameras)
 
     def close(self) -> None:
         for cap in self._captures.values():

@@ -14,7 +14,6 @@ cameras through VideoCapture) and ``files`` (recorded image sets: one folder per
 
 from __future__ import annotations
 
-import importlib
 from dataclasses import dataclass
 from typing import Annotated, Any, Protocol
 
@@ -22,6 +21,8 @@ from numpy.typing import NDArray
 from pydantic import Field, model_validator
 
 from cellcal.device_options import Name, Strict
+from cellcal.drivers.base import DeviceDescription
+from cellcal.extras import needs
 
 #: An image as the camera delivers it: (height, width), 8- or 16-bit grey.
 Pixels = NDArray[Any]
@@ -72,6 +73,11 @@ class CameraRig(Protocol):
         configured timeout, retrying lost frames."""
         ...
 
+    def describe(self) -> tuple[DeviceDescription, ...]:
+        """Each camera, in the rig file's order: its name (``device``), the backend
+        (``family``), its address and what it says of itself (connected)."""
+        ...
+
     def close(self) -> None:
         """Release the cameras; safe to call twice."""
         ...
@@ -103,17 +109,30 @@ class RigOptions(Strict):
         return self
 
 
-#: backend → the rig class, imported only when asked for (``aravis`` needs PyGObject).
-BACKENDS = {
-    "aravis": "cellcal.drivers.camera_aravis:AravisRig",
-    "opencv": "cellcal.drivers.camera_opencv:OpenCVRig",
-    "files": "cellcal.drivers.camera_files:FilesRig",
-    # mock mode's in-process fallback; a configuration cannot name it
-    "rendered": "cellcal.mocks.rig_twin:RenderedRig",
-}
+#: The backends a configuration may name; each rig class is imported only when asked
+#: for (``aravis`` needs PyGObject, ``opencv`` OpenCV).
+BACKENDS = ("aravis", "opencv", "files")
 
 
 def rig_class(backend: str) -> Any:
-    """The rig class of ``backend`` (it has ``from_options(options, clock=None)``)."""
-    module, _, attribute = BACKENDS[backend].partition(":")
-    return getattr(importlib.import_module(module), attribute)
+    """The rig class of ``backend`` (it has ``from_options(options, clock=None)``); also
+    ``rendered``, mock mode's in-process fallback, which a configuration cannot name: a
+    twin, from the registry of device families."""
+    with needs(f'the camera backend "{backend}"'):
+        if backend == "aravis":
+            from cellcal.drivers.camera_aravis import AravisRig
+
+            return AravisRig
+        if backend == "opencv":
+            from cellcal.drivers.camera_opencv import OpenCVRig
+
+            return OpenCVRig
+        if backend == "files":
+            from cellcal.drivers.camera_files import FilesRig
+
+            return FilesRig
+        if backend == "rendered":
+            from cellcal.families import RenderedRig
+
+            return RenderedRig
+    raise KeyError(backend)

@@ -47,7 +47,7 @@ from pymodbus.exceptions import ModbusException
 
 from cellcal.calib.geometry import Array
 from cellcal.device_options import Positive, RobotOptions
-from cellcal.drivers.base import DeviceContext, host_port, label
+from cellcal.drivers.base import ROBOT_NAME, DeviceContext, DeviceDescription, host_port, label
 from cellcal.drivers.modbus_map import (
     BIT_NAMES,
     BUSY,
@@ -252,6 +252,13 @@ class ModbusRobot:
         out: Array = np.radians(values)
         return out
 
+    def describe(self) -> DeviceDescription:
+        """The controller at host:port: the handshake map has no identity registers (and
+        Modbus's device identification, function 43, is not asked: a controller behind a
+        PLC or gateway would describe the gateway), so maker, model, firmware and serial
+        are None."""
+        return DeviceDescription(ROBOT_NAME, "modbus", self.where)
+
     def stop(self) -> None:
         """Command a stop and return once the controller acknowledged it."""
         seq = self._command(CMD_STOP)
@@ -393,7 +400,9 @@ class ModbusRobot:
         self._client.close()  # type: ignore[no-untyped-call]
 
     def _error(self, message: str) -> DeviceError:
-        return DeviceError(_one_line(f"{label(self.name, self.where)}: {message}"))
+        return DeviceError(
+            _one_line(f"{label(self.name, self.where)}: {message}"), device=ROBOT_NAME
+        )
 
     def _encode(self, values: Array | list[float]) -> list[int]:
         floats = [float(v) for v in values]

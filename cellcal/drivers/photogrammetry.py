@@ -35,7 +35,7 @@ from cellcal.calib.rig_measurement import TargetMeter, mean_of
 from cellcal.calib.target_pose import TargetPose
 from cellcal.clock import Clock
 from cellcal.device_options import SensorOptions
-from cellcal.drivers.base import DeviceContext, Series
+from cellcal.drivers.base import DeviceContext, DeviceDescription, Series, naming_errors
 from cellcal.drivers.camera_aravis import AravisRigOptions
 from cellcal.drivers.camera_files import FilesRigOptions
 from cellcal.drivers.camera_opencv import OpenCVRigOptions
@@ -113,7 +113,7 @@ def rig_and_target(options: CameraRigOptions) -> tuple[Rig, Target]:
     try:
         return read_rig(options.rig_file), read_target(options.target_file)
     except UserError as exc:
-        raise DeviceError(f"sensor {options.name}: {exc}") from None
+        raise DeviceError(f"sensor {options.name}: {exc}", device=options.name) from None
 
 
 def quaternion(R: np.ndarray) -> np.ndarray:
@@ -129,7 +129,9 @@ def quaternion(R: np.ndarray) -> np.ndarray:
 
 class CameraRigSensor:
     """A :class:`~cellcal.drivers.base.PositionSensor` made of a camera rig, its
-    calibration and the target it measures."""
+    calibration and the target it measures; ``address``: its cameras' (the configured
+    endpoint). Every DeviceError of its calls names it (``device``: its name), the
+    cameras' too."""
 
     def __init__(
         self,
@@ -142,15 +144,18 @@ class CameraRigSensor:
         min_cameras: int = 2,
         keep_images: str = "",
         set_listener: SetListener | None = None,
+        address: str = "",
     ) -> None:
         missing = sorted({c.name for c in rig.cameras} - set(cameras.cameras))
         extra = sorted(set(cameras.cameras) - {c.name for c in rig.cameras})
         if missing or extra:
             raise DeviceError(
                 f"{name}: the capture's cameras {list(cameras.cameras)} are not the rig "
-                f"file's {[c.name for c in rig.cameras]} (missing {missing}, unknown {extra})"
+                f"file's {[c.name for c in rig.cameras]} (missing {missing}, unknown {extra})",
+                device=name,
             )
         self.name = name
+        self.address = address
         self.cameras = cameras
         self.rig = rig
         self.target = target
@@ -163,9 +168,9 @@ class CameraRigSensor:
     @classmethod
     def from_options(cls, options: CameraRigOptions, context: DeviceContext) -> CameraRigSensor:
         rig, target = rig_and_target(options)
-        cameras = rig_class(options.capture.backend).from_options(
-            options.capture, clock=context.clock
-        )
+        # also mock mode's in-process cameras (backend "rendered"), which are nowhere
+        backend: str = options.capture.backend
+        cameras = rig_class(backend).from_options(options.capture, clock=context.clock)
         return cls(
             options.name,
             cameras,
@@ -175,8 +180,10 @@ class CameraRigSensor:
             min_cameras=options.min_cameras,
             keep_images=options.keep_images,
             set_listener=options.set_listener,
+            address="" if backend == "rendered" else options.endpoint(),
         )
 
+    @naming_errors
     def connect(self) -> None:
         self.cameras.connect()
 
@@ -184,6 +191,15 @@ class CameraRigSensor:
         self._grabber.shutdown(wait=True)
         self.cameras.close()
 
+    @naming_errors
+    def describe(self) -> DeviceDescription:
+        """The rig at its cameras' addresses, each camera as it says of itself
+        (``parts``); a rig tells nothing of itself as a whole."""
+        parts = self.cameras.describe()
+        family = "photogrammetry/cameras"
+        return DeviceDescription(self.name, family, self.address or None, parts=parts)
+
+    @naming_errors
     def measure(self, n: int, rate_hz: float) -> Series:
         """``n`` samples at ``rate_hz``: the reference point of each set that measured,
         sets taken until ``n`` measured or ``2 n`` were taken (module docstring). The

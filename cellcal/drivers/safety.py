@@ -24,7 +24,7 @@ import numpy as np
 from cellcal.calib.geometry import Array
 from cellcal.calib.kinematics import flange_transforms
 from cellcal.calib.robot_model import RobotModel, require_limits
-from cellcal.drivers.base import Robot
+from cellcal.drivers.base import ROBOT_NAME, DeviceDescription, Robot
 from cellcal.errors import DeviceError
 
 #: Between two samples of a move's path no point of the arm out to the target moves
@@ -41,12 +41,15 @@ BOX_TOLERANCE_MM = 1e-6
 
 
 class SafetyError(DeviceError):
-    """A move refused before it was sent."""
+    """A move refused before it was sent: the robot's (``device``)."""
+
+    def __init__(self, *args: object, device: str | None = ROBOT_NAME) -> None:
+        super().__init__(*args, device=device)
 
     def at_pose(self, idx: int) -> SafetyError:
         """The same refusal naming the pose of the plan the move was to, as the engine
         names poses (``pose 3: robot: refused …``), so that an operator finds it."""
-        return SafetyError(f"pose {idx}: {self}")
+        return SafetyError(f"pose {idx}: {self}", device=self.device)
 
 
 @dataclass(frozen=True)
@@ -207,6 +210,9 @@ class GuardedRobot:
 
     def actual_joints(self) -> Array:
         return self.robot.actual_joints()
+
+    def describe(self) -> DeviceDescription:
+        return self.robot.describe()
 
     def stop(self) -> None:
         self.robot.stop()

@@ -43,7 +43,7 @@ from pydantic import Field
 
 from cellcal.clock import Clock, WallClock
 from cellcal.device_options import SensorOptions
-from cellcal.drivers.base import DeviceContext, Series, label
+from cellcal.drivers.base import DeviceContext, DeviceDescription, Series, label, naming_errors
 from cellcal.drivers.line_framing import Line, LineReader
 from cellcal.drivers.tracker_protocol import (
     BeamBrokenError,
@@ -112,7 +112,8 @@ class LineTrackerOptions(SensorOptions):
 
 
 class LineTracker:
-    """A tracker at ``address``; implements the engine's PositionSensor Protocol."""
+    """A tracker at ``address``; implements the engine's PositionSensor Protocol. Every
+    DeviceError of its public calls names it (``device``: its name), the link's too."""
 
     def __init__(
         self,
@@ -165,6 +166,7 @@ class LineTracker:
 
     # ------------------------------------------------------------------ connection
 
+    @naming_errors
     def connect(self) -> None:
         """Open the link, identify and initialise the tracker (and set reflector and
         environment if configured)."""
@@ -284,6 +286,7 @@ class LineTracker:
         self.lines.write_line(request)
         return self._reply(request, t)
 
+    @naming_errors
     def identify(self) -> TrackerIdentity:
         return self._identify(retry=True)
 
@@ -293,9 +296,19 @@ class LineTracker:
             raise TrackerError(f"{self.label}: malformed *IDN? answer {','.join(parts)!r}")
         return TrackerIdentity(*(p.strip() for p in parts))
 
-    def describe(self) -> str:
-        """One line for the campaign's record: the tracker's identity and, when it
-        reports them, the air readings it compensates with."""
+    def describe(self) -> DeviceDescription:
+        """The tracker at ``address`` as the handshake's ``*IDN?`` told (maker, model,
+        serial, firmware; None before it connected): asks the tracker nothing."""
+        family = "laser-tracker/line-protocol"
+        if (who := self.identity) is None:
+            return DeviceDescription(self.name, family, self.address)
+        return DeviceDescription(
+            self.name, family, self.address, who.maker, who.model, who.firmware, who.serial
+        )
+
+    def summary(self) -> str:
+        """One line for the campaign's record and its report: the tracker's identity
+        and, when it reports them, the air readings it compensates with."""
         who = self.identity
         text = f"{self.where}: " + (
             f"{who.maker} {who.model}, serial {who.serial}, firmware {who.firmware}"
@@ -312,9 +325,11 @@ class LineTracker:
             f"{env.humidity_pct:.1f} % RH"
         )
 
+    @naming_errors
     def initialise(self) -> None:
         self._request("INIT", timeout=max(self.timeout, 60.0))
 
+    @naming_errors
     def status(self) -> TrackerStatus:
         f = _fields(self._request("STAT?").payload)
         try:
@@ -322,6 +337,7 @@ class LineTracker:
         except KeyError as exc:
             raise TrackerError(f"{self.label}: STAT? answer lacks {exc}") from None
 
+    @naming_errors
     def environment(self) -> Environment:
         f = _fields(self._request("ENV?").payload)
         try:
@@ -333,13 +349,16 @@ class LineTracker:
     def _env_request(env: Environment) -> str:
         return f"ENV T={env.temperature_c:.2f} P={env.pressure_hpa:.2f} RH={env.humidity_pct:.1f}"
 
+    @naming_errors
     def set_environment(self, env: Environment) -> None:
         self._request(self._env_request(env))
         self.env = env
 
+    @naming_errors
     def reflector(self) -> str:
         return self._request("SMR?").payload.strip()
 
+    @naming_errors
     def set_reflector(self, kind: str) -> None:
         if kind not in REFLECTORS:
             raise TrackerBadParameterError(f"reflector {kind!r}: one of {', '.join(REFLECTORS)}")
@@ -419,6 +438,7 @@ class LineTracker:
             self._drain(0.05)
         raise BeamBrokenError(f"{self.label}: no beam for {self.beam_wait_s:g} s", 40)
 
+    @naming_errors
     def measure(self, n: int, rate_hz: float) -> Series:
         """``n`` points at ``rate_hz``, surviving beam breaks, garbled points and dropped
         links: re-taken until there are ``n``, in at most ``2 n`` attempts (a point kept

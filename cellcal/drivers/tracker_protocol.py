@@ -123,8 +123,8 @@ class TrackerError(DeviceError):
 
     code = 0
 
-    def __init__(self, message: str, code: int | None = None) -> None:
-        super().__init__(message)
+    def __init__(self, message: str, code: int | None = None, *, device: str | None = None) -> None:
+        super().__init__(message, device=device)
         if code is not None:
             self.code = code
 

@@ -52,7 +52,7 @@ import numpy as np
 
 from cellcal.calib.geometry import Array
 from cellcal.device_options import Positive, RobotOptions
-from cellcal.drivers.base import DeviceContext, label
+from cellcal.drivers.base import ROBOT_NAME, DeviceContext, DeviceDescription, label
 from cellcal.errors import DeviceError, InputError
 
 log = logging.getLogger("cellcal.drivers.ur")
@@ -66,7 +66,17 @@ MAX_JOINT_ACCELERATION = 40.0
 POSITION_TOLERANCE_RAD = 1e-3
 #: How long getActualQ may lag behind the end of a move (s).
 SETTLE_S = 0.5
-PORTS = (29999, 30004, 30003)
+DASHBOARD_PORT = 29999
+PORTS = (DASHBOARD_PORT, 30004, 30003)
+#: The dashboard's questions of :meth:`URRobot.describe`, answered by every e-Series
+#: (PolyScope 5.6 on; an older controller's "could not understand" leaves its field None).
+IDENTITY = {
+    "model": "get robot model",
+    "serial": "get serial number",
+    "firmware": "PolyscopeVersion",
+}
+#: The longest dashboard line read (the twin's and PolyScope's answers are far shorter).
+DASHBOARD_LINE = 1024
 
 # Exceptions that pybind11 makes of ur_rtde's C++ exceptions.
 _UR_ERRORS = (RuntimeError, ValueError, OverflowError, IndexError)
@@ -151,7 +161,8 @@ class URRobot:
             import rtde_receive
         except ImportError as e:
             raise DeviceError(
-                f"{self.label}: ur_rtde is not installed (pip install ur-rtde): {e}"
+                f"{self.label}: ur_rtde is not installed (pip install ur-rtde): {e}",
+                device=ROBOT_NAME,
             ) from e
         host = self.host
         flags = rtde_control.RTDEControlInterface.FLAGS_DEFAULT
@@ -197,14 +208,17 @@ class URRobot:
                 if not running
                 else "the controller refused or aborted it"
             )
-            raise DeviceError(f"{self.label}: moveJ to {_deg(target)} failed: {why}")
+            raise DeviceError(
+                f"{self.label}: moveJ to {_deg(target)} failed: {why}", device=ROBOT_NAME
+            )
         self._check_safety(receive, f"the move to {_deg(target)} did not complete")
         err = self._position_error(receive, target)
         if err > POSITION_TOLERANCE_RAD:
             raise DeviceError(
                 f"{self.label}: not in position after moveJ to {_deg(target)}: "
                 f"a joint is {math.degrees(err):.4f} deg off (tolerance "
-                f"{math.degrees(POSITION_TOLERANCE_RAD):.4f} deg)"
+                f"{math.degrees(POSITION_TOLERANCE_RAD):.4f} deg)",
+                device=ROBOT_NAME,
             )
 
     def actual_joints(self) -> Array:
@@ -218,6 +232,27 @@ class URRobot:
         pose = self._read6(receive.getActualTCPPose, "getActualTCPPose")
         pose[:3] *= 1000.0
         return pose
+
+    def describe(self) -> DeviceDescription:
+        """The controller at ``host``, as its dashboard server (29999) tells: robot model,
+        serial number and PolyScope version (``PolyscopeVersion``: ``URSoftware
+        5.11.1.108318 (Mar 22 2021)`` gives ``5.11.1.108318``); the maker from its welcome
+        line. A dashboard that does not answer leaves them None (logged): a description
+        never fails a campaign."""
+        found: dict[str, str | None] = dict.fromkeys(("maker", *IDENTITY))
+        try:
+            found.update(dashboard_identity(self.host, min(self.timeout_s, 5.0)))
+        except (OSError, ValueError) as e:
+            log.warning("%s: no identity from the dashboard server: %s", self.label, _one_line(e))
+        return DeviceDescription(
+            ROBOT_NAME,
+            "ur",
+            self.host,
+            maker=found["maker"],
+            model=found["model"],
+            firmware=found["firmware"],
+            serial=found["serial"],
+        )
 
     def stop(self) -> None:
         """Decelerate the joints to rest (stopJ); a no-op when not connected."""
@@ -279,11 +314,13 @@ class URRobot:
                     pass
             except OSError as e:
                 reason = e.strerror or _one_line(e)
-                raise DeviceError(f"{self.label}: cannot reach port {port}: {reason}") from e
+                raise DeviceError(
+                    f"{self.label}: cannot reach port {port}: {reason}", device=ROBOT_NAME
+                ) from e
 
     def _require(self) -> tuple[Any, Any]:
         if not self.connected:
-            raise DeviceError(f"{self.label}: not connected")
+            raise DeviceError(f"{self.label}: not connected", device=ROBOT_NAME)
         return self._control, self._receive
 
     def _check_safety(self, receive: Any, context: str) -> None:
@@ -292,12 +329,14 @@ class URRobot:
         if self._quick(receive.isEmergencyStopped, "isEmergencyStopped"):
             raise DeviceError(
                 f"{self.label}: emergency stop; {context}. Release the emergency stop, "
-                "power on and retry"
+                "power on and retry",
+                device=ROBOT_NAME,
             )
         if self._quick(receive.isProtectiveStopped, "isProtectiveStopped"):
             raise DeviceError(
                 f"{self.label}: protective stop; {context}. Inspect the cell, unlock the "
-                "protective stop (pendant or dashboard) and retry"
+                "protective stop (pendant or dashboard) and retry",
+                device=ROBOT_NAME,
             )
 
     def _position_error(self, receive: Any, target: Array) -> float:
@@ -312,7 +351,9 @@ class URRobot:
     def _read6(self, fn: Callable[[], Any], what: str) -> Array:
         values = np.asarray(self._call(fn, what), dtype=np.float64)
         if values.shape != (6,) or not np.all(np.isfinite(values)):
-            raise DeviceError(f"{self.label}: {what} returned {values.tolist()!r}")
+            raise DeviceError(
+                f"{self.label}: {what} returned {values.tolist()!r}", device=ROBOT_NAME
+            )
         return values
 
     def _quick(self, fn: Callable[[], T], what: str) -> T:
@@ -320,7 +361,9 @@ class URRobot:
         try:
             return fn()
         except _UR_ERRORS as e:
-            raise DeviceError(f"{self.label}: {what} failed: {_one_line(e)}") from e
+            raise DeviceError(
+                f"{self.label}: {what} failed: {_one_line(e)}", device=ROBOT_NAME
+            ) from e
 
     def _call(self, fn: Callable[[], T], what: str, *, force: bool = False) -> T:
         """Run ``fn`` in a worker thread; give up after ``timeout_s``."""
@@ -329,7 +372,8 @@ class URRobot:
             if not force:
                 raise DeviceError(
                     f"{self.label}: {what} refused: an earlier command that timed out "
-                    "has not returned yet"
+                    "has not returned yet",
+                    device=ROBOT_NAME,
                 )
         else:
             self._worker = None
@@ -346,11 +390,45 @@ class URRobot:
         worker.join(self.timeout_s)
         if worker.is_alive():
             self._worker = worker
-            raise DeviceError(f"{self.label}: {what} timed out after {self.timeout_s:g} s")
+            raise DeviceError(
+                f"{self.label}: {what} timed out after {self.timeout_s:g} s", device=ROBOT_NAME
+            )
         if "error" in box:
             e = box["error"]
             if isinstance(e, _UR_ERRORS):
-                raise DeviceError(f"{self.label}: {what} failed: {_one_line(e)}") from e
+                raise DeviceError(
+                    f"{self.label}: {what} failed: {_one_line(e)}", device=ROBOT_NAME
+                ) from e
             raise e
         value: T = box["value"]
         return value
+
+
+def dashboard_identity(host: str, timeout_s: float) -> dict[str, str | None]:
+    """Ask the dashboard server on ``host`` the questions of :data:`IDENTITY`, on one
+    connection: what it answered (None where it did not understand), and ``maker``
+    ("Universal Robots" when its welcome line says so). OSError when it does not answer
+    within ``timeout_s`` a line; ValueError for a line longer than any answer."""
+    with socket.create_connection((host, DASHBOARD_PORT), timeout=timeout_s) as sock:
+        reader = sock.makefile("rb")
+
+        def line() -> str:
+            raw = reader.readline(DASHBOARD_LINE + 1)
+            if not raw:
+                raise OSError("the dashboard server closed the connection")
+            if len(raw) > DASHBOARD_LINE:
+                raise ValueError(f"a dashboard line longer than {DASHBOARD_LINE} bytes")
+            return raw.decode("utf-8", errors="replace").strip()
+
+        welcome = line()
+        out: dict[str, str | None] = {
+            "maker": "Universal Robots" if "Universal Robots" in welcome else None
+        }
+        for key, question in IDENTITY.items():
+            sock.sendall(f"{question}\n".encode("ascii"))
+            answer = line()
+            understood = answer and not answer.lower().startswith("could not understand")
+            out[key] = answer if understood else None
+        if out["firmware"] and out["firmware"].startswith("URSoftware "):
+            out["firmware"] = out["firmware"].split()[1]
+        return out

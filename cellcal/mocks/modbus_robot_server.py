@@ -172,7 +172,7 @@ class ModbusRobotSimulator(ModbusRobotController):
             if frame.unit != self.device_id:
                 raise ModbusError(GATEWAY_TARGET_FAILED, f"unit id {frame.unit}")
             request = decode_request(frame.pdu)
-            pdu = reply_pdu(request, self.execute(request))
+            pdu = reply_pdu(request, self.serve(request))
         except ModbusError as exc:
             log.debug("modbus robot simulator: %s (function %d)", exc, function)
             pdu = exception_pdu(function, exc.code)

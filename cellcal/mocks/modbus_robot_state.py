@@ -230,7 +230,7 @@ class ModbusRobotController:
 
     # ------------------------------------------------------------------ requests
 
-    def execute(self, request: Request) -> list[int]:
+    def serve(self, request: Request) -> list[int]:
         """Serve one decoded request: its write, then its read; returns the registers
         read. ``ModbusError`` with the exception code to answer, nothing done then."""
         with self._serial:

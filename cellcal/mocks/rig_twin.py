@@ -42,6 +42,7 @@ from cellcal.calib.kinematics import target_kinematics
 from cellcal.calib.robot_model import RobotModel
 from cellcal.clock import Clock, WallClock
 from cellcal.device_options import Strict
+from cellcal.drivers.base import DeviceDescription
 from cellcal.drivers.camera_aravis import AravisRigOptions, aravis_missing
 from cellcal.drivers.cameras import Frame, FrameSet, RigOptions
 from cellcal.drivers.photogrammetry import CameraRigOptions, rig_and_target
@@ -354,6 +355,10 @@ class RenderedRig:
             for c in self.cameras
         }
         return FrameSet(frames, {})
+
+    def describe(self) -> tuple[DeviceDescription, ...]:
+        """Each camera's name: rendered in-process, no address, nothing to identify."""
+        return tuple(DeviceDescription(c, "rendered") for c in self.cameras)
 
     def close(self) -> None:
         self._frame_id = 0

@@ -14,7 +14,7 @@ import numpy as np
 from cellcal.calib.geometry import Array
 from cellcal.clock import Clock
 from cellcal.device_options import SimulatedRobotOptions
-from cellcal.drivers.base import DeviceContext
+from cellcal.drivers.base import ROBOT_NAME, DeviceContext, DeviceDescription
 from cellcal.errors import DeviceError
 from cellcal.mocks.motion import JointMove
 from cellcal.mocks.simulated_cell import SimulatedCell
@@ -24,7 +24,9 @@ SETTLE_S = 0.5
 
 def _cell(context: DeviceContext) -> SimulatedCell:
     if not isinstance(context.cell, SimulatedCell):
-        raise DeviceError('driver = "simulated" is the simulated cell: it needs --mock')
+        raise DeviceError(
+            'driver = "simulated" is the simulated cell: it needs --mock', device=ROBOT_NAME
+        )
     return context.cell
 
 
@@ -46,7 +48,9 @@ class SimulatedRobot:
         lo, hi = self.cell.model.limits
         q = np.asarray(q, dtype=np.float64)
         if ((q < lo - 1e-9) | (q > hi + 1e-9)).any():
-            raise DeviceError(f"{self.name}: target outside the joint limits refused")
+            raise DeviceError(
+                f"{self.name}: target outside the joint limits refused", device=ROBOT_NAME
+            )
         move = JointMove(self.cell.q, q, v=self.cell.joint_speed * speed)
         self.clock.sleep(move.duration + SETTLE_S)
         self.cell.set_q(q)
@@ -54,6 +58,10 @@ class SimulatedRobot:
 
     def actual_joints(self) -> Array:
         return self.cell.q
+
+    def describe(self) -> DeviceDescription:
+        """The simulated cell's robot: in-process, no address, nothing to identify."""
+        return DeviceDescription(ROBOT_NAME, "simulated")
 
     def stop(self) -> None:
         pass

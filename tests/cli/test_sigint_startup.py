@@ -71,9 +71,14 @@ def _check(done: subprocess.CompletedProcess[str], delay: float) -> str:
     ids=["version", "models", "models-json", "plan"],
 )
 def test_sigint_at_any_moment_of_a_short_command(tmp_path: Path, args: list[str]) -> None:
-    kinds = [
-        _check(_interrupt([sys.executable, "-m", "cellcal", *args], d, tmp_path), d) for d in DELAYS
-    ]
+    argv = [sys.executable, "-m", "cellcal", *args]
+    kinds = [_check(_interrupt(argv, d, tmp_path), d) for d in DELAYS]
+    # a loaded machine may take longer than the last delay to start Python: go on, later
+    # and later, until a signal finds cellcal running (or the command done)
+    delay = DELAYS[-1]
+    while not {"interrupted", "completed"} & set(kinds) and delay < 30.0:
+        delay *= 2
+        kinds.append(_check(_interrupt(argv, delay, tmp_path), delay))
     assert "interrupted" in kinds or "completed" in kinds, kinds
 
 
@@ -82,10 +87,14 @@ def test_sigint_at_any_moment_of_a_short_command(tmp_path: Path, args: list[str]
 @pytest.mark.timeout(600)
 def test_sigint_at_any_moment_of_a_campaign(tmp_path: Path) -> None:
     kinds = []
-    for k, d in enumerate((*DELAYS, 0.5, 0.8, 1.2)):
-        db = tmp_path / f"c{k}.db"
-        argv = [sys.executable, "-m", "cellcal", "run", "--config", str(TRACKER_CELL), "--mock"]
+    argv = [sys.executable, "-m", "cellcal", "run", "--config", str(TRACKER_CELL), "--mock"]
+    delays = [*DELAYS, 0.5, 0.8, 1.2]
+    while delays:
+        d = delays.pop(0)
+        db = tmp_path / f"c{len(kinds)}.db"
         kinds.append(_check(_interrupt([*argv, "--db", str(db)], d, tmp_path), d))
+        if not delays and not {"interrupted", "completed"} & set(kinds) and d < 30.0:
+            delays.append(2 * d)  # a loaded machine: later, until the signal finds it
     assert "interrupted" in kinds, kinds
 
 
@@ -108,3 +117,29 @@ def test_an_interrupt_in_process_leaves_the_callers_handler(tmp_path: Path) -> N
     done = run_inprocess("models")
     assert done.returncode == 0
     assert signal.getsignal(signal.SIGINT) is before
+
+
+def test_an_interrupt_that_surfaces_as_an_extensions_import_error_is_an_interrupt(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Ctrl-C while scipy's HiGHS extension initialises came out as ``ImportError:
+    initialization failed`` with a traceback and exit 1; an interrupt under way makes it
+    the interrupt's line and exit 130. The same error with no interrupt is a bug, kept."""
+    import cellcal.cli as cli
+
+    def interrupted_import(args: list[str], program: bool) -> int:
+        cli._interrupted = True  # as _interrupt_once leaves it
+        raise ImportError("initialization failed")
+
+    monkeypatch.setattr(cli, "_run", interrupted_import)
+    with pytest.raises(SystemExit) as done:
+        cli.main(["models"])
+    assert done.value.code == 130
+    assert capsys.readouterr().err.strip().splitlines() == ["cellcal: interrupted"]
+
+    def broken_import(args: list[str], program: bool) -> int:
+        raise ImportError("initialization failed")
+
+    monkeypatch.setattr(cli, "_run", broken_import)
+    with pytest.raises(ImportError):
+        cli.main(["models"])

@@ -4,7 +4,6 @@ campaign with the tracker, its report folder and the calibrated model in it."""
 from __future__ import annotations
 
 import subprocess
-import sys
 from pathlib import Path
 
 from cellcal.config import CellConfig
@@ -12,13 +11,13 @@ from cellcal.daemon.campaign import CampaignOutcome, start_campaign
 from cellcal.daemon.report import write_report
 from cellcal.daemon.store import Store
 from tests.conftest import tracker_cell
+from tests.inprocess import cellcal
 
 
-def cli(*args: str, timeout: float = 200) -> subprocess.CompletedProcess[str]:
-    """``cellcal ARGS`` in a child process."""
-    return subprocess.run(
-        [sys.executable, "-m", "cellcal", *args], capture_output=True, text=True, timeout=timeout
-    )
+def cli(*args: str) -> subprocess.CompletedProcess[str]:
+    """``cellcal ARGS`` in the test's process (tests/inprocess.py): its exit code and
+    streams."""
+    return cellcal(*args)
 
 
 def calibrated_campaign(folder: Path) -> tuple[CellConfig, str, CampaignOutcome, Path]:

@@ -22,6 +22,7 @@ from cellcal.errors import CampaignError
 from cellcal.mocks.simulated_cell import SimulatedCell
 from cellcal.modelfiles import load_model
 from tests.conftest import TRACKER_CELL, tracker_cell
+from tests.inprocess import cellcal
 
 pytestmark = [pytest.mark.twin, pytest.mark.slow]
 
@@ -69,7 +70,14 @@ def test_same_seed_same_campaign_and_resume_refuses_a_complete_one(tmp_path):
         resume_campaign(str(tmp_path / "a.db"), 1)
 
 
-def _cli(*args, timeout=120):
+def _cli(*args):
+    """``cellcal ARGS`` in the test's process (tests/inprocess.py): its exit code and
+    streams."""
+    return cellcal(*args)
+
+
+def _process(*args, timeout=120):
+    """``cellcal ARGS`` in a process of its own."""
     return subprocess.run(
         [sys.executable, "-m", "cellcal", *map(str, args)],
         capture_output=True,
@@ -381,7 +389,7 @@ def test_ur10e_cell_through_ur_rtde(tmp_path):
     """The bundled UR variant: the robot through ur_rtde and the UR simulator, the tracker
     through the line protocol, end to end in a real process."""
     config = Path(__file__).resolve().parents[2] / "config" / "mock-cell-ur10e.toml"
-    res = _cli(
+    res = _process(
         "run", "--mock", "--config", config, "--db", tmp_path / "ur.db", "--json", timeout=300
     )
     assert res.returncode == 0, res.stderr

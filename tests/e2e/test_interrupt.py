@@ -15,6 +15,7 @@ from pathlib import Path
 import pytest
 
 from tests.e2e.rig_cell import FAULT_KINDS, count, gige_or_skip, kinds, small_rig_cell
+from tests.inprocess import cellcal
 
 pytestmark = [pytest.mark.twin, pytest.mark.timeout(300)]
 
@@ -56,13 +57,7 @@ def test_ctrl_c_on_the_rig_campaign_is_an_interrupt_and_resumes(tmp_path):
     seen = kinds(db)
     assert seen[-1] == "interrupted" and not FAULT_KINDS & set(seen), seen
 
-    res = subprocess.run(
-        [sys.executable, "-m", "cellcal", "run", "--resume", "1", "--db", str(db)],
-        capture_output=True,
-        text=True,
-        timeout=240,
-        check=False,
-    )
+    res = cellcal("run", "--resume", "1", "--db", db)  # in the test's process
     assert res.returncode == 0, res.stderr
     assert count(db, "SELECT COUNT(*) FROM campaigns WHERE status = 'complete'") == 1
     assert count(db, "SELECT COUNT(*) FROM poses") == planned  # every pose exactly once

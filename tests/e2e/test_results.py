@@ -8,7 +8,6 @@ import os
 import sqlite3
 import stat
 import subprocess
-import sys
 
 import numpy as np
 import pytest
@@ -19,14 +18,14 @@ from cellcal.errors import AcceptanceError
 from cellcal.mocks.simulated_cell import SimulatedCell
 from tests.bundled_campaign import bundled_database
 from tests.conftest import TRACKER_CELL, tracker_cell
+from tests.inprocess import cellcal
 
 pytestmark = [pytest.mark.twin, pytest.mark.slow]
 
 
-def _cli(*args: str, timeout: float = 300) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, "-m", "cellcal", *args], capture_output=True, text=True, timeout=timeout
-    )
+def _cli(*args: str) -> subprocess.CompletedProcess[str]:
+    """``cellcal ARGS`` in the test's process (tests/inprocess.py)."""
+    return cellcal(*args)
 
 
 @pytest.fixture
