@@ -171,7 +171,7 @@ def main(argv: list[str] | None = None) -> int:
     draws = 5 if quick else 20
     n_cube_val = 200 if quick else N_HELD_OUT
     sizes = (80, 1000, 6000) if quick else (80, 300, 1000, 6000, 20000)
-    fg_sizes = (60,) if quick else (60, 600)
+    fg_sizes = (80,) if quick else (80, 1000)
     streams = [np.random.default_rng(s) for s in np.random.SeedSequence(args.seed).spawn(8)]
 
     t_start = time.perf_counter()
