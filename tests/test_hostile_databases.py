@@ -8,17 +8,20 @@ instead of the one asked for."""
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import os
 import random
 import resource
 import shutil
+import signal
 import sqlite3
 import subprocess
 import sys
 import tempfile
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Coroutine, Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -196,14 +199,42 @@ def test_the_service_names_the_damaged_file_at_start(
         shutil.rmtree(folder, ignore_errors=True)
 
 
+#: How long the service started in the test's process may run: it is to end at start.
+SERVICE_START_S = 60.0
+
+
 def _service(
     folder: Path, db: str, monkeypatch: pytest.MonkeyPatch
 ) -> subprocess.CompletedProcess[str]:
     """The service started on ``db`` in the test's process (tests/inprocess.py), without
-    systemd, its data directory in ``folder``; the open files limit it raises at start is
-    put back. (The locked database's test starts it as a process of its own.)"""
+    systemd, its data directory in ``folder``, for SERVICE_START_S at most; the open files
+    limit it raises at start is put back. (The locked database's test starts it as a
+    process of its own.)"""
     monkeypatch.delenv("NOTIFY_SOCKET", raising=False)  # STATE_DIRECTORY: _private_data_dir
     monkeypatch.setenv("XDG_DATA_HOME", str(folder / "xdg"))
+    run = asyncio.run
+
+    def bounded(main: Coroutine[Any, Any, int]) -> int:
+        """The service's loop; past SERVICE_START_S the service is stopped as systemd
+        would, SIGTERM (once its loop handles it; cancelled before)."""
+
+        async def within() -> int:
+            task = asyncio.current_task()
+            assert task is not None
+
+            def stop() -> None:
+                handler = getattr(signal.getsignal(signal.SIGTERM), "__name__", "")
+                if handler == "_sighandler_noop":  # asyncio's: the service's handler
+                    signal.raise_signal(signal.SIGTERM)
+                else:
+                    task.cancel()
+
+            asyncio.get_running_loop().call_later(SERVICE_START_S, stop)
+            return await main
+
+        return run(within())
+
+    monkeypatch.setattr(asyncio, "run", bounded)
     limits = resource.getrlimit(resource.RLIMIT_NOFILE)
     try:
         return cellcal(

@@ -18,6 +18,7 @@ import pytest
 
 from cellcal.commands.service_client import call
 from cellcal.errors import CellcalError
+from tests.inprocess import cellcal
 
 ROOT = Path(__file__).resolve().parents[2]
 CONFIG = ROOT / "config"
@@ -34,16 +35,14 @@ def _cell(folder: Path) -> Path:
     return folder / "mock-cell.toml"
 
 
-def _cli(cwd: Path, *args: str) -> subprocess.CompletedProcess[str]:
-    env = {k: v for k, v in os.environ.items() if k != "CELLCAL_SOCKET"}
-    return subprocess.run(
-        [sys.executable, "-m", "cellcal", *args],
-        cwd=cwd,
-        capture_output=True,
-        text=True,
-        env=env,
-        timeout=120,
-    )
+def _cli(
+    monkeypatch: pytest.MonkeyPatch, cwd: Path, *args: str
+) -> subprocess.CompletedProcess[str]:
+    """``cellcal ARGS`` in the test's process (tests/inprocess.py), working in ``cwd``."""
+    monkeypatch.delenv("CELLCAL_SOCKET", raising=False)
+    with monkeypatch.context() as m:
+        m.chdir(cwd)
+        return cellcal(*args)
 
 
 def _answers(sock: str) -> bool:
@@ -86,20 +85,22 @@ def service(folder: Path) -> Iterator[tuple[Path, str]]:
 
 
 def test_the_services_own_file_from_another_folder_is_accepted(
-    folder: Path, service: tuple[Path, str]
+    folder: Path, service: tuple[Path, str], monkeypatch: pytest.MonkeyPatch
 ) -> None:
     cell, sock = service
     elsewhere = folder / "elsewhere"
     other = _cell(folder / "other")  # the same text, but its rig and target are other files
     elsewhere.mkdir()
 
-    refused = _cli(elsewhere, "campaign", "start", "--config", str(other), "--socket", sock)
+    refused = _cli(
+        monkeypatch, elsewhere, "campaign", "start", "--config", str(other), "--socket", sock
+    )
     assert refused.returncode == 2, refused
     lines = refused.stderr.strip().splitlines()
     assert len(lines) == 1 and "[sensor] differs from the service's configuration" in lines[0]
 
     # the service's file, named by a relative path from a folder that is not the service's
     relative = os.path.relpath(cell / "mock-cell.toml", elsewhere)
-    done = _cli(elsewhere, "campaign", "start", "--config", relative, "--socket", sock)
+    done = _cli(monkeypatch, elsewhere, "campaign", "start", "--config", relative, "--socket", sock)
     assert done.returncode == 0, done.stderr
     assert "campaign 1 accepted" in done.stdout
