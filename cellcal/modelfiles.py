@@ -8,6 +8,7 @@ the same folder, renamed over the target only once it is complete.
 
 from __future__ import annotations
 
+import tomllib
 from collections.abc import Sequence
 from dataclasses import dataclass
 from datetime import UTC, datetime
@@ -83,7 +84,22 @@ def load_model(spec: str) -> LoadedModel:
         require(f"reading URDF ({spec})", "pinocchio")
         urdf = model_from_urdf(spec)
         return LoadedModel(spec, urdf, urdf.tool, None, False)
-    data = _read_toml(Path(spec), spec)
+    return _from_data(_read_toml(Path(spec), spec), spec)
+
+
+def model_from_text(text: str, label: str) -> LoadedModel:
+    """A model or calibrated model from its TOML text (a file's, sent or stored), named
+    ``label`` in what it says."""
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise FileFormatError(f"{label}: not valid TOML ({exc})") from None
+    except RecursionError:
+        raise FileFormatError(f"{label}: nested too deeply to be a cellcal file") from None
+    return _from_data(data, label)
+
+
+def _from_data(data: dict[str, Any], spec: str) -> LoadedModel:
     if data.get("format") == CALIBRATED_FORMAT:
         version = data.get("format_version")
         if version != FORMAT_VERSION:

@@ -84,6 +84,18 @@ def list_command(db_path: str | None, sock: str | None, as_json: bool) -> None:
 @click.option("--mock", is_flag=True, help="The service's simulated cell (a --mock service).")
 @click.option("--seed", type=SEED, help="Mock mode: the plan's seed.")
 @click.option("--queue", is_flag=True, help="Queue it behind the campaign that runs.")
+@click.option(
+    "--kind",
+    default="calibration",
+    show_default=True,
+    help="The campaign's kind: calibration, or iso9283 (the ISO 9283 test: --model, --cycles).",
+)
+@click.option(
+    "--model", "model_spec", help="--kind iso9283: the calibrated model (its text is sent)."
+)
+@click.option(
+    "--cycles", type=click.IntRange(2, 1000), help="--kind iso9283: cycles (the standard: 30)."
+)
 @SOCKET
 @JSON
 def start(
@@ -91,11 +103,24 @@ def start(
     mock: bool,
     seed: int | None,
     queue: bool,
+    kind: str,
+    model_spec: str | None,
+    cycles: int | None,
     sock: str | None,
     as_json: bool,
 ) -> None:
-    """Ask the service to run a campaign (with this configuration's text, or its own)."""
+    """Ask the service to run a campaign (with this configuration's text, or its own) of
+    a kind: a calibration, or an ISO 9283 test (--kind iso9283 --model FILE)."""
     body: dict[str, Any] = {"when": "queue" if queue else "now", "seed": seed}
+    given = {"model": model_spec, "cycles": cycles}
+    what = ""
+    if kind != "calibration" or any(v is not None for v in given.values()):
+        from cellcal.daemon.runner import kind_named
+
+        # The options as the service takes them: a file they name is read here, sent.
+        body["kind"] = kind
+        body["options"] = kind_named(kind).read_options(given)
+        what = f"{kind_named(kind).title}, " if kind != "calibration" else ""
     if mock:
         body["mock"] = True
     if config_path is not None:
@@ -117,7 +142,7 @@ def start(
     with answer_of(path, "answer to a start"):
         cid, n_poses = int(answer["campaign_id"]), int(answer["n_poses"])
     click.echo(
-        f"campaign {cid} {'queued' if queue else 'accepted'} ({n_poses} poses); "
+        f"campaign {cid} {'queued' if queue else 'accepted'} ({what}{n_poses} poses); "
         f"watch it: cellcal campaign watch {cid}"
     )
 

@@ -1,15 +1,19 @@
 """``cellcal iso9283``: the ISO 9283 pose accuracy and repeatability test, before and
-after calibration."""
+after calibration — ``cellcal run --kind iso9283`` under its own name: the same runner,
+the same campaign, only its result printed."""
 
 from __future__ import annotations
+
+from typing import TYPE_CHECKING
 
 import click
 
 from cellcal.calib.iso9283 import CYCLES
 from cellcal.commands.output import TIME_SCALE, print_json
-from cellcal.commands.run import cell_config
-from cellcal.daemon.iso_campaign import AFTER, BEFORE, STAGES, run_iso9283
-from cellcal.daemon.store_connection import database_path
+from cellcal.commands.run import run_kind
+
+if TYPE_CHECKING:
+    from cellcal.daemon.runner import CampaignOutcome
 
 
 @click.command("iso9283")
@@ -39,22 +43,40 @@ def iso9283(
 ) -> None:
     """ISO 9283 pose accuracy (AP) and repeatability (RP) at the standard's five points
     of the campaign's cube: with the nominal model's joints, then the calibrated model's.
-    Every sample is stored in the database like a campaign's."""
-    config, source = cell_config(config_path, mock)
-    out = run_iso9283(
-        config,
-        database_path(db_path if db_path is not None else config.storage.database),
-        model_spec,
-        mock=mock,
-        cycles=cycles,
-        config_path=source,
-        time_scale=time_scale,
+    Every sample is stored in the database like a campaign's; an interrupted test goes
+    on with `cellcal run --resume ID`."""
+    run_kind(
+        config_path,
+        mock,
+        db_path,
+        None,
+        time_scale if mock else None,
+        None,
+        False,
+        None,
+        False,
+        as_json,
+        kind="iso9283",
+        given={"model": model_spec, "cycles": cycles},
+        quiet=True,
     )
+
+
+def print_outcome(out: CampaignOutcome, folder: str | None, as_json: bool) -> None:
+    """An ISO 9283 test's result: its JSON, or AP and RP per point, before and after."""
+    from cellcal.daemon.iso_campaign import AFTER, BEFORE, STAGES, IsoOutcome
+
+    iso = out.result
+    assert isinstance(iso, IsoOutcome)
     if as_json:
-        print_json(out.to_dict())
+        print_json(iso.to_dict() if folder is None else {**iso.to_dict(), "report": folder})
         return
-    click.echo(f"ISO 9283 test (campaign {out.campaign_id} in {out.db_path}), {cycles} cycles, mm:")
+    click.echo(
+        f"ISO 9283 test (campaign {iso.campaign_id} in {iso.db_path}), {iso.cycles} cycles, mm:"
+    )
     click.echo(f"  {'point':<6}{'AP before':>11}{'AP after':>11}{'RP before':>11}{'RP after':>11}")
-    for b, a in zip(out.results[BEFORE], out.results[AFTER], strict=True):
+    for b, a in zip(iso.results[BEFORE], iso.results[AFTER], strict=True):
         click.echo(f"  {b.name:<6}{b.ap:11.4f}{a.ap:11.4f}{b.rp:11.4f}{a.rp:11.4f}")
     click.echo(f"  before: joints from the {STAGES[BEFORE]}; after: from the {STAGES[AFTER]}")
+    if folder is not None:
+        click.echo(f"report: {folder}/index.html")

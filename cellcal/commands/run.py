@@ -23,8 +23,8 @@ from cellcal.extras import require
 
 if TYPE_CHECKING:
     from cellcal.calib.calibration_result import CalibrationResult
-    from cellcal.daemon.campaign import CampaignOutcome
-    from cellcal.daemon.records import Record
+    from cellcal.daemon.records import Record, Subscriber
+    from cellcal.daemon.runner import CampaignOutcome
 
 EXIT_INTERRUPTED = 130
 
@@ -92,6 +92,10 @@ class BarProgress:
 
     def close(self) -> None:
         self._bar.stop()
+
+
+def _silent(record: Record) -> None:
+    """No progress (``cellcal iso9283`` prints only its result)."""
 
 
 def bundled_mock_cell() -> tuple[CellConfig, str]:
@@ -255,6 +259,16 @@ def _print_summary(out: CampaignOutcome, folder: str | None, residuals: bool) ->
     is_flag=True,
     help="Also list the reference sensor's residual at every calibration pose.",
 )
+@click.option(
+    "--kind",
+    default="calibration",
+    show_default=True,
+    help="The campaign's kind: calibration, or iso9283 (the ISO 9283 test: --model, --cycles).",
+)
+@click.option("--model", "model_spec", help="--kind iso9283: the calibrated model (model.toml).")
+@click.option(
+    "--cycles", type=click.IntRange(2, 1000), help="--kind iso9283: cycles (the standard: 30)."
+)
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout.")
 def run(
     config_path: str | None,
@@ -266,6 +280,9 @@ def run(
     accept: bool,
     report_dir: str | None,
     residuals: bool,
+    kind: str,
+    model_spec: str | None,
+    cycles: int | None,
     as_json: bool,
 ) -> None:
     """Run a whole campaign: plan, acquire, store, register, calibrate, validate, report.
@@ -276,7 +293,47 @@ def run(
     anyway). Ctrl-C or SIGTERM stops at the next safe point: the campaign is stored
     "interrupted", exit 130 with the command that resumes it. The text output is a
     summary; --residuals adds every calibration pose's residual (the report and --json
-    have them)."""
+    have them). --kind iso9283 runs the ISO 9283 test instead (as `cellcal iso9283`);
+    --resume goes on with a campaign of any kind."""
+    given = {"model": model_spec, "cycles": cycles}
+    if resume_id is not None and (
+        kind != "calibration" or any(v is not None for v in given.values())
+    ):
+        raise InputError("--resume takes the campaign's kind and options from the database")
+    run_kind(
+        config_path,
+        mock,
+        db_path,
+        seed,
+        time_scale,
+        resume_id,
+        accept,
+        report_dir,
+        residuals,
+        as_json,
+        kind=kind,
+        given=given,
+    )
+
+
+def run_kind(
+    config_path: str | None,
+    mock: bool,
+    db_path: str | None,
+    seed: int | None,
+    time_scale: float | None,
+    resume_id: int | None,
+    accept: bool,
+    report_dir: str | None,
+    residuals: bool,
+    as_json: bool,
+    *,
+    kind: str,
+    given: dict[str, Any],
+    quiet: bool = False,
+) -> None:
+    """A campaign of ``kind`` started (``given``: its options as the command line has
+    them) or resumed, through the one runner; its outcome printed as its kind's."""
     if report_dir is not None and Path(report_dir).exists() and not Path(report_dir).is_dir():
         raise InputError(f"--report {report_dir}: exists and is not a folder")
     if report_dir is not None:  # before the campaign, not after it
@@ -294,7 +351,9 @@ def run(
         stop.request(name)
 
     previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
-    progress = BarProgress() if sys.stderr.isatty() and not as_json else LineProgress()
+    progress: Subscriber = BarProgress() if sys.stderr.isatty() and not as_json else LineProgress()
+    if quiet:
+        progress = _silent
     devices = "starting the devices' twins" if mock else "connecting the devices"
     try:
         if resume_id is not None:
@@ -304,9 +363,9 @@ def run(
                     "and --json"
                 )
             db = db_path if db_path is not None else default_database()
-            if Path(db).is_file():  # else one line says so
+            if Path(db).is_file() and not quiet:  # else one line says so
                 click.echo(f"resuming campaign {resume_id}: connecting the devices…", err=True)
-            from cellcal.daemon.campaign import resume_campaign
+            from cellcal.daemon.runner import resume_campaign
 
             outcome = resume_campaign(
                 db,
@@ -317,18 +376,26 @@ def run(
                 accept=accept,
             )
         else:
+            options: dict[str, Any] = {}
+            if kind != "calibration" or any(v is not None for v in given.values()):
+                from cellcal.daemon.runner import kind_named
+
+                options = kind_named(kind).read_options(given)  # a file it names: read first
             config, source = cell_config(config_path, mock)
             if not mock and (seed is not None or time_scale is not None):
                 raise InputError("--seed and --time-scale apply to mock mode (--mock)")
             db = db_path if db_path is not None else database_path(config.storage.database)
-            click.echo(f"{config.name}: planning the poses and {devices}…", err=True)
-            from cellcal.daemon.campaign import start_campaign
+            if not quiet:
+                click.echo(f"{config.name}: planning the poses and {devices}…", err=True)
+            from cellcal.daemon.runner import start_campaign
 
             outcome = start_campaign(
                 config,
                 db,
                 config_path=source,
                 mock=mock,
+                kind=kind,
+                options=options,
                 seed=seed,
                 time_scale=time_scale or 0.0,
                 stop=stop,
@@ -340,7 +407,7 @@ def run(
             progress.close()
         for signum, handler in previous.items():
             signal.signal(signum, handler)
-    if outcome.summary is None:
+    if outcome.result is None:
         why = f" ({stop.reason})" if stop.reason else ""
         click.echo(
             f"cellcal: campaign {outcome.campaign_id} interrupted{why} with "
@@ -361,6 +428,11 @@ def run(
             folder = write_report(store, outcome.campaign_id, report_dir).folder
         finally:
             store.close()
+    if outcome.summary is None:  # another kind's result: its own output
+        from cellcal.commands.iso9283 import print_outcome
+
+        print_outcome(outcome, folder, as_json)
+        return
     if as_json:
         s = outcome.summary
         doc: dict[str, Any] = {

@@ -42,9 +42,9 @@ from cellcal.daemon.api_requests import (
     read_body,
     start_request,
 )
-from cellcal.daemon.campaign import plan_campaign, queue_campaign
 from cellcal.daemon.control import Control, ControlError
 from cellcal.daemon.report import list_campaigns
+from cellcal.daemon.runner import KINDS, plan_campaign, queue_campaign
 from cellcal.daemon.store import Store
 from cellcal.errors import CellcalError
 
@@ -438,7 +438,7 @@ async def start(request: web.Request) -> web.Response:
         )
     try:
         # Planning takes a moment (inverse kinematics): off the loop, which keeps serving.
-        plan = await asyncio.to_thread(plan_campaign, config)
+        plan, options = await asyncio.to_thread(plan_campaign, config, req.kind, req.options)
         check_deadline(request)  # still wanted? (a client that gave up meanwhile: not)
         cid = queue_campaign(
             svc.store,
@@ -447,10 +447,13 @@ async def start(request: web.Request) -> web.Response:
             config_path=req.config_name,
             mock=svc.mock,
             time_scale=svc.time_scale,
+            kind=req.kind,
+            options=options,
         )
     except CellcalError as exc:
         raise ControlError("invalid-params", str(exc)) from None
-    _note(svc, request, cid, f"queued ({len(plan.poses)} poses)")
+    what = "" if req.kind == "calibration" else f"{KINDS[req.kind].title}, "  # known: planned
+    _note(svc, request, cid, f"queued ({what}{len(plan.poses)} poses)")
     svc.control.work_queued()
     return web.json_response({"campaign_id": cid, "n_poses": len(plan.poses)}, status=202)
 

@@ -66,6 +66,10 @@ class StartRequest:
     mock: bool | None = None
     seed: int | None = None
     when: str = "now"
+    #: the campaign's kind (``runner.KINDS``; absent: a calibration) and its options,
+    #: a JSON object the kind checks (an ISO 9283 test: cycles, model, model_toml)
+    kind: str = "calibration"
+    options: dict[str, Any] | None = None
 
 
 @dataclass(frozen=True)
@@ -198,7 +202,16 @@ def start_request(body: dict[str, Any]) -> StartRequest:
         mock=mock,
         seed=seed,
         when=_choice(body, "when", ("now", "queue")),
+        kind=_text(body, "kind", line=True) or "calibration",
+        options=_object(body, "options"),
     )
+
+
+def _object(body: dict[str, Any], key: str) -> dict[str, Any] | None:
+    value = body.get(key)
+    if value is not None and not isinstance(value, dict):
+        raise invalid(f"{key} must be a JSON object, not a JSON {_kind(value)}")
+    return value
 
 
 START_FIELDS = tuple(StartRequest.__dataclass_fields__)

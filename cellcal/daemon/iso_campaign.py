@@ -14,6 +14,7 @@ is not resumed: run it again (its samples stay in the database).
 
 from __future__ import annotations
 
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -23,21 +24,17 @@ import numpy as np
 from cellcal.calib.compensation import compensate
 from cellcal.calib.geometry import Array, apply, invert
 from cellcal.calib.inverse_kinematics import solve
-from cellcal.calib.iso9283 import PointResult, iso_points, pose_characteristics
+from cellcal.calib.iso9283 import CYCLES, PointResult, iso_points, pose_characteristics
 from cellcal.calib.kinematics import target_kinematics
-from cellcal.clock import SimulatedClock, WallClock
+from cellcal.calib.robot_model import RobotModel
 from cellcal.config import CellConfig
-from cellcal.daemon.campaign import config_digest, note_devices, queue_campaign
-from cellcal.daemon.devices import build_devices
-from cellcal.daemon.engine import acquire
-from cellcal.daemon.locks import RunLock, claimed_address, robot_claim
+from cellcal.daemon.kinds import ISO_EVENT, Analysis
 from cellcal.daemon.plan import Plan, PlannedPose
 from cellcal.daemon.plan_checks import refuse_moves_outside
-from cellcal.daemon.records import CampaignEnded, CampaignEvent, CampaignStarted, RecordStream
 from cellcal.daemon.store import Store
-from cellcal.daemon.store_writer import StoreWriter
 from cellcal.errors import CampaignError, InputError
-from cellcal.modelfiles import LoadedModel, load_model
+from cellcal.modelfiles import LoadedModel, load_model, model_from_text
+from cellcal.textfiles import read_text
 
 BEFORE, AFTER = "iso-before", "iso-after"
 STAGES = {BEFORE: "nominal model", AFTER: "calibrated model"}
@@ -122,86 +119,105 @@ def iso_plan(config: CellConfig, calibrated: LoadedModel, cycles: int) -> Plan:
     return Plan(tuple(poses), ())
 
 
-def run_iso9283(
-    config: CellConfig,
-    db_path: str,
-    model_spec: str,
-    *,
-    mock: bool,
-    cycles: int,
-    config_path: str | None = None,
-    time_scale: float = 0.0,
-) -> IsoOutcome:
-    """Run the test on the configured cell (or its twins) and store it in ``db_path``."""
+def iso_options(model_spec: str, cycles: int) -> dict[str, Any]:
+    """The test's options from the command line: the calibrated model named by
+    ``model_spec`` (read here: its text goes with the campaign) and the cycles."""
     calibrated = load_model(model_spec)
     if not calibrated.calibrated or calibrated.T_sensor_base is None:
         raise InputError(f"--model {model_spec}: the test compares against a calibrated model")
-    plan = iso_plan(config, calibrated, cycles)
-    nominal = load_model(config.robot.model).model
-    reference = config.reference_sensor.name
-    clock = SimulatedClock(time_scale) if mock else WallClock()
-    holder = f"cellcal iso9283 on {Path(db_path).resolve()}"
-    with RunLock(db_path), robot_claim(config, holder, needed=not mock) as held:
-        devices = build_devices(
-            config,
-            nominal,
-            clock,
-            mock=mock,
-            seed=config.simulation.seed,
-            robot_address=claimed_address(held),
+    text = read_text(model_spec, "a calibrated model")
+    return {"cycles": cycles, "model": _spec_text(model_spec), "model_toml": text}
+
+
+#: The options of an ISO 9283 test (``--cycles``, ``--model``): the calibrated model's
+#: text and the name it is known by (a file's absolute path).
+OPTIONS = ("cycles", "model", "model_toml")
+
+
+def _calibrated(options: Mapping[str, Any]) -> LoadedModel:
+    label = str(options.get("model") or "the calibrated model")
+    calibrated = model_from_text(str(options["model_toml"]), label)
+    if not calibrated.calibrated or calibrated.T_sensor_base is None:
+        raise InputError(f"--model {label}: the test compares against a calibrated model")
+    return calibrated
+
+
+@dataclass(frozen=True)
+class Iso9283Kind:
+    """The ISO 9283 test as a campaign kind (``kinds.py``)."""
+
+    name: str = "iso9283"
+    title: str = "ISO 9283 test"
+
+    def options(self, raw: Mapping[str, Any]) -> dict[str, Any]:
+        unknown = sorted(set(raw) - set(OPTIONS))
+        if unknown:
+            raise InputError(
+                f"an ISO 9283 test takes no option {unknown[0][:40]!r} (it takes "
+                f"{', '.join(OPTIONS)})"
+            )
+        cycles = raw.get("cycles", CYCLES)
+        if isinstance(cycles, bool) or not isinstance(cycles, int) or not 2 <= cycles <= 1000:
+            raise InputError(
+                f"cycles {str(cycles)[:40]}: a whole number from 2 to 1000 (AP and RP need "
+                "at least 2 cycles; ISO 9283: 30)"
+            )
+        text, label = raw.get("model_toml"), raw.get("model", "the calibrated model")
+        if not isinstance(text, str) or not text:
+            raise InputError("an ISO 9283 test needs the calibrated model (--model, model_toml)")
+        if not isinstance(label, str) or any(not c.isprintable() for c in label):
+            raise InputError("model must be one line of text (the calibrated model's name)")
+        options = {"cycles": cycles, "model": label, "model_toml": text}
+        _calibrated(options)  # it must read as a calibrated model
+        return options
+
+    def read_options(self, given: Mapping[str, Any]) -> dict[str, Any]:
+        spec = given.get("model")
+        if spec is None:
+            raise InputError("an ISO 9283 test needs the calibrated model: give --model FILE")
+        cycles = given.get("cycles")
+        return iso_options(str(spec), CYCLES if cycles is None else int(cycles))
+
+    def plan(self, config: CellConfig, options: Mapping[str, Any]) -> tuple[Plan, RobotModel]:
+        plan = iso_plan(config, _calibrated(options), int(options["cycles"]))
+        return plan, load_model(config.robot.model).model
+
+    def created(self, options: Mapping[str, Any]) -> Sequence[tuple[str, str]]:
+        return ((ISO_EVENT, f"{options['cycles']} cycles, joints from {options['model']}"),)
+
+    def analyse(
+        self,
+        store: Store,
+        campaign_id: int,
+        config: CellConfig,
+        plan: Plan,
+        nominal: RobotModel,
+        options: Mapping[str, Any],
+        *,
+        accept: bool,
+    ) -> Analysis:
+        calibrated = _calibrated(options)
+        assert calibrated.T_sensor_base is not None  # _calibrated refuses any other
+        cycles = int(options["cycles"])
+        reference = config.reference_sensor.name
+        points = np.array([p.target_mm for p in plan.poses[:5]])
+        T = np.asarray(calibrated.T_sensor_base, dtype=np.float64)
+        results = _results(store, campaign_id, reference, T, cycles, points)
+        outcome = IsoOutcome(
+            campaign_id,
+            store.path,
+            results,
+            cycles=cycles,
+            nominal_model=config.robot.model,
+            calibrated_model=str(options["model"]),
+            reference_sensor=reference,
+            T_sensor_base=T,
         )
-        try:
-            store = Store(db_path)
-            try:
-                cid = queue_campaign(
-                    store, config, plan, config_path=config_path, mock=mock, time_scale=time_scale
-                )
-                store.set_status(cid, "running")
-                stream = RecordStream()
-                stream.subscribe(StoreWriter(store), critical=True)
-                stream.emit(
-                    CampaignEvent(cid, "iso9283", f"{cycles} cycles, joints from {model_spec}")
-                )
-                note_devices(stream, cid, devices)
-                stream.emit(
-                    CampaignStarted(cid, plan, config_digest(config), 0, False, clock.now())
-                )
-                acq = acquire(
-                    plan,
-                    devices.robot,
-                    devices.sensors,
-                    clock,
-                    campaign_id=cid,
-                    done=set(),
-                    stream=stream,
-                    dwell_s=config.campaign.dwell_s,
-                    samples_per_pose=config.campaign.samples_per_pose,
-                    speed=config.robot.speed,
-                )
-                total = len(plan.poses)
-                if acq.interrupted:
-                    message = f"stopped after {acq.stored} poses; run the test again"
-                    stream.emit(CampaignEnded(cid, "interrupted", acq.stored, total, message))
-                    raise CampaignError(f"ISO 9283 test {message}")
-                points = np.array([p.target_mm for p in plan.poses[:5]])
-                results = _results(store, cid, reference, calibrated.T_sensor_base, cycles, points)
-                outcome = IsoOutcome(
-                    cid,
-                    db_path,
-                    results,
-                    cycles=cycles,
-                    nominal_model=config.robot.model,
-                    calibrated_model=_spec_text(model_spec),
-                    reference_sensor=reference,
-                    T_sensor_base=np.asarray(calibrated.T_sensor_base, dtype=np.float64),
-                )
-                store.add_report(cid, outcome.to_dict())
-                stream.emit(CampaignEnded(cid, "complete", acq.stored, total, "complete"))
-                return outcome
-            finally:
-                store.close()
-        finally:
-            devices.close()
+        store.add_report(campaign_id, outcome.to_dict())
+        return Analysis(outcome, None)
+
+
+ISO9283_KIND = Iso9283Kind()
 
 
 def _spec_text(spec: str) -> str:

@@ -54,7 +54,7 @@ def campaign_view(
         end = {"campaign_id": held, "status": c.status, "stored": view["stored"]}
         end.update(planned=c.n_poses, message=message or c.status)
         summary = store.latest_report(held) if c.status == "complete" else None
-        if summary is not None:
+        if summary is not None and "validation_before" in summary:  # a calibration's
             before, after = summary["validation_before"], summary["validation_after"]
             end["validation_mm"] = {
                 "before": {"rms": before["rms_mm"], "max": before["max_mm"]},

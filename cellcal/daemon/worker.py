@@ -15,11 +15,12 @@ import threading
 from cellcal.calib.robot_model import RobotModel
 from cellcal.clock import Clock, SimulatedClock
 from cellcal.config import CellConfig
-from cellcal.daemon.campaign import Held, run_stored
 from cellcal.daemon.control import CONNECTING, FAULT, READY, Control, Job
 from cellcal.daemon.devices import Devices, build_devices
 from cellcal.daemon.records import CampaignEnded, CampaignStarted, Record
 from cellcal.daemon.report import report_folder, write_report
+from cellcal.daemon.run_parts import Held
+from cellcal.daemon.runner import run_stored
 from cellcal.daemon.store import Store, StoreError
 from cellcal.errors import CellcalError, DeviceError, device_of
 from cellcal.modelfiles import load_model
