@@ -1,4 +1,8 @@
-"""Identification of kinematic errors from target positions measured by a sensor.
+"""(Size: about 550 lines — calibrate() is one pipeline (start, baseline, identifiability,
+the fits, the parameter choice, the result); the fit itself is in levenberg.py, the
+choice in parameter_choice.py, the data in observations.py.)
+
+Identification of kinematic errors from target positions measured by a sensor.
 
 ``calibrate(nominal, q, measured)`` estimates, together, the identifiable kinematic
 corrections, the target offset on the flange and the sensor frame — the last two

@@ -1,4 +1,8 @@
-"""The control API: HTTP/1.1 and JSON on a Unix socket (aiohttp), server-sent events
+"""(Size: about 500 lines — the routes and the event hub are one aiohttp application; the
+request reading is already apart in api_requests.py. It goes into the service sub-
+package in the planned daemon split.)
+
+The control API: HTTP/1.1 and JSON on a Unix socket (aiohttp), server-sent events
 for watching. A mutating call answers ``202`` once accepted; clients learn the outcome
 from the event stream. Errors have one shape: ``{"error": {"code", "message"}}`` with
 one line of message, whatever refused the request (``api_requests.py`` reads and checks

@@ -1,4 +1,8 @@
-"""A laser tracker that speaks cellcal's tracker line protocol, over any pyserial URL.
+"""(Size: about 520 lines — one module per device family holds the family's options, driver
+and describe(); its protocol and framing are apart in tracker_protocol.py and
+line_framing.py.)
+
+A laser tracker that speaks cellcal's tracker line protocol, over any pyserial URL.
 
 Layers, each replaceable without touching the others: transport (bytes; serial, pty,
 TCP) → line framing → protocol (requests, replies, events, error codes as exceptions;

@@ -311,7 +311,7 @@ class URRobot:
             left = max(deadline - time.monotonic(), 0.1)
             try:
                 with socket.create_connection((self.host, port), timeout=left):
-                    pass
+                    pass  # connected: the port listens; nothing to send
             except OSError as e:
                 reason = e.strerror or _one_line(e)
                 raise DeviceError(

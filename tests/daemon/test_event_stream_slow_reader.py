@@ -71,7 +71,7 @@ def _read_to_the_end(s: socket.socket) -> int:
         while chunk := s.recv(65536):
             n += len(chunk)
     except ConnectionResetError:
-        pass
+        pass  # the service closed the dropped reader: what the test waits for
     return n
 
 

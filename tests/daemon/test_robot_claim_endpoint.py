@@ -64,13 +64,13 @@ def test_one_ur_through_two_drivers_is_one_claim(
         assert f"the {second[0]} robot at {second[1]}" in str(info.value)
         assert "\n" not in str(info.value)
     with RobotClaim(*second, "next"):  # released with the first claim
-        pass
+        pass  # taken without a refusal: the point of the test
 
 
 def test_other_ports_of_the_host_stay_other_robots(locks: Path) -> None:
     """As before: a Modbus server on another port of the host is another controller."""
     with RobotClaim("ur", "127.0.0.1", "service"), RobotClaim("modbus", "127.0.0.1:1502", "run"):
-        pass
+        pass  # both taken at once: two robots
 
 
 def _resolving(monkeypatch: pytest.MonkeyPatch, first: str = CLAIMED) -> list[str]:
