@@ -436,6 +436,8 @@ def test_urrobot_protective_and_emergency_stop_are_device_errors() -> None:
             with pytest.raises(DeviceError, match="protective stop; cannot move"):
                 robot.move_joints(Q0, 1.0)
             sim.clear_protective_stop()
+            # the driver reads the stop from RTDE: wait until its next packet says clear
+            wait_for(lambda: not robot._receive.isProtectiveStopped(), "the stop to clear")
             robot.move_joints(Q0, 1.0)
             np.testing.assert_allclose(robot.actual_joints(), Q0, atol=1e-12)
 
@@ -443,6 +445,7 @@ def test_urrobot_protective_and_emergency_stop_are_device_errors() -> None:
             with pytest.raises(DeviceError, match="emergency stop; cannot move"):
                 robot.move_joints(Q1, 1.0)
             sim.clear_emergency_stop()
+            wait_for(lambda: not robot._receive.isEmergencyStopped(), "the stop to clear")
             robot.move_joints(Q1, 1.0)
         finally:
             robot.close()
