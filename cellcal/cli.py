@@ -62,6 +62,8 @@ import atexit  # noqa: E402 - after the handler: Ctrl-C while they load is one l
 import importlib  # noqa: E402
 import signal  # noqa: E402
 import threading  # noqa: E402
+from collections.abc import Callable  # noqa: E402
+from typing import Any  # noqa: E402
 
 import click  # noqa: E402
 
@@ -220,6 +222,18 @@ def _interrupt_once(signum: int, frame: object) -> None:
     raise KeyboardInterrupt
 
 
+def _unraisable_interrupt(hook: Callable[[Any], object]) -> Callable[[Any], object]:
+    """``sys.unraisablehook`` that keeps quiet about the KeyboardInterrupt of
+    :func:`_interrupt_once` (``main`` says it) and passes anything else to ``hook``."""
+
+    def unraisable(args: Any) -> object:
+        if isinstance(args.exc_value, KeyboardInterrupt) and _interrupted:
+            return None
+        return hook(args)
+
+    return unraisable
+
+
 def _stop_interrupted(here: bool) -> int:
     """The line for an interrupt that reached :func:`main`; its exit code."""
     global _said
@@ -238,8 +252,15 @@ def main(argv: list[str] | None = None) -> None:
     program = argv is None
     here = threading.current_thread() is threading.main_thread()
     previous = signal.signal(signal.SIGINT, _interrupt_once) if here else None
+    hook = sys.unraisablehook
+    if here:
+        sys.unraisablehook = _unraisable_interrupt(hook)
     try:
         code = _run(sys.argv[1:] if argv is None else list(argv), program)
+        if _interrupted and not _said:
+            # the KeyboardInterrupt was raised where Python drops exceptions (a weakref
+            # callback of importlib's): the command went on, but Ctrl-C was heard
+            code = _stop_interrupted(here)
     except Exception:
         if not _interrupted:
             raise
@@ -249,6 +270,7 @@ def main(argv: list[str] | None = None) -> None:
     except KeyboardInterrupt:
         code = _stop_interrupted(here)
     finally:
+        sys.unraisablehook = hook
         if here:
             # The program ends now: a Ctrl-C while it does is the line and exit 130.
             signal.signal(signal.SIGINT, _interrupted_now if program else previous)

@@ -442,6 +442,8 @@ def test_urrobot_protective_and_emergency_stop_are_device_errors() -> None:
             np.testing.assert_allclose(robot.actual_joints(), Q0, atol=1e-12)
 
             sim.inject_emergency_stop()
+            # as with the protective stop: the driver learns of it from its next packet
+            wait_for(lambda: robot._receive.isEmergencyStopped(), "the stop to be seen")
             with pytest.raises(DeviceError, match="emergency stop; cannot move"):
                 robot.move_joints(Q1, 1.0)
             sim.clear_emergency_stop()
