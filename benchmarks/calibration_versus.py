@@ -26,7 +26,7 @@ from numpy.typing import NDArray
 from cellcal.calib.identification import CalibrationResult, calibrate
 from cellcal.calib.kinematics import target_kinematics
 from cellcal.calib.validation import ErrorStats
-from cellcal.modelfiles import load_model
+from cellcal.files.models import load_model
 
 Array = NDArray[np.float64]
 T = TypeVar("T")

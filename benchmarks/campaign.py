@@ -27,18 +27,18 @@ from pathlib import Path
 import numpy as np
 import sqlite_utils
 
+from cellcal.campaign.devices import build_devices
+from cellcal.campaign.engine import acquire
+from cellcal.campaign.plan import make_plan
+from cellcal.campaign.records import RecordStream
+from cellcal.campaign.runner import start_campaign
+from cellcal.campaign.store_writer import StoreWriter
 from cellcal.clock import SimulatedClock
 from cellcal.commands.run import bundled_mock_cell
 from cellcal.config import CellConfig, load_config, with_robot
-from cellcal.daemon.campaign import start_campaign
-from cellcal.daemon.devices import build_devices
-from cellcal.daemon.engine import acquire
-from cellcal.daemon.plan import make_plan
-from cellcal.daemon.records import RecordStream
-from cellcal.daemon.store import Store
-from cellcal.daemon.store_writer import StoreWriter
 from cellcal.drivers.base import Series
-from cellcal.modelfiles import load_model
+from cellcal.files.models import load_model
+from cellcal.store.database import Store
 
 
 def _series(rng: np.random.Generator, sensors: int, n: int) -> list[Series]:

@@ -4,11 +4,11 @@ the same rendered images, in one run, on two scenes rendered by two different re
 Scenes (20 frames per pose: one clean render per camera per pose, fresh noise per frame;
 the rig is the renderer's own, perfect):
 
-1. the bundled cell, the camera twin's renderer (``mocks/camera_render.py``): 4 cameras
+1. the bundled cell, the camera twin's renderer (``mocks/rig/camera_render.py``): 4 cameras
    1280×1024, f = 1000 px, no distortion, about 1.25 m from the volume; the flange fixture
    of five 40 mm DICT_4X4_50 markers; blur 0.8 px, noise 2 grey levels; poses anywhere in a
    300 mm cube, tilted up to 20°;
-2. the other renderer (``mocks/texture_render.py``, written apart from the first): its
+2. the other renderer (``mocks/rig/texture_render.py``, written apart from the first): its
    oblique rig (4 cameras 1280×1024, fx 1150–1350 px, principal points 15–45 px off
    centre, barrel lenses k1 −0.07…−0.11, 1.1–1.4 m away, rays 35–60° apart), defocus disk
    0.7 px with a Gaussian of 0.5 px, noise 2 grey levels, and two targets of DICT_5X5_100
@@ -63,16 +63,20 @@ import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from cellcal.calib.board_corners import board_points
-from cellcal.calib.camera_rig import Board, Camera, Marker, Rig, Target
 from cellcal.calib.geometry import Array, invert
-from cellcal.calib.rig_calibration import RigCalibrationOptions, calibrate_rig, detect_corners
-from cellcal.calib.rig_measurement import WINDOW_MARGIN_PX, TargetMeter
+from cellcal.calib.photogrammetry.board_corners import board_points
+from cellcal.calib.photogrammetry.camera_rig import Board, Camera, Marker, Rig, Target
+from cellcal.calib.photogrammetry.rig_calibration import (
+    RigCalibrationOptions,
+    calibrate_rig,
+    detect_corners,
+)
+from cellcal.calib.photogrammetry.rig_measurement import WINDOW_MARGIN_PX, TargetMeter
 from cellcal.calib.rigid_solvers import svd_rotation
-from cellcal.mocks import texture_render as tex
-from cellcal.mocks.camera_render import Image, Optics, SceneRenderer
-from cellcal.mocks.rig_scene import board_poses, dome_target, four_camera_rig, volume_centre
-from cellcal.mocks.texture_scenes import oblique_rig, plate_target, target_poses
+from cellcal.mocks.rig import texture_render as tex
+from cellcal.mocks.rig.camera_render import Image, Optics, SceneRenderer
+from cellcal.mocks.rig.scene import board_poses, dome_target, four_camera_rig, volume_centre
+from cellcal.mocks.rig.texture_scenes import oblique_rig, plate_target, target_poses
 
 BOARD = Board("DICT_4X4_50", (7, 5), 60.0, 45.0)
 #: cellcal measuring each set on its own, as ``rig measure --sets`` does (measure_next)

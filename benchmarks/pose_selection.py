@@ -40,8 +40,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from cellcal.calib.identification import calibrate  # noqa: E402
-from cellcal.config import CampaignConfig, load_config  # noqa: E402
-from cellcal.daemon.plan import (  # noqa: E402
+from cellcal.campaign.plan import (  # noqa: E402
     CALIBRATION,
     VALIDATION,
     cell_seconds,
@@ -49,9 +48,10 @@ from cellcal.daemon.plan import (  # noqa: E402
     make_plan,
     workspace_poses,
 )
-from cellcal.daemon.plan_region import draw_reachable  # noqa: E402
+from cellcal.campaign.plan_region import draw_reachable  # noqa: E402
+from cellcal.config import CampaignConfig, load_config  # noqa: E402
+from cellcal.files.models import load_model  # noqa: E402
 from cellcal.mocks.robot_truth import TrueCell, measure, random_cell  # noqa: E402
-from cellcal.modelfiles import load_model  # noqa: E402
 
 CELLS = {"kuka-kr5-arc": "mock-cell-tracker.toml", "ur10e": "mock-cell-ur10e.toml"}
 SIZES = (12, 16, 20, 24, 30, 40)

@@ -49,8 +49,8 @@ from cellcal.calib.robot_model import RobotModel
 from cellcal.calib.validation import ErrorStats, Validation, held_out_groups, validate_on
 from cellcal.cli import main as cellcal_main
 from cellcal.errors import AcceptanceError, CellcalError, UserError
-from cellcal.measurementfiles import Measurements, read_measurements
-from cellcal.modelfiles import load_model
+from cellcal.files.measurements import Measurements, read_measurements
+from cellcal.files.models import load_model
 
 REAL = Path(__file__).parents[1] / "tests" / "data" / "real"
 ROBOTS = ("ur5", "barrett-wam")

@@ -2,7 +2,7 @@
 `rig calibrate` against OpenCV's own calibration, and the flange target measured with
 each calibrated rig, in one run.
 
-Images: :mod:`cellcal.mocks.texture_render`, written apart from the camera twin's
+Images: :mod:`cellcal.mocks.rig.texture_render`, written apart from the camera twin's
 renderer (a bitmap texture sampled on a regular 5×5 grid per pixel, its own
 distortion inversion, a defocus disk convolved with a Gaussian, noise 2 grey levels).
 Cameras: :func:`oblique_rig` (four 1280×1024 cameras, f 1150–1350 px, principal points
@@ -40,24 +40,24 @@ import cv2
 import numpy as np
 from photogrammetry import OpenCVPipeline, opencv_rig  # the same directory
 
-from cellcal.calib.board_corners import CornerMeter, detect_corners
-from cellcal.calib.camera_rig import Rig, Target
 from cellcal.calib.geometry import Array
-from cellcal.calib.rig_calibration import (
+from cellcal.calib.photogrammetry.board_corners import CornerMeter, detect_corners
+from cellcal.calib.photogrammetry.camera_rig import Rig, Target
+from cellcal.calib.photogrammetry.rig_calibration import (
     RigCalibrationOptions,
     board_length_errors,
     calibrate_rig,
 )
-from cellcal.calib.rig_measurement import TargetMeter
+from cellcal.calib.photogrammetry.rig_measurement import TargetMeter
 from cellcal.calib.rigid_solvers import svd_rotation
-from cellcal.mocks.texture_render import (
+from cellcal.mocks.rig.texture_render import (
     RenderParams,
     marker_planes,
     psf_kernel,
     render_board,
     render_clean,
 )
-from cellcal.mocks.texture_scenes import (
+from cellcal.mocks.rig.texture_scenes import (
     TEST_BOARD,
     board_views,
     oblique_rig,

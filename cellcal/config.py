@@ -25,7 +25,7 @@ from pydantic_core import PydanticCustomError
 from cellcal.device_options import Positive, RobotOptions, Seed, SensorOptions, Strict, Vec3
 from cellcal.errors import FileFormatError, UserError
 from cellcal.families import ROBOT, Role, default_driver, families, find, kinds
-from cellcal.textfiles import read_toml
+from cellcal.files.text import read_toml
 
 
 class ConfigError(UserError):
@@ -484,7 +484,7 @@ def relative_to(config: CellConfig, folder: Path, *, database: bool = True) -> C
     """Relative file paths in a configuration (a robot model file, a sensor's files, the
     database) are relative to the configuration file's folder, not to where the command
     runs."""
-    from cellcal.modelfiles import builtin_names
+    from cellcal.files.models import builtin_names
 
     robot = config.robot
     if robot.model not in builtin_names() and not Path(robot.model).is_absolute():

@@ -39,20 +39,20 @@ from typing import TYPE_CHECKING, Any, Literal
 from cellcal.extras import needs, require
 
 if TYPE_CHECKING:  # what ``__getattr__`` hands out, for the type checker
-    from cellcal.mocks.board_views import BoardScene as BoardScene
-    from cellcal.mocks.gige_cameras import GigECameraTwin as GigECameraTwin
-    from cellcal.mocks.modbus_robot_server import ModbusRobotFaults as ModbusRobotFaults
-    from cellcal.mocks.modbus_robot_server import ModbusRobotSimulator as ModbusRobotSimulator
-    from cellcal.mocks.modbus_robot_server import xyzabc as xyzabc
-    from cellcal.mocks.rig_capture_twin import mock_rig as mock_rig
-    from cellcal.mocks.rig_twin import RenderedRig as RenderedRig
-    from cellcal.mocks.rig_twin import RigScene as RigScene
-    from cellcal.mocks.rig_twin import RigTruth as RigTruth
+    from cellcal.mocks.modbus.server import ModbusRobotFaults as ModbusRobotFaults
+    from cellcal.mocks.modbus.server import ModbusRobotSimulator as ModbusRobotSimulator
+    from cellcal.mocks.modbus.server import xyzabc as xyzabc
+    from cellcal.mocks.rig.board_views import BoardScene as BoardScene
+    from cellcal.mocks.rig.capture_twin import mock_rig as mock_rig
+    from cellcal.mocks.rig.gige_cameras import GigECameraTwin as GigECameraTwin
+    from cellcal.mocks.rig.twin import RenderedRig as RenderedRig
+    from cellcal.mocks.rig.twin import RigScene as RigScene
+    from cellcal.mocks.rig.twin import RigTruth as RigTruth
     from cellcal.mocks.simulated_cell import SimulatedCell as SimulatedCell
-    from cellcal.mocks.tracker_server import MockTracker as MockTracker
-    from cellcal.mocks.tracker_server import TrackerFaults as TrackerFaults
+    from cellcal.mocks.tracker.server import MockTracker as MockTracker
+    from cellcal.mocks.tracker.server import TrackerFaults as TrackerFaults
     from cellcal.mocks.twins import limits_deg as limits_deg
-    from cellcal.mocks.ur_server import simulator_for_cell as simulator_for_cell
+    from cellcal.mocks.ur.server import simulator_for_cell as simulator_for_cell
 
 Role = Literal["robot", "sensor"]
 
@@ -95,10 +95,10 @@ class Family:
 
 FAMILIES: tuple[Family, ...] = (
     Family("robot", ROBOT, "simulated", "cellcal.device_options:SimulatedRobotOptions", "cellcal.mocks.simulated_devices:SimulatedRobot", None, "the simulated cell's robot, in-process", mock_only=True),  # noqa: E501
-    Family("robot", ROBOT, "modbus", "cellcal.drivers.modbus_robot:ModbusRobotOptions", "cellcal.drivers.modbus_robot:ModbusRobot", "cellcal.mocks.modbus_robot_server:serve", "a controller behind Modbus TCP with the handshake map of docs/robots.md", libraries=("pymodbus",)),  # noqa: E501
-    Family("robot", ROBOT, "ur", "cellcal.drivers.ur:UROptions", "cellcal.drivers.ur:URRobot", "cellcal.mocks.ur_server:serve", "a Universal Robots e-Series controller through ur_rtde", libraries=("rtde_control", "rtde_receive")),  # noqa: E501
-    Family("sensor", "laser-tracker", "line-protocol", "cellcal.drivers.tracker:LineTrackerOptions", "cellcal.drivers.tracker:LineTracker", "cellcal.mocks.tracker_server:serve", "a laser tracker speaking cellcal's line protocol over serial or TCP (docs/tracker.md)"),  # noqa: E501
-    Family("sensor", "photogrammetry", "cameras", "cellcal.drivers.photogrammetry:CameraRigOptions", "cellcal.drivers.photogrammetry:CameraRigSensor", "cellcal.mocks.rig_twin:serve", "a photogrammetry rig of cameras: marker corners, the target's pose from every camera (docs/photogrammetry.md)", libraries=("cv2",)),  # noqa: E501
+    Family("robot", ROBOT, "modbus", "cellcal.drivers.modbus_robot:ModbusRobotOptions", "cellcal.drivers.modbus_robot:ModbusRobot", "cellcal.mocks.modbus.server:serve", "a controller behind Modbus TCP with the handshake map of docs/robots.md", libraries=("pymodbus",)),  # noqa: E501
+    Family("robot", ROBOT, "ur", "cellcal.drivers.ur:UROptions", "cellcal.drivers.ur:URRobot", "cellcal.mocks.ur.server:serve", "a Universal Robots e-Series controller through ur_rtde", libraries=("rtde_control", "rtde_receive")),  # noqa: E501
+    Family("sensor", "laser-tracker", "line-protocol", "cellcal.drivers.tracker:LineTrackerOptions", "cellcal.drivers.tracker:LineTracker", "cellcal.mocks.tracker.server:serve", "a laser tracker speaking cellcal's line protocol over serial or TCP (docs/tracker.md)"),  # noqa: E501
+    Family("sensor", "photogrammetry", "cameras", "cellcal.drivers.photogrammetry:CameraRigOptions", "cellcal.drivers.photogrammetry:CameraRigSensor", "cellcal.mocks.rig.twin:serve", "a photogrammetry rig of cameras: marker corners, the target's pose from every camera (docs/photogrammetry.md)", libraries=("cv2",)),  # noqa: E501
 )  # fmt: skip
 
 
@@ -147,28 +147,28 @@ TWIN_NAMES = {
     # the simulated cell, the truth every twin serves (the device factory in mock mode)
     "SimulatedCell": "simulated_cell",
     # cellcal mock tracker | modbus-robot | ur
-    "MockTracker": "tracker_server",
-    "TrackerFaults": "tracker_server",
-    "ModbusRobotSimulator": "modbus_robot_server",
-    "ModbusRobotFaults": "modbus_robot_server",
-    "xyzabc": "modbus_robot_server",
+    "MockTracker": "tracker.server",
+    "TrackerFaults": "tracker.server",
+    "ModbusRobotSimulator": "modbus.server",
+    "ModbusRobotFaults": "modbus.server",
+    "xyzabc": "modbus.server",
     "limits_deg": "twins",
-    "simulator_for_cell": "ur_server",
+    "simulator_for_cell": "ur.server",
     # cellcal rig capture --mock, cellcal mock cameras
-    "mock_rig": "rig_capture_twin",
-    "GigECameraTwin": "gige_cameras",
-    "BoardScene": "board_views",
-    "RigScene": "rig_twin",
-    "RigTruth": "rig_twin",
+    "mock_rig": "rig.capture_twin",
+    "GigECameraTwin": "rig.gige_cameras",
+    "BoardScene": "rig.board_views",
+    "RigScene": "rig.twin",
+    "RigTruth": "rig.twin",
     # the camera driver's in-process backend in mock mode (cameras.rig_class("rendered"))
-    "RenderedRig": "rig_twin",
+    "RenderedRig": "rig.twin",
 }
 
 
 def twin_module(name: str) -> ModuleType:
-    """``cellcal.mocks.<name>``, imported now if it is not yet: one of the modules the
-    registry hands out (the table's twins, :data:`TWIN_NAMES`), each import spelled out
-    so that the import contract sees it."""
+    """``cellcal.mocks.<name>`` (``tracker.server``), imported now if it is not yet: one
+    of the modules the registry hands out (the table's twins, :data:`TWIN_NAMES`), each
+    import spelled out so that the import contract sees it."""
     if name == "simulated_cell":
         from cellcal.mocks import simulated_cell
 
@@ -181,32 +181,32 @@ def twin_module(name: str) -> ModuleType:
         from cellcal.mocks import twins
 
         return twins
-    if name == "tracker_server":
-        from cellcal.mocks import tracker_server
+    if name == "tracker.server":
+        from cellcal.mocks.tracker import server as tracker_server
 
         return tracker_server
-    if name == "modbus_robot_server":
-        from cellcal.mocks import modbus_robot_server
+    if name == "modbus.server":
+        from cellcal.mocks.modbus import server as modbus_robot_server
 
         return modbus_robot_server
-    if name == "ur_server":
-        from cellcal.mocks import ur_server
+    if name == "ur.server":
+        from cellcal.mocks.ur import server as ur_server
 
         return ur_server
-    if name == "rig_twin":
-        from cellcal.mocks import rig_twin
+    if name == "rig.twin":
+        from cellcal.mocks.rig import twin as rig_twin
 
         return rig_twin
-    if name == "rig_capture_twin":
-        from cellcal.mocks import rig_capture_twin
+    if name == "rig.capture_twin":
+        from cellcal.mocks.rig import capture_twin as rig_capture_twin
 
         return rig_capture_twin
-    if name == "board_views":
-        from cellcal.mocks import board_views
+    if name == "rig.board_views":
+        from cellcal.mocks.rig import board_views
 
         return board_views
-    if name == "gige_cameras":
-        from cellcal.mocks import gige_cameras
+    if name == "rig.gige_cameras":
+        from cellcal.mocks.rig import gige_cameras
 
         return gige_cameras
     raise ValueError(f"{MOCKS}{name}: not a module the registry of twins hands out")

@@ -3,7 +3,7 @@
 
 Reads every ``*.py`` under the paths given (default: ``cellcal``) with :mod:`ast` and
 reports, one line each (``file:line: what``), what runs SQL or opens a database outside
-``cellcal/daemon/store*.py``:
+``cellcal/store/*.py``:
 
 * a call of a method named ``execute``, ``executemany`` or ``executescript`` (on a
   connection, a cursor, sqlite-utils' database: whatever the object, the name is the
@@ -25,7 +25,7 @@ from collections.abc import Iterator
 from pathlib import Path, PurePath
 
 #: The store's modules: the only ones that may run SQL.
-STORE_MODULES = "cellcal/daemon/store*.py"
+STORE_MODULES = "cellcal/store/*.py"
 #: Method names that run SQL, whatever they are called on.
 SQL_METHODS = frozenset({"execute", "executemany", "executescript"})
 #: Per module, the names that open a database or a cursor.

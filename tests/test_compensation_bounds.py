@@ -13,8 +13,8 @@ import pytest
 import tomli_w
 
 from cellcal.calib.compensation import compensate
+from cellcal.files.models import load_model
 from cellcal.mocks.robot_truth import measure, random_cell, random_joints
-from cellcal.modelfiles import load_model
 from tests.inprocess import cellcal
 
 KR5 = load_model("kuka-kr5-arc").model

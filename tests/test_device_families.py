@@ -15,15 +15,15 @@ import numpy as np
 import pytest
 
 import cellcal.families as registry
+from cellcal.campaign.devices import build_devices
 from cellcal.clock import Clock, SimulatedClock
 from cellcal.config import ConfigError, config_from_dict, upgrade_stored
-from cellcal.daemon.devices import build_devices
 from cellcal.device_options import SensorOptions
 from cellcal.drivers.base import DeviceContext, Series, host_port, label
 from cellcal.errors import DeviceError
 from cellcal.families import Family
+from cellcal.files.models import load_model
 from cellcal.mocks.twins import RunningTwin
-from cellcal.modelfiles import load_model
 from tests.drivers import test_sensor_contract
 from tests.drivers.families import bundled_cells, cell_for
 

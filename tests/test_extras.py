@@ -107,10 +107,10 @@ def test_the_core_imports_no_optional_library(blocker):
         """
         import importlib, sys
         for m in [
-            "cellcal.cli", "cellcal.config", "cellcal.families", "cellcal.modelfiles",
-            "cellcal.urdffiles", "cellcal.daemon.devices", "cellcal.daemon.campaign",
-            "cellcal.daemon.store", "cellcal.drivers.tracker", "cellcal.drivers.ur",
-            "cellcal.drivers.cameras", "cellcal.commands.calibrate",
+            "cellcal.cli", "cellcal.config", "cellcal.families", "cellcal.files.models",
+            "cellcal.files.urdf", "cellcal.campaign.devices", "cellcal.campaign.runner",
+            "cellcal.store.database", "cellcal.drivers.tracker", "cellcal.drivers.ur",
+            "cellcal.drivers.cameras.backends", "cellcal.commands.calibrate",
             "cellcal.commands.register", "cellcal.commands.predict", "cellcal.commands.plan",
             "cellcal.commands.models", "cellcal.commands.run", "cellcal.commands.mock",
             "cellcal.commands.rig_capture", "cellcal.commands.export",

@@ -14,7 +14,7 @@ from hypothesis import strategies as st
 
 from cellcal.cli import main
 from cellcal.errors import FileFormatError
-from cellcal.measurementfiles import read_measurements
+from cellcal.files.measurements import read_measurements
 
 DATA = "q1,q2,q3,q4,q5,q6,x,y,z\n" + "\n".join(
     f"{i},{-30 + i},{40 + i},{i},{-20 + i},{i},{800 + 10 * i},{5 * i},{900 - 3 * i}"

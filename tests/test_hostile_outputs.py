@@ -20,8 +20,8 @@ import numpy as np
 import pytest
 
 from cellcal.errors import FileFormatError, InputError, UserError
-from cellcal.imagefiles import ImageFileError, read_image, write_image
-from cellcal.modelfiles import write_atomically
+from cellcal.files.images import ImageFileError, read_image, write_image
+from cellcal.files.models import write_atomically
 from tests.test_hostile_inputs import _one_line_exit_2
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -286,7 +286,7 @@ def test_other_formats_are_sized_from_their_header_too(
 def test_a_report_folder_with_a_fifo_in_it_gets_nothing_written(
     capsys: pytest.CaptureFixture[str], tmp_path: Path
 ) -> None:
-    from cellcal.daemon.campaign import start_campaign
+    from cellcal.campaign.runner import start_campaign
     from tests.conftest import tracker_cell
 
     cell = tracker_cell()

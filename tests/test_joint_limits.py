@@ -14,13 +14,13 @@ import numpy as np
 import pytest
 
 from cellcal.calib.robot_model import ModelError, model_from_dict, model_to_dict
+from cellcal.campaign.runner import start_campaign, stored_campaign
 from cellcal.config import with_robot
-from cellcal.daemon.campaign import start_campaign, stored_plan
-from cellcal.daemon.store import Store
 from cellcal.drivers.safety import GuardedRobot
 from cellcal.errors import CampaignError
-from cellcal.modelfiles import load_model
-from cellcal.urdffiles import to_urdf
+from cellcal.files.models import load_model
+from cellcal.files.urdf import to_urdf
+from cellcal.store.database import Store
 from tests.conftest import TRACKER_CELL, tracker_cell
 from tests.inprocess import cellcal
 
@@ -157,11 +157,11 @@ def test_resume_refuses_a_model_whose_limits_changed(tmp_path):
     db, cid = _interrupted_campaign(tmp_path, model)
     store = Store(db)
     try:
-        stored_plan(store, cid)  # the same limits: resumable
+        stored_campaign(store, cid)  # the same limits: resumable
         # Joint 1 widened from ±155° to ±170°: plausible for a robot, not this one's.
         _model_toml(model, _widen)
         with pytest.raises(CampaignError, match=r"joint 1.*-155\.\.155°.*-170\.\.170°"):
-            stored_plan(store, cid)
+            stored_campaign(store, cid)
     finally:
         store.close()
     line = _one_line(cellcal("run", "--resume", cid, "--db", db))

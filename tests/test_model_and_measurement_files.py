@@ -9,8 +9,8 @@ import pytest
 
 from cellcal.calib.identification import calibrate
 from cellcal.errors import FileFormatError, InputError
-from cellcal.measurementfiles import format_positions, read_joints, read_measurements
-from cellcal.modelfiles import load_model, write_atomically, write_calibrated
+from cellcal.files.measurements import format_positions, read_joints, read_measurements
+from cellcal.files.models import load_model, write_atomically, write_calibrated
 from tests.calib.simulated import well_spread
 
 

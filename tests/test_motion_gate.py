@@ -11,11 +11,11 @@ import numpy as np
 import pytest
 
 from cellcal.calib.kinematics import flange_transforms
+from cellcal.campaign.devices import build_devices
 from cellcal.clock import SimulatedClock
 from cellcal.config import config_from_dict
-from cellcal.daemon.devices import build_devices
 from cellcal.drivers.safety import GuardedRobot, SafetyError
-from cellcal.modelfiles import load_model
+from cellcal.files.models import load_model
 from tests.conftest import TRACKER_CELL, tracker_cell
 from tests.inprocess import cellcal
 

@@ -8,10 +8,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cellcal.calib.camera_rig import Board, Camera, Marker, Rig
 from cellcal.calib.geometry import so3_exp
+from cellcal.calib.photogrammetry.camera_rig import Board, Camera, Marker, Rig
 from cellcal.errors import FileFormatError, InputError
-from cellcal.photofiles import (
+from cellcal.files.photogrammetry import (
     read_board,
     read_rig,
     read_target,

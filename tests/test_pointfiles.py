@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from cellcal.errors import FileFormatError, InputError
-from cellcal.pointfiles import match_points, read_points
+from cellcal.files.points import match_points, read_points
 
 
 def write(tmp_path, text, name="p.csv", encoding="utf-8"):

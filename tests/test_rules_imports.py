@@ -55,13 +55,14 @@ def _renamed(value: Any, old: str, new: str) -> Any:
 
 
 #: A package shaped like cellcal: the registry (families.py) imports its twin lazily, as
-#: cellcal's does; the daemon and the commands reach the twin through it.
+#: cellcal's does (a twin in a folder of its own); the campaign and the commands reach the
+#: twin through it; the service over the reports over the campaign over the store.
 TOY = {
     "__init__.py": "",
     "cli.py": "",
     "families.py": """
         def serve():
-            from toycell.mocks.twin import serve
+            from toycell.mocks.robot.twin import serve
 
             return serve
         """,
@@ -70,17 +71,27 @@ TOY = {
     "calib/fit.py": "",
     "drivers/__init__.py": "",
     "drivers/robot.py": "",
-    "daemon/__init__.py": "",
-    "daemon/devices.py": """
+    "files/__init__.py": "",
+    "files/points.py": "from toycell.calib import fit\n",
+    "store/__init__.py": "",
+    "store/database.py": "",
+    "campaign/__init__.py": "",
+    "campaign/devices.py": """
         from toycell import families
+        from toycell.store import database
 
         def build():
             return families.serve()
         """,
+    "reports/__init__.py": "",
+    "reports/folder.py": "from toycell.campaign import devices\nfrom toycell.store import database",
+    "service/__init__.py": "",
+    "service/worker.py": "from toycell.campaign import devices\nfrom toycell.reports import folder",
     "commands/__init__.py": "",
-    "commands/mock.py": "from toycell.families import serve\n",
+    "commands/mock.py": "from toycell.families import serve\nfrom toycell.service import worker\n",
     "mocks/__init__.py": "",
-    "mocks/twin.py": "def serve():\n    return None\n",
+    "mocks/robot/__init__.py": "",
+    "mocks/robot/twin.py": "def serve():\n    return None\n",
 }
 
 
@@ -102,27 +113,36 @@ def _name(contract_id: str) -> str:
 
 def test_the_contracts_are_the_designs():
     contracts = {c["id"]: c for c in _contracts()["contracts"]}
-    assert set(contracts) == {"calib-is-pure", "drivers-stand-alone", "twins-through-the-registry"}
+    assert set(contracts) == {
+        "calib-is-pure", "drivers-stand-alone", "twins-through-the-registry", "inner-walls",
+    }  # fmt: skip
+    above_calib = {"campaign", "store", "service", "reports", "drivers", "files", "mocks"}
     assert contracts["calib-is-pure"]["source_modules"] == ["cellcal.calib"]
     assert set(contracts["calib-is-pure"]["forbidden_modules"]) == {
-        "cellcal.daemon", "cellcal.drivers", "cellcal.mocks", "cellcal.commands", "cellcal.cli",
+        *(f"cellcal.{p}" for p in above_calib), "cellcal.commands", "cellcal.cli",
     }  # fmt: skip
     assert set(contracts["drivers-stand-alone"]["forbidden_modules"]) == {
-        "cellcal.daemon", "cellcal.mocks", "cellcal.commands", "cellcal.cli",
+        *(f"cellcal.{p}" for p in ("campaign", "store", "service", "reports", "mocks")),
+        "cellcal.commands", "cellcal.cli",
     }  # fmt: skip
     registry = contracts["twins-through-the-registry"]
-    assert set(registry["source_modules"]) == {"cellcal.daemon", "cellcal.commands"}
+    assert set(registry["source_modules"]) == {
+        f"cellcal.{p}" for p in ("campaign", "store", "service", "reports", "commands")
+    }
     assert registry["forbidden_modules"] == ["cellcal.mocks"]
-    # The one exception: the registry's own imports of the twins.
+    assert contracts["inner-walls"]["layers"] == [
+        f"cellcal.{p}" for p in ("cli", "commands", "service", "reports", "campaign", "store")
+    ]
+    # The one exception: the registry's own imports of the twins, at any depth.
     for c in contracts.values():
-        assert c.get("ignore_imports", []) in ([], ["cellcal.families -> cellcal.mocks.*"])
+        assert c.get("ignore_imports", []) in ([], ["cellcal.families -> cellcal.mocks.**"])
         assert "allow_indirect_imports" not in c
 
 
 def test_the_shape_of_cellcal_keeps_every_contract(tmp_path):
     result = _lint(_toy(tmp_path, {}), tmp_path)
     assert result.returncode == 0, result.stdout + result.stderr
-    assert "Contracts: 3 kept, 0 broken." in result.stdout
+    assert "Contracts: 4 kept, 0 broken." in result.stdout
 
 
 @pytest.mark.parametrize(
@@ -130,17 +150,17 @@ def test_the_shape_of_cellcal_keeps_every_contract(tmp_path):
     [
         (
             "twins-through-the-registry",
-            {"daemon/devices.py": "def build():\n    from toycell.mocks.twin import serve\n"},
-            "toycell.daemon.devices -> toycell.mocks.twin",
+            {"campaign/devices.py": "def build():\n    from toycell.mocks.robot.twin import serve"},
+            "toycell.campaign.devices -> toycell.mocks.robot.twin",
         ),
         (
             # through another module: indirect imports count
             "twins-through-the-registry",
             {
-                "helpers.py": "from toycell.mocks import twin\n",
+                "helpers.py": "from toycell.mocks.robot import twin\n",
                 "commands/mock.py": "from toycell import helpers\n",
             },
-            "toycell.helpers -> toycell.mocks.twin",
+            "toycell.helpers -> toycell.mocks.robot.twin",
         ),
         (
             "calib-is-pure",
@@ -148,17 +168,41 @@ def test_the_shape_of_cellcal_keeps_every_contract(tmp_path):
             "toycell.calib.fit -> toycell.drivers.robot",
         ),
         (
-            "drivers-stand-alone",
-            {"drivers/robot.py": "import toycell.daemon.devices\n"},
-            "toycell.drivers.robot -> toycell.daemon.devices",
+            "calib-is-pure",
+            {"calib/fit.py": "def read():\n    from toycell.files import points\n"},
+            "toycell.calib.fit -> toycell.files.points",
         ),
         (
             "drivers-stand-alone",
-            {"drivers/robot.py": "def twin():\n    import toycell.mocks.twin\n"},
-            "toycell.drivers.robot -> toycell.mocks.twin",
+            {"drivers/robot.py": "import toycell.campaign.devices\n"},
+            "toycell.drivers.robot -> toycell.campaign.devices",
+        ),
+        (
+            "drivers-stand-alone",
+            {"drivers/robot.py": "def twin():\n    import toycell.mocks.robot.twin\n"},
+            "toycell.drivers.robot -> toycell.mocks.robot.twin",
+        ),
+        (
+            "inner-walls",
+            {"store/database.py": "from toycell.campaign import devices\n"},
+            "toycell.store.database -> toycell.campaign.devices",
+        ),
+        (
+            "inner-walls",
+            {"campaign/devices.py": "def lock():\n    from toycell.service import worker\n"},
+            "toycell.campaign.devices -> toycell.service.worker",
         ),
     ],
-    ids=["daemon-twin", "command-helper-twin", "calib-driver", "driver-daemon", "driver-twin"],
+    ids=[
+        "campaign-twin",
+        "command-helper-twin",
+        "calib-driver",
+        "calib-files",
+        "driver-campaign",
+        "driver-twin",
+        "store-over-campaign",
+        "campaign-over-service",
+    ],
 )
 def test_a_forbidden_import_fails_naming_the_contract(tmp_path, contract, changes, chain):
     result = _lint(_toy(tmp_path, changes), tmp_path)
@@ -166,7 +210,7 @@ def test_a_forbidden_import_fails_naming_the_contract(tmp_path, contract, change
     out = " ".join(result.stdout.split())  # the report wraps long names
     assert f"{_name(contract)} BROKEN" in out
     assert chain in out
-    assert "Contracts: 2 kept, 1 broken." in out
+    assert "Contracts: 3 kept, 1 broken." in out
 
 
 def test_cellcal_keeps_its_contracts():

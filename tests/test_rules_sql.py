@@ -1,5 +1,5 @@
 """One face for the store: ``scripts/check_sql_in_store.py`` refuses SQL outside
-``cellcal/daemon/store*.py``, one line per offence, and finds none in cellcal."""
+``cellcal/store/``, one line per offence, and finds none in cellcal."""
 
 from __future__ import annotations
 
@@ -34,8 +34,8 @@ def _package(root: Path, files: dict[str, str]) -> Path:
 #: The store's modules may do all of it.
 STORE = {
     "__init__.py": "",
-    "daemon/__init__.py": "",
-    "daemon/store.py": """
+    "store/__init__.py": "",
+    "store/database.py": """
         import sqlite3
 
         def count(conn):
@@ -46,7 +46,7 @@ STORE = {
             conn.executescript("PRAGMA user_version = 1")
             return conn.cursor()
         """,
-    "daemon/store_queries.py": """
+    "store/queries.py": """
         def ids(conn):
             conn.executemany("INSERT INTO t VALUES (?)", [(1,)])
         """,
@@ -58,8 +58,8 @@ def test_sql_outside_the_store_is_one_line_each(tmp_path):
         tmp_path,
         {
             **STORE,
-            "daemon/report.py": """
-                from cellcal.daemon.store import count
+            "reports/folder.py": """
+                from cellcal.store.database import count
 
                 def latest(store):
                     return store.conn.execute("SELECT MAX(id) FROM campaigns").fetchone()
@@ -78,7 +78,7 @@ def test_sql_outside_the_store_is_one_line_each(tmp_path):
                     conn.executescript("DELETE FROM t")
                     return connect
                 """,
-            "daemon/restore.py": """
+            "campaign/store_writer.py": """
                 def load(conn):
                     conn.execute("SELECT 1")
                 """,
@@ -90,19 +90,20 @@ def test_sql_outside_the_store_is_one_line_each(tmp_path):
     where = [line.split(": ", 1)[0] for line in lines]
     export = str(pkg / "commands" / "export.py")
     assert where == [
+        # named like the store, outside its folder: not the store
+        f"{pkg / 'campaign' / 'store_writer.py'}:3",
         f"{export}:3",
         f"{export}:6",
         f"{export}:7",
         f"{export}:8",
         f"{export}:9",
-        f"{pkg / 'daemon' / 'report.py'}:5",
-        f"{pkg / 'daemon' / 'restore.py'}:3",
+        f"{pkg / 'reports' / 'folder.py'}:5",
     ]
-    assert "store.conn.execute() runs SQL" in lines[5]
-    assert "db.connect" in lines[1] and "conn.cursor() opens a cursor" in lines[2]
+    assert "store.conn.execute() runs SQL" in lines[6]
+    assert "db.connect" in lines[2] and "conn.cursor() opens a cursor" in lines[3]
     assert all("outside the store" in line for line in lines)
     names = {Path(w.rsplit(":", 1)[0]).name for w in where}
-    assert names == {"export.py", "report.py", "restore.py"}  # the store's modules: none
+    assert names == {"export.py", "folder.py", "store_writer.py"}  # the store's: none
 
 
 def test_a_clean_package_passes(tmp_path):
@@ -110,7 +111,7 @@ def test_a_clean_package_passes(tmp_path):
         tmp_path,
         {
             **STORE,
-            "daemon/report.py": """
+            "reports/folder.py": """
                 import sqlite3
 
                 def latest(store):

@@ -15,9 +15,9 @@ import pytest
 
 from cellcal.calib.kinematics import target_kinematics
 from cellcal.calib.robot_model import model_from_dict, model_to_dict
+from cellcal.files.models import load_model
+from cellcal.files.urdf import model_from_urdf, to_urdf
 from cellcal.mocks.robot_truth import perturbed_model, random_joints
-from cellcal.modelfiles import load_model
-from cellcal.urdffiles import model_from_urdf, to_urdf
 from tests.calib.simulated import well_spread
 from tests.cli.test_calibrate_cli import write_measurements
 from tests.inprocess import cellcal

@@ -21,9 +21,9 @@ import tomli_w
 from cellcal.calib.geometry import so3_log
 from cellcal.calib.kinematics import flange_transforms, target_kinematics
 from cellcal.calib.robot_model import RobotModel, model_from_dict, model_to_dict
+from cellcal.files.models import builtin_names, load_model
+from cellcal.files.urdf import model_from_urdf, to_urdf
 from cellcal.mocks.robot_truth import perturbed_model, random_joints
-from cellcal.modelfiles import builtin_names, load_model
-from cellcal.urdffiles import model_from_urdf, to_urdf
 from tests.calib.simulated import well_spread
 from tests.cli.test_calibrate_cli import write_measurements
 from tests.inprocess import cellcal

@@ -4,7 +4,7 @@ A model is a frozen value: its joints' geometry in mm and radians, joint limits,
 nominal target offset on the flange, and which rows use Hayati's β in place of d
 because two consecutive joint axes are (nearly) parallel. Models are read from the
 TOML format of the public contract by :func:`model_from_dict`; the file itself is read
-at the edge (``cellcal.modelfiles``).
+at the edge (``cellcal.files.models``).
 
 Per joint i, the transform from frame i−1 to frame i is a product of elementary
 transforms; ``q`` is the joint reading, θ its offset:

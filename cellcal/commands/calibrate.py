@@ -27,9 +27,9 @@ from cellcal.calib.validation import (
 )
 from cellcal.commands.output import SEED, print_json, warn
 from cellcal.errors import AcceptanceError, InputError, UserError
-from cellcal.measurementfiles import Measurements, read_measurements
-from cellcal.modelfiles import builtin_models, load_model, write_calibrated
-from cellcal.outputfiles import check_output_file
+from cellcal.files.measurements import Measurements, read_measurements
+from cellcal.files.models import builtin_models, load_model, write_calibrated
+from cellcal.files.outputs import check_output_file
 
 #: The paper's figures (Liu et al. 2018, Sec. 4.2): position error after calibration with
 #: another registration method (0.436) and with its own (0.200), and outside the region.

@@ -12,9 +12,9 @@ import click
 
 from cellcal.commands.output import SEED, print_json
 from cellcal.commands.service_client import answer_of, call, follow, socket_path
-from cellcal.daemon.report import list_campaigns
-from cellcal.daemon.store import Store
 from cellcal.errors import InputError, UserError
+from cellcal.reports.folder import list_campaigns
+from cellcal.store.database import Store
 
 EXIT_REFUSED = 3
 EXIT_FAILED = 2
@@ -115,7 +115,7 @@ def start(
     given = {"model": model_spec, "cycles": cycles}
     what = ""
     if kind != "calibration" or any(v is not None for v in given.values()):
-        from cellcal.daemon.runner import kind_named
+        from cellcal.campaign.runner import kind_named
 
         # The options as the service takes them: a file they name is read here, sent.
         body["kind"] = kind

@@ -23,10 +23,10 @@ from cellcal.calib.kinematics import flange_transforms
 from cellcal.calib.robot_model import model_from_dict, require_limits
 from cellcal.commands.output import print_json
 from cellcal.errors import AcceptanceError, FileFormatError, InputError
-from cellcal.modelfiles import LoadedModel, load_model, write_atomically
-from cellcal.outputfiles import check_output_file
-from cellcal.targetfiles import Targets, read_targets
-from cellcal.textfiles import read_toml
+from cellcal.files.models import LoadedModel, load_model, write_atomically
+from cellcal.files.outputs import check_output_file
+from cellcal.files.targets import Targets, read_targets
+from cellcal.files.text import read_toml
 
 #: How many failed targets a refusal names.
 NAMED = 5

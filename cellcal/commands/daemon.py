@@ -1,4 +1,4 @@
-"""``cellcal daemon``: the cell service (``cellcal/daemon/service.py``)."""
+"""``cellcal daemon``: the cell service (``cellcal/service/daemon.py``)."""
 
 from __future__ import annotations
 
@@ -14,10 +14,10 @@ from cellcal.commands.output import TIME_SCALE
 from cellcal.commands.run import bundled_mock_cell
 from cellcal.commands.service_client import socket_path
 from cellcal.config import load_config
-from cellcal.daemon.page import parse_http
-from cellcal.daemon.service import DaemonOptions, serve
-from cellcal.daemon.store_connection import database_path
 from cellcal.errors import InputError
+from cellcal.service.daemon import DaemonOptions, serve
+from cellcal.service.page import parse_http
+from cellcal.store.connection import database_path
 
 #: syslog priorities journald reads from a ``<N>`` prefix (SyslogLevelPrefix=yes).
 PRIORITY = {

@@ -5,9 +5,9 @@ from __future__ import annotations
 import click
 
 from cellcal.commands.output import print_json
-from cellcal.modelfiles import load_model, write_atomically
-from cellcal.outputfiles import check_output_file
-from cellcal.urdffiles import to_urdf
+from cellcal.files.models import load_model, write_atomically
+from cellcal.files.outputs import check_output_file
+from cellcal.files.urdf import to_urdf
 
 
 @click.group()

@@ -13,7 +13,7 @@ from cellcal.commands.output import TIME_SCALE, print_json
 from cellcal.commands.run import run_kind
 
 if TYPE_CHECKING:
-    from cellcal.daemon.runner import CampaignOutcome
+    from cellcal.campaign.runner import CampaignOutcome
 
 
 @click.command("iso9283")
@@ -64,7 +64,7 @@ def iso9283(
 
 def print_outcome(out: CampaignOutcome, folder: str | None, as_json: bool) -> None:
     """An ISO 9283 test's result: its JSON, or AP and RP per point, before and after."""
-    from cellcal.daemon.iso_campaign import AFTER, BEFORE, STAGES, IsoOutcome
+    from cellcal.campaign.iso9283_kind import AFTER, BEFORE, STAGES, IsoOutcome
 
     iso = out.result
     assert isinstance(iso, IsoOutcome)

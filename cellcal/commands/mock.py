@@ -13,7 +13,7 @@ from cellcal.commands.output import NON_NEGATIVE, SEED, TIME_SCALE
 from cellcal.config import CellConfig, load_config
 from cellcal.errors import InputError
 from cellcal.extras import needs
-from cellcal.modelfiles import load_model
+from cellcal.files.models import load_model
 
 if TYPE_CHECKING:
     from cellcal.families import SimulatedCell

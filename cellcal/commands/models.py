@@ -8,7 +8,7 @@ from typing import Any
 import click
 
 from cellcal.commands.output import print_json
-from cellcal.modelfiles import builtin_names, load_model
+from cellcal.files.models import builtin_names, load_model
 
 
 @click.command()

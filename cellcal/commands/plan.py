@@ -13,15 +13,15 @@ import numpy as np
 
 from cellcal.commands.output import print_json
 from cellcal.errors import InputError, UserError
-from cellcal.outputfiles import check_output_file
-from cellcal.textfiles import read_toml
+from cellcal.files.outputs import check_output_file
+from cellcal.files.text import read_toml
 
 if TYPE_CHECKING:  # imported when the command runs, after its first progress line
     from cellcal.calib.geometry import Array
     from cellcal.calib.identifiability import Identifiability
     from cellcal.calib.robot_model import RobotModel
+    from cellcal.campaign.plan import Plan
     from cellcal.config import CampaignConfig, CellConfig
-    from cellcal.daemon.plan import Plan
 
 #: The bundled simulated cell (``--mock`` without ``--config``), as ``cellcal run`` has it.
 BUNDLED = "mock-cell.toml"
@@ -178,7 +178,7 @@ def plan(
     opening = _opening(campaign.optimal_poses, campaign.optimal_criterion, campaign.region)
     if opening is not None and opening != early:
         _progress(opening)
-    from cellcal.daemon.plan import (
+    from cellcal.campaign.plan import (
         CALIBRATION,
         cell_seconds,
         expected_rms,
@@ -186,9 +186,9 @@ def plan(
         plan_identifiability,
         workspace_poses,
     )
-    from cellcal.daemon.plan_checks import check_inputs
-    from cellcal.daemon.plan_region import region_text
-    from cellcal.modelfiles import load_model, write_atomically
+    from cellcal.campaign.plan_checks import check_inputs
+    from cellcal.campaign.plan_region import region_text
+    from cellcal.files.models import load_model, write_atomically
 
     say = _progress if opening is not None else _silent
     nominal = load_model(config.robot.model).model
@@ -252,8 +252,8 @@ def _leaving(
     """The moves that leave the workspace box on the way (the safety gate refuses them):
     the pose moved to, how far (mm), which point (flange or target), where on the way
     (fraction of the move) and where (mm, base frame)."""
-    from cellcal.daemon.plan_checks import moves_outside
-    from cellcal.daemon.plan_region import box
+    from cellcal.campaign.plan_checks import moves_outside
+    from cellcal.campaign.plan_region import box
 
     lo, hi = box(campaign)
     return [

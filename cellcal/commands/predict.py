@@ -12,9 +12,9 @@ from cellcal.calib.error_model import predict as predict_positions
 from cellcal.calib.geometry import Array
 from cellcal.calib.observations import check_measurements
 from cellcal.errors import InputError
-from cellcal.measurementfiles import format_positions, read_joints_labelled
-from cellcal.modelfiles import load_model, write_atomically
-from cellcal.outputfiles import check_output_file
+from cellcal.files.measurements import format_positions, read_joints_labelled
+from cellcal.files.models import load_model, write_atomically
+from cellcal.files.outputs import check_output_file
 
 
 def _pick(

@@ -20,7 +20,7 @@ from cellcal.calib.registration import (
 )
 from cellcal.commands.output import POSITIVE, SEED, print_json, warn
 from cellcal.errors import InputError
-from cellcal.pointfiles import MatchedPoints, match_points, read_points
+from cellcal.files.points import MatchedPoints, match_points, read_points
 
 
 def _names_to_indices(spec: str, names: tuple[str, ...], option: str) -> list[int]:

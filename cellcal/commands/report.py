@@ -5,8 +5,8 @@ from __future__ import annotations
 import click
 
 from cellcal.commands.output import print_json
-from cellcal.daemon.report import write_report
-from cellcal.daemon.store import Store
+from cellcal.reports.folder import write_report
+from cellcal.store.database import Store
 
 
 def _fmt(v: float | None) -> str:

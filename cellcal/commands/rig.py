@@ -9,13 +9,17 @@ from typing import Any
 import click
 import numpy as np
 
-from cellcal.calib.camera_rig import Rig, Target
-from cellcal.calib.rig_calibration import RigCalibration, RigCalibrationOptions, calibrate_rig
-from cellcal.calib.rig_measurement import TargetMeter
-from cellcal.calib.target_pose import TargetPose
+from cellcal.calib.photogrammetry.camera_rig import Rig, Target
+from cellcal.calib.photogrammetry.rig_calibration import (
+    RigCalibration,
+    RigCalibrationOptions,
+    calibrate_rig,
+)
+from cellcal.calib.photogrammetry.rig_measurement import TargetMeter
+from cellcal.calib.photogrammetry.target_pose import TargetPose
 from cellcal.commands.output import jsonable, print_json
 from cellcal.errors import AcceptanceError, InputError, MeasurementError
-from cellcal.imagefiles import (
+from cellcal.files.images import (
     Unreadable,
     image_option,
     load_views,
@@ -24,8 +28,8 @@ from cellcal.imagefiles import (
     set_folders,
     stray_images,
 )
-from cellcal.outputfiles import check_output_file
-from cellcal.photofiles import read_board, read_rig, read_target, write_rig
+from cellcal.files.outputs import check_output_file
+from cellcal.files.photogrammetry import read_board, read_rig, read_target, write_rig
 
 
 @click.group()

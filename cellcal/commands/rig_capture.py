@@ -94,7 +94,7 @@ def rig_capture(
         finally:
             twin.stop()
         return
-    from cellcal.drivers.cameras import rig_class
+    from cellcal.drivers.cameras.backends import rig_class
 
     _grab(rig_class(options.capture.backend).from_options(options.capture), out, n_sets, as_json)
 
@@ -106,7 +106,7 @@ def _grab(
     as_json: bool,
     announce: Callable[[int], None] | None = None,
 ) -> None:
-    from cellcal.imagefiles import write_image
+    from cellcal.files.images import write_image
 
     cameras.connect()
     try:
@@ -184,7 +184,7 @@ def mock_cameras(
     require("cellcal mock cameras", "cv2")
     from cellcal.commands.mock import simulated_cell_of, wait_for_signal
     from cellcal.families import BoardScene, GigECameraTwin, RigScene, RigTruth
-    from cellcal.photofiles import read_board, read_rig, read_target
+    from cellcal.files.photogrammetry import read_board, read_rig, read_target
 
     if (target_path is None) == (board_path is None):
         raise InputError("give either --target FILE (the flange's target) or --board FILE")

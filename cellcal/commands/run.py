@@ -14,17 +14,17 @@ from typing import TYPE_CHECKING, Any
 
 import click
 
+from cellcal.campaign.stop_request import StopRequest
 from cellcal.commands.output import SEED, TIME_SCALE, print_json
 from cellcal.config import CellConfig, default_database, load_config
-from cellcal.daemon.stop_request import StopRequest
-from cellcal.daemon.store_connection import database_path
 from cellcal.errors import InputError
 from cellcal.extras import require
+from cellcal.store.connection import database_path
 
 if TYPE_CHECKING:
     from cellcal.calib.calibration_result import CalibrationResult
-    from cellcal.daemon.records import Record, Subscriber
-    from cellcal.daemon.runner import CampaignOutcome
+    from cellcal.campaign.records import Record, Subscriber
+    from cellcal.campaign.runner import CampaignOutcome
 
 EXIT_INTERRUPTED = 130
 
@@ -38,7 +38,7 @@ class LineProgress:
     subscriber of the campaign's record stream."""
 
     def __call__(self, record: Record) -> None:
-        from cellcal.daemon.records import CampaignStarted, PoseStored
+        from cellcal.campaign.records import CampaignStarted, PoseStored
 
         if isinstance(record, CampaignStarted):
             click.echo(f"acquiring {record.total - record.done} of {record.total} poses", err=True)
@@ -76,7 +76,7 @@ class BarProgress:
         self._task = self._bar.add_task("", total=1)
 
     def __call__(self, record: Record) -> None:
-        from cellcal.daemon.records import CampaignEnded, CampaignStarted, PoseStored
+        from cellcal.campaign.records import CampaignEnded, CampaignStarted, PoseStored
 
         if isinstance(record, CampaignStarted):
             self._bar.update(self._task, total=record.total, completed=record.done)
@@ -139,8 +139,8 @@ def _print_summary(out: CampaignOutcome, folder: str | None, residuals: bool) ->
     ``residuals`` (always in the report and in --json)."""
     import numpy as np
 
+    from cellcal.campaign.analysis import PAPER, CampaignSummary
     from cellcal.commands.calibrate import at_nominal_text, echo_points
-    from cellcal.daemon.analysis import PAPER, CampaignSummary
 
     s: CampaignSummary | None = out.summary
     plan = out.plan
@@ -365,7 +365,7 @@ def run_kind(
             db = db_path if db_path is not None else default_database()
             if Path(db).is_file() and not quiet:  # else one line says so
                 click.echo(f"resuming campaign {resume_id}: connecting the devices…", err=True)
-            from cellcal.daemon.runner import resume_campaign
+            from cellcal.campaign.runner import resume_campaign
 
             outcome = resume_campaign(
                 db,
@@ -378,7 +378,7 @@ def run_kind(
         else:
             options: dict[str, Any] = {}
             if kind != "calibration" or any(v is not None for v in given.values()):
-                from cellcal.daemon.runner import kind_named
+                from cellcal.campaign.runner import kind_named
 
                 options = kind_named(kind).read_options(given)  # a file it names: read first
             config, source = cell_config(config_path, mock)
@@ -387,7 +387,7 @@ def run_kind(
             db = db_path if db_path is not None else database_path(config.storage.database)
             if not quiet:
                 click.echo(f"{config.name}: planning the poses and {devices}…", err=True)
-            from cellcal.daemon.runner import start_campaign
+            from cellcal.campaign.runner import start_campaign
 
             outcome = start_campaign(
                 config,
@@ -420,8 +420,8 @@ def run_kind(
     folder = None
     if report_dir is not None:
         click.echo(f"writing the report into {report_dir}…", err=True)
-        from cellcal.daemon.report import write_report
-        from cellcal.daemon.store import Store
+        from cellcal.reports.folder import write_report
+        from cellcal.store.database import Store
 
         store = Store(outcome.db_path, readonly=True)
         try:

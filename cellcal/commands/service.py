@@ -15,11 +15,11 @@ from pathlib import Path
 import click
 
 from cellcal.config import load_config
-from cellcal.daemon.unitfile import UNIT_NAME, render, verify
 from cellcal.errors import CampaignError, InputError
 from cellcal.extras import require
-from cellcal.outputfiles import check_output_file
-from cellcal.textfiles import read_text
+from cellcal.files.outputs import check_output_file
+from cellcal.files.text import read_text
+from cellcal.service.unitfile import UNIT_NAME, render, verify
 
 DEFAULT_CONFIG = "/etc/cellcal/cell.toml"
 UNIT_DIR = "/etc/systemd/system"

@@ -1,5 +1,5 @@
 """The photogrammetry rig as a campaign sensor: cameras grab sets, each set measures the
-target (``calib/rig_measurement.py``), a pose's series carries every set's reference
+target (``calib/photogrammetry/rig_measurement.py``), a pose's series carries every set's reference
 point with its covariance and the target's orientation.
 
 Configured as a ``[[sensor]]`` with ``kind = "photogrammetry"`` and ``driver =
@@ -30,19 +30,19 @@ from typing import Annotated, Literal
 import numpy as np
 from pydantic import Field, PrivateAttr
 
-from cellcal.calib.camera_rig import Rig, Target
-from cellcal.calib.rig_measurement import TargetMeter, mean_of
-from cellcal.calib.target_pose import TargetPose
+from cellcal.calib.photogrammetry.camera_rig import Rig, Target
+from cellcal.calib.photogrammetry.rig_measurement import TargetMeter, mean_of
+from cellcal.calib.photogrammetry.target_pose import TargetPose
 from cellcal.clock import Clock
 from cellcal.device_options import SensorOptions
 from cellcal.drivers.base import DeviceContext, DeviceDescription, Series, naming_errors
-from cellcal.drivers.camera_aravis import AravisRigOptions
-from cellcal.drivers.camera_files import FilesRigOptions
-from cellcal.drivers.camera_opencv import OpenCVRigOptions
-from cellcal.drivers.cameras import CameraRig, FrameSet, rig_class
+from cellcal.drivers.cameras.aravis import AravisRigOptions
+from cellcal.drivers.cameras.backends import CameraRig, FrameSet, rig_class
+from cellcal.drivers.cameras.files import FilesRigOptions
+from cellcal.drivers.cameras.opencv import OpenCVRigOptions
 from cellcal.errors import DeviceError, MeasurementError, NoTargetError, UserError
-from cellcal.imagefiles import write_image
-from cellcal.photofiles import read_rig, read_target
+from cellcal.files.images import write_image
+from cellcal.files.photogrammetry import read_rig, read_target
 
 #: A series whose first sets all miss the target stops after this many.
 GIVE_UP_SETS = 3

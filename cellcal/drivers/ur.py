@@ -19,14 +19,14 @@ Pitfalls of ur_rtde worth knowing:
 
 * Its constructors hold the GIL while they wait for the controller, so a Python thread
   can neither time them out nor serve them (a simulator must run in another process,
-  see :mod:`cellcal.mocks.ur_server`). :meth:`URRobot.connect` therefore first checks,
+  see :mod:`cellcal.mocks.ur.server`). :meth:`URRobot.connect` therefore first checks,
   with plain sockets and ``timeout_s``, that the three ports (29999, 30003, 30004)
   accept a connection; an unreachable host is then an error within ``timeout_s``, not
   a TCP timeout inside ur_rtde with the interpreter frozen.
 * The remote-control check (dashboard ``is in remote control``) is skipped by ur_rtde
   only for ``localhost``/``127.0.0.1``; the driver keeps ur_rtde's default flags
   (upload the control script) and does not disable the check: a real robot must be in
-  remote control, and :mod:`cellcal.mocks.ur_server` answers ``true`` on any 127.0.0.x.
+  remote control, and :mod:`cellcal.mocks.ur.server` answers ``true`` on any 127.0.0.x.
 * ``moveJ`` cannot be interrupted from another thread: the control script is busy with
   the move, so :meth:`URRobot.stop` takes effect after it (use the pendant, or a
   protective stop, to halt a move in progress).

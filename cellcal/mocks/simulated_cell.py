@@ -7,7 +7,7 @@ configuration is only a guess, off by up to 0.5 mm), and the sensors' noise:
 * laser tracker: 10 µm along the beam (distance meter) and 6 µm per metre of range
   across it (angle encoders), 1σ per sample — the class of a FARO / Leica tracker;
 * photogrammetry rig: no noise model here; its cameras see rendered images
-  (``rig_twin.py``), and their noise is the images' (grey levels, blur).
+  (``mocks/rig/twin.py``), and their noise is the images' (grey levels, blur).
 
 Same seed, same truth. The noise is drawn per sample, from a generator seeded by the
 seed, the noise stream, the sensor, where the robot is (:attr:`SimulatedCell.pose_key`:

@@ -10,8 +10,8 @@ import numpy as np
 from cellcal.calib.geometry import so3_exp
 from cellcal.calib.inverse_kinematics import solve
 from cellcal.calib.kinematics import target_kinematics
+from cellcal.files.models import load_model
 from cellcal.mocks.robot_truth import TrueCell, measure, random_cell, random_joints
-from cellcal.modelfiles import load_model
 
 NOISE_MM = 0.01
 TOOL_IK = np.array([25.0, -40.0, 130.0])

@@ -22,8 +22,8 @@ from cellcal.calib.acceptance import (
 from cellcal.calib.geometry import wrap_deg
 from cellcal.calib.identification import calibrate
 from cellcal.errors import AcceptanceError, InputError
+from cellcal.files.models import builtin_names, load_model
 from cellcal.mocks.robot_truth import TrueCell, measure
-from cellcal.modelfiles import builtin_names, load_model
 from tests.calib.simulated import NOISE_MM, paper_cube, well_spread
 
 KR5 = load_model("kuka-kr5-arc").model

@@ -9,8 +9,8 @@ import pytest
 from cellcal.calib.compensation import compensate
 from cellcal.calib.geometry import so3_log
 from cellcal.calib.kinematics import flange_transforms, target_kinematics
+from cellcal.files.models import load_model
 from cellcal.mocks.robot_truth import perturbed_model, random_joints
-from cellcal.modelfiles import load_model
 
 TOOL = np.array([20.0, -30.0, 120.0])
 

@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 
 from cellcal.calib.identification import calibrate
-from cellcal.measurementfiles import read_measurements
-from cellcal.modelfiles import load_model
+from cellcal.files.measurements import read_measurements
+from cellcal.files.models import load_model
 from tests.calib.simulated import paper_cube
 
 UR5 = Path(__file__).parents[1] / "data" / "real" / "ur5"

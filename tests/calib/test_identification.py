@@ -12,8 +12,8 @@ from cellcal.calib.identifiability import analyse
 from cellcal.calib.identification import calibrate, fit_frames
 from cellcal.calib.validation import ErrorStats, cross_validate
 from cellcal.errors import DegenerateGeometryError, InputError
+from cellcal.files.models import load_model
 from cellcal.mocks.robot_truth import measure, random_cell, random_joints
-from cellcal.modelfiles import load_model
 from tests.calib.simulated import NOISE_MM, paper_cube, well_spread
 
 

@@ -11,7 +11,7 @@ import pytest
 from cellcal.calib.inverse_kinematics import solve
 from cellcal.calib.kinematics import ROW_PARAMS, flange_transforms, target_kinematics
 from cellcal.calib.robot_model import model_from_dict
-from cellcal.modelfiles import load_model
+from cellcal.files.models import load_model
 
 TOOL = np.array([12.0, -34.0, 56.0])
 

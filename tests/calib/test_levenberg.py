@@ -12,8 +12,8 @@ from cellcal.calib import levenberg
 from cellcal.calib.error_model import Groups, apply, parameter_specs
 from cellcal.calib.identifiability import analyse
 from cellcal.calib.observations import Data, initial_state
+from cellcal.files.models import load_model
 from cellcal.mocks.robot_truth import measure, random_cell, random_joints
-from cellcal.modelfiles import load_model
 
 KR5 = load_model("kuka-kr5-arc").model
 

@@ -9,13 +9,13 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from cellcal.calib.camera_rig import Camera, Marker, Rig, Target
-from cellcal.calib.marker_corners import MarkerFinder, Window, grey_levels
-from cellcal.calib.marker_lines import marker_corners
-from cellcal.calib.target_pose import measure_target
+from cellcal.calib.photogrammetry.camera_rig import Camera, Marker, Rig, Target
+from cellcal.calib.photogrammetry.marker_corners import MarkerFinder, Window, grey_levels
+from cellcal.calib.photogrammetry.marker_lines import marker_corners
+from cellcal.calib.photogrammetry.target_pose import measure_target
 from cellcal.errors import InputError, MeasurementError
-from cellcal.mocks.camera_render import Optics, SceneRenderer
-from cellcal.mocks.rig_scene import dome_target, four_camera_rig, volume_centre
+from cellcal.mocks.rig.camera_render import Optics, SceneRenderer
+from cellcal.mocks.rig.scene import dome_target, four_camera_rig, volume_centre
 
 K = [[1000.0, 0.0, 639.5], [0.0, 1000.0, 511.5], [0.0, 0.0, 1.0]]
 DIST = [-0.2, 0.1, 0.001, -0.001, 0.0]
@@ -183,7 +183,7 @@ def test_a_moved_camera_is_dropped_and_named() -> None:
 def test_a_series_is_followed_and_averaged() -> None:
     """20 frames of a still target: the mean is within 0.03 mm, the markers are followed
     after the first frame, and the covariance of the mean is far below a frame's."""
-    from cellcal.calib.rig_measurement import TargetMeter
+    from cellcal.calib.photogrammetry.rig_measurement import TargetMeter
 
     rig, target, renderer, centre = _cube_scene()
     rng = np.random.default_rng(21)
@@ -212,7 +212,7 @@ def test_a_series_is_followed_and_averaged() -> None:
 def test_a_target_that_moves_is_found_again() -> None:
     """The meter follows a still target; when it moves 40 mm between frames, the
     followed markers are not where expected and the detector finds them again."""
-    from cellcal.calib.rig_measurement import TargetMeter
+    from cellcal.calib.photogrammetry.rig_measurement import TargetMeter
 
     rig, target, renderer, centre = _cube_scene()
     rng = np.random.default_rng(22)
@@ -231,7 +231,7 @@ def test_a_camera_that_sees_no_marker_is_searched_once_per_still_target() -> Non
     """A camera the target is hidden from is searched whole on the first frame and not
     again while the others follow a still target; a new series, or a target that moved,
     has it searched again."""
-    from cellcal.calib.rig_measurement import TargetMeter
+    from cellcal.calib.photogrammetry.rig_measurement import TargetMeter
 
     rig, target, renderer, centre = _cube_scene()
     rng = np.random.default_rng(23)
@@ -270,7 +270,7 @@ def test_a_batch_of_sets_follows_the_target_while_it_stays() -> None:
     set before (the detector runs on the first set only) and each keeps its own numbers,
     within a frame's noise of a fresh search; a set of another pose is measured afresh,
     to the same numbers as a meter that never saw the sets before."""
-    from cellcal.calib.rig_measurement import TargetMeter
+    from cellcal.calib.photogrammetry.rig_measurement import TargetMeter
 
     rig, target, renderer, centre = _cube_scene()
     rng = np.random.default_rng(23)

@@ -1,5 +1,5 @@
 """The target measured on images cellcal's own renderer did not make: the independent
-renderer (``mocks/texture_render.py``: bitmap textures, its own distortion inversion,
+renderer (``mocks/rig/texture_render.py``: bitmap textures, its own distortion inversion,
 defocus disk and Gaussian) through its oblique, distorted rig, and its flange target of
 45, 30 and 20 mm markers (17–40 px in the images, the 20 mm ones too small to measure)."""
 
@@ -9,13 +9,13 @@ import cv2
 import numpy as np
 import pytest
 
-from cellcal.calib import marker_corners as mc
-from cellcal.calib.camera_rig import Rig, Target
-from cellcal.calib.marker_corners import MarkerFinder
-from cellcal.calib.marker_lines import marker_corners
-from cellcal.calib.rig_measurement import TargetMeter
-from cellcal.mocks import texture_render as tex
-from cellcal.mocks.texture_scenes import oblique_rig, plate_target, target_poses
+from cellcal.calib.photogrammetry import marker_corners as mc
+from cellcal.calib.photogrammetry.camera_rig import Rig, Target
+from cellcal.calib.photogrammetry.marker_corners import MarkerFinder
+from cellcal.calib.photogrammetry.marker_lines import marker_corners
+from cellcal.calib.photogrammetry.rig_measurement import TargetMeter
+from cellcal.mocks.rig import texture_render as tex
+from cellcal.mocks.rig.texture_scenes import oblique_rig, plate_target, target_poses
 
 Sets = list[dict[str, np.ndarray]]
 

@@ -15,9 +15,9 @@ from cellcal.calib.error_model import predict
 from cellcal.calib.identification import calibrate
 from cellcal.calib.parameter_choice import Choice
 from cellcal.calib.validation import validate_on
-from cellcal.measurementfiles import read_measurements
+from cellcal.files.measurements import read_measurements
+from cellcal.files.models import load_model
 from cellcal.mocks.robot_truth import TrueCell, measure, random_cell, random_joints
-from cellcal.modelfiles import load_model
 
 REAL = Path(__file__).parents[1] / "data" / "real"
 KR5 = load_model("kuka-kr5-arc").model

@@ -18,8 +18,8 @@ import pytest
 from cellcal.calib.acceptance import TOLERANCE_DEG, TOLERANCE_MM
 from cellcal.calib.identification import CalibrationResult, calibrate
 from cellcal.calib.validation import Validation, validate_on
-from cellcal.measurementfiles import read_measurements
-from cellcal.modelfiles import load_model
+from cellcal.files.measurements import read_measurements
+from cellcal.files.models import load_model
 
 REAL = Path(__file__).parents[1] / "data" / "real"
 

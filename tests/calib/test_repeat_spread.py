@@ -9,8 +9,8 @@ import pytest
 
 from cellcal.calib.identification import calibrate
 from cellcal.calib.repeat_spread import repeat_spread
+from cellcal.files.models import load_model
 from cellcal.mocks.robot_truth import measure, random_cell
-from cellcal.modelfiles import load_model
 from tests.calib.simulated import cube_joints
 
 NOISE_MM = 0.01  # one sample's noise at a calibration pose

@@ -16,10 +16,10 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from cellcal.calib import rig_bundle
-from cellcal.calib.camera_rig import Board, Camera, Rig
 from cellcal.calib.geometry import Array, invert
-from cellcal.calib.rig_calibration import (
+from cellcal.calib.photogrammetry import bundle as rig_bundle
+from cellcal.calib.photogrammetry.camera_rig import Board, Camera, Rig
+from cellcal.calib.photogrammetry.rig_calibration import (
     RigCalibration,
     RigCalibrationOptions,
     ScaleBar,
@@ -29,16 +29,16 @@ from cellcal.calib.rig_calibration import (
     scale_check,
     triangulate,
 )
-from cellcal.calib.rig_measurement import TargetMeter
+from cellcal.calib.photogrammetry.rig_measurement import TargetMeter
 from cellcal.errors import (
     DegenerateGeometryError,
     FileFormatError,
     InputError,
     MeasurementError,
 )
-from cellcal.imagefiles import load_views, read_image
-from cellcal.mocks.camera_render import Image, Optics, SceneRenderer, board_face
-from cellcal.mocks.rig_scene import board_poses, dome_target, four_camera_rig, volume_centre
+from cellcal.files.images import load_views, read_image
+from cellcal.mocks.rig.camera_render import Image, Optics, SceneRenderer, board_face
+from cellcal.mocks.rig.scene import board_poses, dome_target, four_camera_rig, volume_centre
 
 pytestmark = pytest.mark.slow
 
@@ -441,7 +441,7 @@ def test_a_moved_camera_is_told_from_noisy_detections() -> None:
     scattered over every view (15 %) are noisy detections: named, the camera kept. The
     last four views shifted as a whole by 0.8 px: the camera moved, and the note names
     those views and the shift. One shifted view alone is a mismatched view."""
-    from cellcal.calib.rig_verdict import diagnose_camera
+    from cellcal.calib.photogrammetry.verdict import diagnose_camera
 
     rng = np.random.default_rng(3)
     views = np.repeat(np.arange(12), 30)
@@ -469,8 +469,8 @@ def test_a_camera_whose_edges_cannot_be_read_keeps_the_detectors_corners(
 ) -> None:
     """When a camera's board edges cannot be measured (white margins too narrow in its
     images), it is not refused: it keeps OpenCV's corners, and a warning says so."""
-    from cellcal.calib import rig_views
-    from cellcal.calib.board_corners import CornerMeter
+    from cellcal.calib.photogrammetry import views as rig_views
+    from cellcal.calib.photogrammetry.board_corners import CornerMeter
 
     made: list[CornerMeter] = []
 

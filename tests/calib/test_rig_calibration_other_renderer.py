@@ -1,6 +1,6 @@
 """Rig calibration on images cellcal's own renderer did not make.
 
-The views come from :mod:`cellcal.mocks.texture_render`, written apart from the camera
+The views come from :mod:`cellcal.mocks.rig.texture_render`, written apart from the camera
 twin's renderer: a bitmap texture sampled on a regular 5×5 grid per pixel, a defocus
 disk convolved with a Gaussian, other grey levels; through :func:`oblique_rig`'s four
 cameras (f 1150–1350 px, principal points 15–45 px off centre, barrel distortion k1
@@ -13,11 +13,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from cellcal.calib.camera_rig import Rig
-from cellcal.calib.rig_calibration import RigCalibration, RigCalibrationOptions, calibrate_rig
-from cellcal.mocks.camera_render import Image
-from cellcal.mocks.texture_render import RenderParams, render_board
-from cellcal.mocks.texture_scenes import TEST_BOARD, board_views, oblique_rig
+from cellcal.calib.photogrammetry.camera_rig import Rig
+from cellcal.calib.photogrammetry.rig_calibration import (
+    RigCalibration,
+    RigCalibrationOptions,
+    calibrate_rig,
+)
+from cellcal.mocks.rig.camera_render import Image
+from cellcal.mocks.rig.texture_render import RenderParams, render_board
+from cellcal.mocks.rig.texture_scenes import TEST_BOARD, board_views, oblique_rig
 
 pytestmark = pytest.mark.slow
 

@@ -7,7 +7,7 @@ import math
 import pytest
 
 from cellcal.calib.robot_model import ModelError, detect_parallel, model_from_dict, model_to_dict
-from cellcal.modelfiles import builtin_names, load_model
+from cellcal.files.models import builtin_names, load_model
 
 
 def test_builtins_and_their_parallel_rows():

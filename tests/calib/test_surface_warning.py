@@ -8,8 +8,8 @@ from pathlib import Path
 import numpy as np
 
 from cellcal.calib.identification import calibrate, on_a_surface
-from cellcal.measurementfiles import read_measurements
-from cellcal.modelfiles import load_model
+from cellcal.files.measurements import read_measurements
+from cellcal.files.models import load_model
 
 UR5 = Path(__file__).parents[1] / "data" / "real" / "ur5"
 

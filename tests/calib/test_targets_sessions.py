@@ -18,8 +18,8 @@ from cellcal.calib.kinematics import target_kinematics
 from cellcal.calib.robot_model import ModelError, model_from_dict, model_to_dict
 from cellcal.calib.validation import cross_validate
 from cellcal.errors import AcceptanceError, DegenerateGeometryError
+from cellcal.files.models import load_model
 from cellcal.mocks.robot_truth import random_cell, random_joints
-from cellcal.modelfiles import load_model
 
 NOISE = 0.01  # mm
 SMRS = np.array([[25.0, -40.0, 130.0], [-60.0, 35.0, 110.0], [40.0, 70.0, 95.0]])

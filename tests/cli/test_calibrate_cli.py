@@ -10,7 +10,7 @@ import pytest
 
 from cellcal.calib.identification import calibrate
 from cellcal.cli import main
-from cellcal.modelfiles import load_model
+from cellcal.files.models import load_model
 from tests.calib.simulated import well_spread
 
 

@@ -13,8 +13,8 @@ from scipy.spatial.transform import Rotation
 from cellcal.calib.error_model import Groups, State, predict
 from cellcal.calib.geometry import so3_exp
 from cellcal.calib.kinematics import target_kinematics
+from cellcal.files.models import load_model
 from cellcal.mocks.robot_truth import random_cell, random_joints
-from cellcal.modelfiles import load_model
 from tests.cli.test_calibrate_cli import run
 
 SMRS = np.array([[25.0, -40.0, 130.0], [-60.0, 35.0, 110.0]])

@@ -14,10 +14,10 @@ import cv2
 import numpy as np
 import pytest
 
-from cellcal.calib.rig_measurement import TargetMeter
+from cellcal.calib.photogrammetry.rig_measurement import TargetMeter
 from cellcal.cli import main
-from cellcal.drivers.camera_aravis import AravisCameraOptions, AravisRig, AravisRigOptions
-from cellcal.photofiles import read_rig, read_target
+from cellcal.drivers.cameras.aravis import AravisCameraOptions, AravisRig, AravisRigOptions
+from cellcal.files.photogrammetry import read_rig, read_target
 
 pytestmark = [pytest.mark.twin, pytest.mark.slow]
 
@@ -110,7 +110,7 @@ BOARD = ROOT / "config" / "mock-board.toml"
 
 def _board_in_rig(images: dict, rig, board) -> np.ndarray:
     """Each camera's pose of the board, in the rig frame (solvePnP on its corners)."""
-    from cellcal.calib.board_corners import board_points, detect_corners
+    from cellcal.calib.photogrammetry.board_corners import board_points, detect_corners
 
     points, out = board_points(board), []
     for name, image in images.items():
@@ -128,7 +128,7 @@ def _board_in_rig(images: dict, rig, board) -> np.ndarray:
 def test_mock_cameras_serve_board_views_a_set_at_a_time():
     """With --board every camera of a set sees the board at one pose (within a
     millimetre), and the next set at another."""
-    from cellcal.photofiles import read_board
+    from cellcal.files.photogrammetry import read_board
 
     proc = subprocess.Popen(
         [sys.executable, "-m", "cellcal", "mock", "cameras", "--rig", RIG, "--board", BOARD,

@@ -10,10 +10,10 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from cellcal.cli import main
-from cellcal.imagefiles import write_image
-from cellcal.mocks.camera_render import Optics, SceneRenderer
-from cellcal.mocks.rig_scene import board_poses, dome_target, four_camera_rig, volume_centre
-from cellcal.photofiles import write_rig, write_target
+from cellcal.files.images import write_image
+from cellcal.files.photogrammetry import write_rig, write_target
+from cellcal.mocks.rig.camera_render import Optics, SceneRenderer
+from cellcal.mocks.rig.scene import board_poses, dome_target, four_camera_rig, volume_centre
 
 
 def measure_args(root: Path) -> list[object]:
@@ -142,7 +142,7 @@ def test_rig_calibrate_writes_a_rig_that_measures(
 ) -> None:
     """ChArUco views rendered for the simulated rig → `rig calibrate` → a rig file within
     its reported uncertainty of the truth, with which `rig measure` gets lengths right."""
-    from cellcal.photofiles import read_rig, write_board
+    from cellcal.files.photogrammetry import read_rig, write_board
     from tests.calib.test_rig_calibration import BOARD
 
     rig = four_camera_rig()
@@ -198,7 +198,7 @@ def test_rig_calibrate_refuses_a_failed_check_unless_accepted(
     """A held-out check that fails (here: a length limit no rig meets) is refused with
     exit 3, its numbers on the line and no rig file; --accept writes it with the failure
     recorded, and the file still reads."""
-    from cellcal.photofiles import read_rig, write_board
+    from cellcal.files.photogrammetry import read_rig, write_board
     from tests.calib.test_rig_calibration import BOARD
 
     rig = four_camera_rig()

@@ -12,10 +12,10 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from cellcal.imagefiles import ImageFileError, read_image, write_image
-from cellcal.mocks.camera_render import Optics, SceneRenderer
-from cellcal.mocks.rig_scene import dome_target, four_camera_rig, volume_centre
-from cellcal.photofiles import write_rig, write_target
+from cellcal.files.images import ImageFileError, read_image, write_image
+from cellcal.files.photogrammetry import write_rig, write_target
+from cellcal.mocks.rig.camera_render import Optics, SceneRenderer
+from cellcal.mocks.rig.scene import dome_target, four_camera_rig, volume_centre
 from tests.cli.test_rig_cli import measure_args, run
 
 #: set → pose (index into the poses rendered): two poses, each in several sets

@@ -17,7 +17,7 @@ from pathlib import Path
 import pytest
 
 from cellcal.commands.service import _blocked
-from cellcal.daemon.unitfile import render, template, verify
+from cellcal.service.unitfile import render, template, verify
 from tests.cli.test_calibrate_cli import run
 
 ROOT = Path(__file__).resolve().parents[2]

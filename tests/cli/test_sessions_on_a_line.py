@@ -18,8 +18,8 @@ import pytest
 from cellcal.calib.geometry import so3_exp
 from cellcal.calib.inverse_kinematics import solve
 from cellcal.calib.kinematics import target_kinematics
+from cellcal.files.models import load_model
 from cellcal.mocks.robot_truth import TrueCell, measure, random_cell, random_joints
-from cellcal.modelfiles import load_model
 from tests.calib.simulated import SEED_Q, TOOL_IK
 from tests.inprocess import cellcal
 

@@ -7,7 +7,7 @@ import logging
 
 import pytest
 
-from cellcal.daemon.control import Control
+from cellcal.service.control import Control
 
 
 def _control() -> Control:

@@ -11,10 +11,10 @@ import numpy as np
 import pytest
 
 from cellcal.calib.kinematics import target_kinematics
-from cellcal.daemon.analysis import analyse, analysis_of
-from cellcal.daemon.store import Store
+from cellcal.campaign.analysis import analyse, analysis_of
 from cellcal.drivers.base import Series
-from cellcal.modelfiles import load_model
+from cellcal.files.models import load_model
+from cellcal.store.database import Store
 
 #: the analysis's tables (the test counts their rows itself)
 TABLES = ("registrations", "calibrations", "fused", "reports")

@@ -1,4 +1,4 @@
-"""Campaign kinds under one runner (``cellcal/daemon/runner.py``): an ISO 9283 test
+"""Campaign kinds under one runner (``cellcal/campaign/runner.py``): an ISO 9283 test
 started by the runner, stopped after a few poses and resumed from its database like a
 calibration (``cellcal run --resume``), with its kind and options read back from the
 campaign; a campaign without a stored kind is a calibration; unknown kinds and options
@@ -11,13 +11,13 @@ from pathlib import Path
 
 import pytest
 
+from cellcal.campaign.iso9283_kind import IsoOutcome
+from cellcal.campaign.kinds import stored_kind
+from cellcal.campaign.records import PoseStored, Record
+from cellcal.campaign.runner import KINDS, resume_campaign, start_campaign
 from cellcal.config import load_config
-from cellcal.daemon.iso_campaign import IsoOutcome
-from cellcal.daemon.kinds import stored_kind
-from cellcal.daemon.records import PoseStored, Record
-from cellcal.daemon.runner import KINDS, resume_campaign, start_campaign
-from cellcal.daemon.store import Store
 from cellcal.errors import InputError
+from cellcal.store.database import Store
 from tests.daemon.conftest import small_cell
 from tests.inprocess import cellcal
 

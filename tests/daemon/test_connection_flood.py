@@ -151,7 +151,7 @@ def test_failed_accepts_are_logged_once_in_a_while(caplog: pytest.LogCaptureFixt
     backlog's length each time the socket is ready): one line comes out of many."""
     import asyncio
 
-    from cellcal.daemon.connections import ACCEPT_FAILED, AcceptErrors
+    from cellcal.service.connections import ACCEPT_FAILED, AcceptErrors
 
     handler = AcceptErrors()
     loop = asyncio.new_event_loop()

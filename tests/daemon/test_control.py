@@ -8,8 +8,8 @@ from typing import Any
 
 import numpy as np
 
-from cellcal.daemon.control import READY, Control
-from cellcal.daemon.plan import PlannedPose
+from cellcal.campaign.plan import PlannedPose
+from cellcal.service.control import READY, Control
 
 
 def _pose(idx: int) -> PlannedPose:
@@ -74,7 +74,7 @@ class _Loop:
 
 
 def test_the_flusher_sends_at_once_after_a_quiet_spell_then_in_batches() -> None:
-    from cellcal.daemon.service import BATCH_S, Flusher
+    from cellcal.service.daemon import BATCH_S, Flusher
 
     outbox: list[tuple[str, dict[str, int]]] = []
     sent: list[tuple[str, dict[str, int]]] = []

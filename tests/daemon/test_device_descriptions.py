@@ -17,26 +17,27 @@ from typing import Any
 import numpy as np
 import pytest
 
+from cellcal.campaign.devices import build_devices
+from cellcal.campaign.engine import SensorSetting, acquire
+from cellcal.campaign.plan import CALIBRATION, Plan, PlannedPose
+from cellcal.campaign.records import CampaignEvent, PoseStored, RecordStream
+from cellcal.campaign.runner import resume_campaign, start_campaign
 from cellcal.clock import SimulatedClock
 from cellcal.config import CellConfig, config_from_dict, with_robot
-from cellcal.daemon.campaign import resume_campaign, start_campaign
-from cellcal.daemon.devices import build_devices
-from cellcal.daemon.engine import SensorSetting, acquire
-from cellcal.daemon.plan import CALIBRATION, Plan, PlannedPose
-from cellcal.daemon.records import CampaignEvent, PoseStored, RecordStream
-from cellcal.daemon.store import Store
-from cellcal.daemon.store_devices import (
+from cellcal.drivers.base import DeviceDescription, Series
+from cellcal.errors import CampaignError, DeviceError, NoTargetError, device_of
+from cellcal.families import find
+from cellcal.files.models import load_model
+from cellcal.mocks.modbus import server as modbus_robot_server
+from cellcal.mocks.tracker import server as tracker_server
+from cellcal.mocks.tracker.server import FIRMWARE, MAKER, MODEL, MockTracker
+from cellcal.store.database import Store
+from cellcal.store.devices import (
     DEVICE_EVENT,
     description_of,
     device_message,
     stored_descriptions,
 )
-from cellcal.drivers.base import DeviceDescription, Series
-from cellcal.errors import CampaignError, DeviceError, NoTargetError, device_of
-from cellcal.families import find
-from cellcal.mocks import modbus_robot_server, tracker_server
-from cellcal.mocks.tracker_server import FIRMWARE, MAKER, MODEL, MockTracker
-from cellcal.modelfiles import load_model
 from tests.conftest import tracker_cell
 from tests.drivers.families import cell_for
 
@@ -275,7 +276,7 @@ def test_a_mock_campaign_records_its_devices_and_a_resume_records_them_again(
 @pytest.mark.slow
 @pytest.mark.timeout(240)
 def test_a_rig_campaign_records_each_camera_as_it_says_of_itself(tmp_path, twin_hosts) -> None:
-    from cellcal.drivers.camera_aravis import aravis_missing
+    from cellcal.drivers.cameras.aravis import aravis_missing
 
     config = _small(cell_for(find("sensor", "photogrammetry", "cameras")), samples=2)
     out = start_campaign(config, str(tmp_path / "c.db"), config_path=None, mock=True, seed=7)

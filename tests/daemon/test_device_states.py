@@ -15,7 +15,7 @@ import pytest
 
 from cellcal.commands.service_client import call
 from cellcal.config import config_from_dict
-from cellcal.daemon.worker import faulty_device
+from cellcal.service.worker import faulty_device
 from tests.e2e import test_standalone_twins as standalone
 
 TRACKER = ("127.0.0.77", 5555)

@@ -13,17 +13,17 @@ import time
 import numpy as np
 import pytest
 
+from cellcal.campaign.devices import build_devices
+from cellcal.campaign.engine import SensorSetting, acquire
+from cellcal.campaign.plan import make_plan
+from cellcal.campaign.records import CampaignEvent, PoseStored, RecordStream
+from cellcal.campaign.store_writer import StoreWriter
 from cellcal.clock import SimulatedClock
 from cellcal.config import config_from_dict
-from cellcal.daemon.devices import build_devices
-from cellcal.daemon.engine import SensorSetting, acquire
-from cellcal.daemon.plan import make_plan
-from cellcal.daemon.records import CampaignEvent, PoseStored, RecordStream
-from cellcal.daemon.store import Store, StoreError
-from cellcal.daemon.store_writer import StoreWriter
 from cellcal.drivers.base import Series
 from cellcal.errors import DeviceError, NoTargetError
-from cellcal.modelfiles import load_model
+from cellcal.files.models import load_model
+from cellcal.store.database import Store, StoreError
 
 pytestmark = pytest.mark.twin
 

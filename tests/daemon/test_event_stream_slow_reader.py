@@ -20,9 +20,9 @@ import aiohttp
 import pytest
 from aiohttp import web
 
-from cellcal.daemon.api import WATCHER_BACKLOG, EventHub, Service, make_app
-from cellcal.daemon.control import Control
-from cellcal.daemon.store import Store
+from cellcal.service.api import WATCHER_BACKLOG, EventHub, Service, make_app
+from cellcal.service.control import Control
+from cellcal.store.database import Store
 from tests.conftest import tracker_cell
 
 pytestmark = pytest.mark.timeout(120)

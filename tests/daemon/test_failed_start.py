@@ -20,14 +20,14 @@ from typing import Any
 
 import pytest
 
+from cellcal.campaign.runner import plan_campaign, queue_campaign
 from cellcal.clock import SimulatedClock
 from cellcal.config import CellConfig, load_config
-from cellcal.daemon.campaign import plan_campaign, queue_campaign
-from cellcal.daemon.control import READY, Control
-from cellcal.daemon.store import Store
-from cellcal.daemon.worker import Worker, device_names, oldest_queued
 from cellcal.errors import DeviceError
-from cellcal.modelfiles import load_model
+from cellcal.files.models import load_model
+from cellcal.service.control import READY, Control
+from cellcal.service.worker import Worker, device_names, oldest_queued
+from cellcal.store.database import Store
 from tests.daemon.conftest import small_cell
 
 pytestmark = pytest.mark.timeout(120)
@@ -38,7 +38,7 @@ BAD_SEED = 2**40  # what the unbounded API let through
 def _queue(db: Path, config: CellConfig) -> int:
     store = Store(str(db))
     try:
-        plan = plan_campaign(config)
+        plan, _ = plan_campaign(config)
         return queue_campaign(store, config, plan, config_path=None, mock=True, time_scale=0.0)
     finally:
         store.close()
@@ -81,7 +81,7 @@ class Engine:
         return None if job is None else job.campaign_id
 
     def run(self, cid: int) -> None:
-        from cellcal.daemon.control import Job
+        from cellcal.service.control import Job
 
         self.worker._run(self.store, Job(cid, resume=False))
 

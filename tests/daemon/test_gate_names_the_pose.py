@@ -8,16 +8,16 @@ import numpy as np
 import pytest
 
 from cellcal.calib.kinematics import flange_transforms
+from cellcal.campaign.engine import SensorSetting, acquire
+from cellcal.campaign.plan import CALIBRATION, Plan, PlannedPose
+from cellcal.campaign.records import CampaignEvent, RecordStream
 from cellcal.clock import SimulatedClock
 from cellcal.config import config_from_dict
-from cellcal.daemon.engine import SensorSetting, acquire
-from cellcal.daemon.plan import CALIBRATION, Plan, PlannedPose
-from cellcal.daemon.records import CampaignEvent, RecordStream
-from cellcal.daemon.worker import faulty_device
 from cellcal.drivers.base import Series
 from cellcal.drivers.safety import GuardedRobot, SafetyError
 from cellcal.errors import DeviceError
-from cellcal.modelfiles import load_model
+from cellcal.files.models import load_model
+from cellcal.service.worker import faulty_device
 
 KR5 = load_model("kuka-kr5-arc").model
 TOOL = np.array([25.0, -40.0, 130.0])

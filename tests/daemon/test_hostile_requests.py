@@ -21,7 +21,7 @@ from typing import Any
 
 import pytest
 
-from cellcal.daemon.api_requests import SEED_MAX, start_request
+from cellcal.service.api_requests import SEED_MAX, start_request
 from tests.daemon.conftest import Daemon, serving, small_cell
 
 pytestmark = [pytest.mark.twin, pytest.mark.slow, pytest.mark.timeout(180)]
@@ -141,7 +141,7 @@ def test_the_service_logged_no_traceback(service: Daemon) -> None:
     [(0, True), (SEED_MAX, True), (SEED_MAX + 1, False), (-1, False), (True, False), (1.0, False)],
 )
 def test_a_seed_is_a_whole_number_from_0_to_2_32_minus_1(seed: Any, ok: bool) -> None:
-    from cellcal.daemon.api_requests import RequestError
+    from cellcal.service.api_requests import RequestError
 
     if ok:
         assert start_request({"seed": seed}).seed == seed

@@ -12,11 +12,11 @@ from typing import Any
 
 import pytest
 
+from cellcal.campaign.runner import start_campaign
 from cellcal.commands.service_client import call
 from cellcal.config import load_config
-from cellcal.daemon.runner import start_campaign
-from cellcal.daemon.store import Store
 from cellcal.errors import UserError
+from cellcal.store.database import Store
 from tests.daemon.conftest import small_cell
 from tests.inprocess import cellcal
 

@@ -22,8 +22,8 @@ from pathlib import Path
 
 import pytest
 
+from cellcal.campaign.locks import RobotClaim, RunLock
 from cellcal.cli import main
-from cellcal.daemon.locks import RobotClaim, RunLock
 from cellcal.errors import CampaignError
 
 #: Other spellings of 127.0.0.1 port 502 that the resolver (and so the driver) takes.

@@ -9,18 +9,18 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from cellcal.calib.kinematics import target_kinematics
-from cellcal.config import CampaignConfig
-from cellcal.daemon import plan_region
-from cellcal.daemon.plan import (
+from cellcal.campaign import plan_region
+from cellcal.campaign.plan import (
     CALIBRATION,
     VALIDATION,
     cube_points,
     make_plan,
     workspace_poses,
 )
-from cellcal.daemon.plan_region import REGION_CANDIDATES, REGION_POINTS, draw_reachable
+from cellcal.campaign.plan_region import REGION_CANDIDATES, REGION_POINTS, draw_reachable
+from cellcal.config import CampaignConfig
 from cellcal.errors import InputError
-from cellcal.modelfiles import load_model
+from cellcal.files.models import load_model
 
 MODEL = load_model("kuka-kr5-arc").model
 HOME = np.radians([0.0, -30.0, 40.0, 0.0, -20.0, 0.0])

@@ -11,8 +11,8 @@ from pathlib import Path
 
 import pytest
 
+from cellcal.campaign.runner import plan_campaign
 from cellcal.config import load_config
-from cellcal.daemon.campaign import plan_campaign
 from cellcal.errors import CampaignError
 from tests.conftest import TRACKER_CELL
 from tests.inprocess import cellcal
@@ -78,5 +78,5 @@ def test_the_service_refuses_to_queue_it(tight_cell: Path) -> None:
 @pytest.mark.timeout(120)
 def test_the_bundled_cell_is_not_refused() -> None:
     """Its wide box holds every move: planned as before."""
-    plan = plan_campaign(load_config(str(TRACKER_CELL)))
+    plan, _ = plan_campaign(load_config(str(TRACKER_CELL)))
     assert len(plan.poses) > 100

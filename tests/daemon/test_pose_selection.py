@@ -24,8 +24,7 @@ from cellcal.calib.pose_selection import (
     prediction_rms,
     workspace_weights,
 )
-from cellcal.config import load_config
-from cellcal.daemon.plan import (
+from cellcal.campaign.plan import (
     CALIBRATION,
     VALIDATION,
     expected_rms,
@@ -33,8 +32,9 @@ from cellcal.daemon.plan import (
     make_plan,
     workspace_poses,
 )
+from cellcal.config import load_config
 from cellcal.errors import InputError
-from cellcal.modelfiles import load_model
+from cellcal.files.models import load_model
 from tests.conftest import TRACKER_CELL
 
 
@@ -237,8 +237,8 @@ def test_poses_chosen_over_the_workspace_predict_it_better_than_the_cubes():
 @pytest.mark.slow
 @pytest.mark.parametrize("region", ["cube", "workspace"])
 def test_a_campaign_with_chosen_poses_runs_and_finds_its_plan_again(cell, tmp_path, region):
-    from cellcal.daemon.campaign import start_campaign, stored_plan
-    from cellcal.daemon.store import Store
+    from cellcal.campaign.runner import start_campaign, stored_campaign
+    from cellcal.store.database import Store
 
     config, _, _, _ = cell
     update = {"optimal_poses": 16, "region": region}
@@ -250,7 +250,7 @@ def test_a_campaign_with_chosen_poses_runs_and_finds_its_plan_again(cell, tmp_pa
     assert {p.region for p in out.plan.poses if p.role == CALIBRATION} == {region}
     store = Store(db, readonly=True)
     try:
-        _, again, _ = stored_plan(store, out.campaign_id)
+        again = stored_campaign(store, out.campaign_id).plan
     finally:
         store.close()
     assert again.digest == out.plan.digest  # what --resume checks

@@ -16,8 +16,8 @@ from pathlib import Path
 
 import pytest
 
+from cellcal.campaign.locks import RobotClaim
 from cellcal.commands.service_client import call
-from cellcal.daemon.locks import RobotClaim
 from cellcal.errors import CampaignError
 from tests.e2e import test_standalone_twins as standalone
 

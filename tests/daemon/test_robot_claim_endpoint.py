@@ -19,13 +19,14 @@ from typing import Any
 
 import pytest
 
+from cellcal.campaign.locks import RobotClaim
+from cellcal.campaign.runner import start_campaign
 from cellcal.config import config_from_dict
-from cellcal.daemon.campaign import start_campaign
-from cellcal.daemon.locks import RobotClaim
 from cellcal.errors import CampaignError
-from cellcal.mocks import modbus_robot_server, tracker_server
+from cellcal.files.models import load_model
+from cellcal.mocks.modbus import server as modbus_robot_server
 from cellcal.mocks.simulated_cell import SimulatedCell
-from cellcal.modelfiles import load_model
+from cellcal.mocks.tracker import server as tracker_server
 from tests.conftest import tracker_cell
 
 pytestmark = pytest.mark.timeout(120)

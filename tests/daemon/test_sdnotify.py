@@ -10,7 +10,7 @@ from typing import Any
 
 import pytest
 
-from cellcal.daemon.sdnotify import Notifier
+from cellcal.service.sdnotify import Notifier
 
 pytestmark = [pytest.mark.twin, pytest.mark.timeout(30)]
 
@@ -68,7 +68,7 @@ def test_without_systemd_nothing_is_sent_and_a_gone_socket_never_raises() -> Non
     records: list[logging.LogRecord] = []
     handler = logging.Handler()
     handler.emit = records.append  # type: ignore[method-assign]
-    logger = logging.getLogger("cellcal.daemon.sdnotify")
+    logger = logging.getLogger("cellcal.service.sdnotify")
     level = logger.level
     logger.setLevel(logging.WARNING)  # the CLI's tests leave the root logger at ERROR
     logger.addHandler(handler)

@@ -17,9 +17,9 @@ from typing import Any
 import pytest
 
 from cellcal.commands.service_client import call
-from cellcal.daemon.control import Control
-from cellcal.daemon.sdnotify import Notifier
-from cellcal.daemon.service import _watchdog
+from cellcal.service.control import Control
+from cellcal.service.daemon import _watchdog
+from cellcal.service.sdnotify import Notifier
 from tests.daemon.conftest import small_cell
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -19,12 +19,12 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
+from cellcal.campaign.plan import Plan, PlannedPose
+from cellcal.campaign.records import CampaignStarted, PoseStored
 from cellcal.commands.campaign import _show, campaign
 from cellcal.commands.service_client import call, follow
-from cellcal.daemon.control import READY, Control, event_data
-from cellcal.daemon.plan import Plan, PlannedPose
-from cellcal.daemon.records import CampaignStarted, PoseStored
 from cellcal.drivers.base import Series
+from cellcal.service.control import READY, Control, event_data
 from tests.daemon.conftest import small_cell
 
 ROOT = Path(__file__).resolve().parents[2]

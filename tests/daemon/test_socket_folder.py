@@ -13,8 +13,8 @@ from pathlib import Path
 
 import pytest
 
-from cellcal.daemon.service import socket_folder
 from cellcal.errors import CampaignError
+from cellcal.service.daemon import socket_folder
 from tests.daemon.conftest import TRACKER_CELL
 
 NOBODY = 65534

@@ -17,8 +17,8 @@ from typing import Any
 import pytest
 
 from cellcal.commands.service_client import call
-from cellcal.daemon.page import FILES, host_allowed, parse_http
 from cellcal.errors import InputError
+from cellcal.service.page import FILES, host_allowed, parse_http
 from tests.browser import needs_chromium
 from tests.daemon.conftest import small_cell
 

@@ -9,9 +9,9 @@ import pytest
 import sqlite_utils
 
 from cellcal import __version__
-from cellcal.daemon.store import MIGRATIONS, SCHEMA_VERSION, Store, StoreError
 from cellcal.drivers.base import Series
 from cellcal.errors import CampaignError
+from cellcal.store.database import MIGRATIONS, SCHEMA_VERSION, Store, StoreError
 
 
 def _campaign(store, n_poses=3):

@@ -9,11 +9,11 @@ from collections.abc import Iterator
 from importlib import resources
 from typing import Any
 
+from cellcal.campaign.devices import Devices, build_devices
 from cellcal.clock import SimulatedClock
 from cellcal.config import CellConfig, config_from_dict, load_config
-from cellcal.daemon.devices import Devices, build_devices
 from cellcal.families import Family
-from cellcal.modelfiles import load_model
+from cellcal.files.models import load_model
 
 
 def bundled_cells() -> list[CellConfig]:

@@ -15,12 +15,12 @@ import numpy as np
 import pydantic
 import pytest
 
-from cellcal.drivers.camera_aravis import AravisRig, AravisRigOptions, aravis_missing
-from cellcal.drivers.camera_aravis_link import AravisLink
-from cellcal.drivers.cameras import rig_class
+from cellcal.drivers.cameras.aravis import AravisRig, AravisRigOptions, aravis_missing
+from cellcal.drivers.cameras.aravis_link import AravisLink
+from cellcal.drivers.cameras.backends import rig_class
 from cellcal.errors import DeviceError
 from cellcal.mocks import netns
-from cellcal.mocks.gige_cameras import GigECameraTwin, fit, serve_rig
+from cellcal.mocks.rig.gige_cameras import GigECameraTwin, fit, serve_rig
 
 pytestmark = [pytest.mark.twin, pytest.mark.timeout(30)]
 
@@ -123,7 +123,7 @@ def test_whole_frames_through_either_socket(receive: str) -> None:
 def test_auto_takes_udp_where_rmem_max_holds_two_frames(
     twin: GigECameraTwin, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    import cellcal.drivers.camera_aravis_link as link_module
+    import cellcal.drivers.cameras.aravis_link as link_module
 
     two_frames = 2 * 480 * 640
     for rmem_max, udp in ((two_frames, True), (two_frames - 1, False)):

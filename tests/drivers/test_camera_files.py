@@ -10,8 +10,8 @@ import numpy as np
 import pydantic
 import pytest
 
-from cellcal.drivers.camera_files import FilesRig, FilesRigOptions
-from cellcal.drivers.cameras import rig_class
+from cellcal.drivers.cameras.backends import rig_class
+from cellcal.drivers.cameras.files import FilesRig, FilesRigOptions
 from cellcal.errors import DeviceError
 
 CAMERAS = ["left", "right"]

@@ -10,8 +10,8 @@ import cv2
 import numpy as np
 import pytest
 
-from cellcal.drivers.camera_opencv import OpenCVRig, OpenCVRigOptions
-from cellcal.drivers.cameras import rig_class
+from cellcal.drivers.cameras.backends import rig_class
+from cellcal.drivers.cameras.opencv import OpenCVRig, OpenCVRigOptions
 from cellcal.errors import DeviceError
 
 pytestmark = pytest.mark.timeout(30)

@@ -14,10 +14,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cellcal.calib.camera_rig import Rig, Target
+from cellcal.calib.photogrammetry.camera_rig import Rig, Target
 from cellcal.clock import SimulatedClock
 from cellcal.drivers.base import ROBOT_NAME, DeviceContext, DeviceDescription
-from cellcal.drivers.camera_files import FilesRig, FilesRigOptions
+from cellcal.drivers.cameras.files import FilesRig, FilesRigOptions
 from cellcal.drivers.modbus_robot import ModbusRobot
 from cellcal.drivers.photogrammetry import CameraRigSensor
 from cellcal.drivers.safety import GuardedRobot, SafetyError
@@ -33,13 +33,13 @@ from cellcal.errors import (
     device_errors,
     device_of,
 )
-from cellcal.imagefiles import write_image
-from cellcal.mocks.modbus_robot_server import ModbusRobotSimulator
-from cellcal.mocks.modbus_robot_state import ModbusRobotFaults
+from cellcal.files.images import write_image
+from cellcal.files.models import load_model
+from cellcal.files.photogrammetry import read_rig, read_target
+from cellcal.mocks.modbus.server import ModbusRobotSimulator
+from cellcal.mocks.modbus.state import ModbusRobotFaults
 from cellcal.mocks.simulated_devices import SimulatedRobot
-from cellcal.mocks.tracker_server import FIRMWARE, MAKER, MODEL, MockTracker
-from cellcal.modelfiles import load_model
-from cellcal.photofiles import read_rig, read_target
+from cellcal.mocks.tracker.server import FIRMWARE, MAKER, MODEL, MockTracker
 from tests.drivers.scripted import ScriptedTransport
 
 pytestmark = [pytest.mark.twin, pytest.mark.timeout(60)]
@@ -119,8 +119,8 @@ def test_modbus_errors_name_the_robot_and_its_description_is_where_it_is(modbus_
 def test_ur_errors_name_the_robot_and_its_dashboard_describes_it() -> None:
     pytest.importorskip("rtde_control")
     from cellcal.mocks.simulated_cell import SimulatedCell
-    from cellcal.mocks.ur_dashboard import ROBOT_MODEL, SOFTWARE_VERSION
-    from cellcal.mocks.ur_server import CellInURUnits, URSimulator
+    from cellcal.mocks.ur.dashboard import ROBOT_MODEL, SOFTWARE_VERSION
+    from cellcal.mocks.ur.server import CellInURUnits, URSimulator
 
     config = _ur10e_config()
     cell = SimulatedCell(config, load_model(config.robot.model).model, seed=1)
@@ -315,9 +315,9 @@ def test_a_rig_of_recorded_sets_describes_its_cameras_by_name(tmp_path, rig_and_
 
 
 def test_aravis_cameras_describe_themselves_over_gige_vision() -> None:
-    from cellcal.drivers.camera_aravis import AravisRig, AravisRigOptions, aravis_missing
+    from cellcal.drivers.cameras.aravis import AravisRig, AravisRigOptions, aravis_missing
     from cellcal.mocks import netns
-    from cellcal.mocks.gige_cameras import GigECameraTwin
+    from cellcal.mocks.rig.gige_cameras import GigECameraTwin
 
     if reason := aravis_missing():
         pytest.skip(reason)

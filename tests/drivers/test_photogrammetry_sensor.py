@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 
 from cellcal.config import load_config
-from cellcal.drivers.camera_files import FilesRigOptions
-from cellcal.drivers.cameras import CameraOptions
+from cellcal.drivers.cameras.backends import CameraOptions
+from cellcal.drivers.cameras.files import FilesRigOptions
 from cellcal.errors import MeasurementError, NoTargetError
 from cellcal.families import find
 from tests.drivers.families import cell_for, mock_devices

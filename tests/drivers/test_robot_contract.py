@@ -11,7 +11,7 @@ from cellcal.config import with_robot
 from cellcal.drivers.safety import SafetyError
 from cellcal.errors import DeviceError
 from cellcal.families import families
-from cellcal.mocks.modbus_robot_server import ModbusRobotFaults
+from cellcal.mocks.modbus.server import ModbusRobotFaults
 from tests.drivers.families import cell_for, mock_devices
 
 pytestmark = [pytest.mark.twin, pytest.mark.timeout(90)]

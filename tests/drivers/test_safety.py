@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from cellcal.drivers.safety import GuardedRobot, SafetyError
-from cellcal.modelfiles import load_model
+from cellcal.files.models import load_model
 
 
 class Recorder:

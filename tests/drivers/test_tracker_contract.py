@@ -15,7 +15,7 @@ from cellcal.drivers.tracker_protocol import (
 )
 from cellcal.drivers.transport import TransportError
 from cellcal.errors import DeviceError
-from cellcal.mocks.tracker_server import MockTracker, TrackerFaults
+from cellcal.mocks.tracker.server import MockTracker, TrackerFaults
 
 pytestmark = pytest.mark.twin
 

@@ -6,10 +6,10 @@ from __future__ import annotations
 import subprocess
 from pathlib import Path
 
+from cellcal.campaign.runner import CampaignOutcome, start_campaign
 from cellcal.config import CellConfig
-from cellcal.daemon.campaign import CampaignOutcome, start_campaign
-from cellcal.daemon.report import write_report
-from cellcal.daemon.store import Store
+from cellcal.reports.folder import write_report
+from cellcal.store.database import Store
 from tests.conftest import tracker_cell
 from tests.inprocess import cellcal
 

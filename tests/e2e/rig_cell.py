@@ -14,7 +14,7 @@ from typing import Any
 import pytest
 import tomli_w
 
-from cellcal.drivers.camera_aravis import aravis_missing
+from cellcal.drivers.cameras.aravis import aravis_missing
 from cellcal.mocks import netns
 
 CONFIG = Path(__file__).resolve().parents[2] / "config"

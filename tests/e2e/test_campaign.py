@@ -16,11 +16,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from cellcal.campaign.runner import resume_campaign, start_campaign
 from cellcal.config import with_robot
-from cellcal.daemon.campaign import resume_campaign, start_campaign
 from cellcal.errors import CampaignError
+from cellcal.files.models import load_model
 from cellcal.mocks.simulated_cell import SimulatedCell
-from cellcal.modelfiles import load_model
 from tests.conftest import TRACKER_CELL, tracker_cell
 from tests.inprocess import cellcal
 
@@ -323,7 +323,7 @@ def test_refusals_before_anything_is_written(tmp_path):
 def test_one_run_per_database(tmp_path):
     import os
 
-    from cellcal.daemon.locks import RunLock
+    from cellcal.campaign.locks import RunLock
 
     db = str(tmp_path / "c.db")
     config = tracker_cell()
@@ -402,9 +402,9 @@ def test_ur10e_cell_through_ur_rtde(tmp_path):
 def test_campaigns_run_on_devices_they_are_handed_and_leave_them_open(tmp_path):
     """A service holds its devices for its life: two campaigns on the same devices, which
     stay connected between them; every record of both reached the watcher."""
+    from cellcal.campaign.devices import build_devices
+    from cellcal.campaign.records import CampaignEnded, CampaignStarted, PoseStored
     from cellcal.clock import SimulatedClock
-    from cellcal.daemon.devices import build_devices
-    from cellcal.daemon.records import CampaignEnded, CampaignStarted, PoseStored
 
     config = tracker_cell()
     config = config.model_copy(

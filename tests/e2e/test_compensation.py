@@ -17,11 +17,11 @@ from cellcal.calib.compensation import compensate
 from cellcal.calib.geometry import apply, invert
 from cellcal.calib.kinematics import flange_transforms, target_kinematics
 from cellcal.calib.registration import fit_rigid
+from cellcal.campaign.devices import build_devices
+from cellcal.campaign.plan import CALIBRATION
 from cellcal.clock import SimulatedClock
-from cellcal.daemon.devices import build_devices
-from cellcal.daemon.plan import CALIBRATION
-from cellcal.daemon.store import Store
-from cellcal.modelfiles import load_model
+from cellcal.files.models import load_model
+from cellcal.store.database import Store
 from tests.e2e.calibrated import calibrated_campaign, cli
 
 pytestmark = [pytest.mark.twin, pytest.mark.timeout(300)]

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from cellcal.calib.iso9283 import iso_points
-from cellcal.measurementfiles import read_measurements
+from cellcal.files.measurements import read_measurements
 from tests.conftest import TRACKER_CELL
 from tests.e2e.calibrated import calibrated_campaign, cli
 

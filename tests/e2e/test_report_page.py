@@ -14,9 +14,9 @@ import numpy as np
 import pytest
 
 from cellcal import __version__
-from cellcal.daemon.report import write_report
-from cellcal.daemon.report_data import METHODS, report_data
-from cellcal.daemon.store import Store
+from cellcal.reports.data import METHODS, report_data
+from cellcal.reports.folder import write_report
+from cellcal.store.database import Store
 from tests.browser import chromium, needs_chromium
 from tests.bundled_campaign import bundled_database
 
@@ -86,7 +86,7 @@ def test_the_reports_numbers_are_the_analysis_numbers(campaign):
 
 
 def test_the_report_names_how_the_poses_were_chosen():
-    from cellcal.daemon.report import plan_text
+    from cellcal.reports.folder import plan_text
 
     optimal = '{"campaign": {"optimal_poses": 24, "optimal_criterion": "I", "grid": [4, 4, 5]}}'
     assert plan_text(optimal) == "24 I-optimal calibration poses of the cube's candidates"

@@ -12,8 +12,8 @@ import subprocess
 import numpy as np
 import pytest
 
+from cellcal.campaign.runner import resume_campaign, start_campaign
 from cellcal.cli import main
-from cellcal.daemon.campaign import resume_campaign, start_campaign
 from cellcal.errors import AcceptanceError
 from cellcal.mocks.simulated_cell import SimulatedCell
 from tests.bundled_campaign import bundled_database
@@ -219,8 +219,8 @@ def test_campaign_list_text_and_errors(finished, tmp_path):
 def test_a_read_only_database_is_one_line_on_a_new_campaign(tmp_path, monkeypatch):
     """Root can write any file, so the read-only file is SQLite's own: query_only makes
     every write fail with SQLITE_READONLY, as a file without write permission does."""
-    from cellcal.daemon import store as store_module
     from cellcal.errors import UserError
+    from cellcal.store import database as store_module
 
     real_init = store_module.Store.__init__
 
@@ -237,8 +237,8 @@ def test_a_read_only_database_is_one_line_on_a_new_campaign(tmp_path, monkeypatc
 
 
 def test_a_disk_that_fills_during_a_campaign_is_one_line_and_keeps_the_poses(tmp_path, monkeypatch):
-    from cellcal.daemon import store as store_module
     from cellcal.errors import UserError
+    from cellcal.store import database as store_module
 
     real_init = store_module.Store.__init__
 

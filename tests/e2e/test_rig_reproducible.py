@@ -9,9 +9,9 @@ import sqlite3
 
 import pytest
 
+from cellcal.campaign.runner import start_campaign
 from cellcal.config import config_from_dict
-from cellcal.daemon.campaign import start_campaign
-from cellcal.drivers.camera_aravis import aravis_missing
+from cellcal.drivers.cameras.aravis import aravis_missing
 from cellcal.families import find
 from cellcal.mocks import netns
 from tests.drivers.families import cell_for

@@ -8,9 +8,9 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from cellcal.calib.camera_rig import Board, Camera, Marker, Target
-from cellcal.mocks.camera_render import Optics, SceneRenderer, exposed
-from cellcal.mocks.rig_scene import dome_target, four_camera_rig, volume_centre
+from cellcal.calib.photogrammetry.camera_rig import Board, Camera, Marker, Target
+from cellcal.mocks.rig.camera_render import Optics, SceneRenderer, exposed
+from cellcal.mocks.rig.scene import dome_target, four_camera_rig, volume_centre
 
 K = [[1000.0, 0.0, 639.5], [0.0, 1000.0, 511.5], [0.0, 0.0, 1.0]]
 
@@ -137,7 +137,7 @@ def test_sampling_only_where_the_scene_changes_gives_the_fully_sampled_image(dis
 
 
 def test_a_region_is_the_image_less_its_plain_background() -> None:
-    from cellcal.mocks.camera_render import render, render_region
+    from cellcal.mocks.rig.camera_render import render, render_region
 
     rig = four_camera_rig()
     target = SceneRenderer.for_target(rig.cameras, dome_target(), Optics())

@@ -1,4 +1,4 @@
-"""The Modbus/TCP codec of the twins (cellcal/mocks/mbap.py), without sockets: frames cut
+"""The Modbus/TCP codec of the twins (cellcal/mocks/modbus/mbap.py), without sockets: frames cut
 out of a byte stream however the reads split or join them, bad length fields, and the
 request checks of the spec (function code → 1, quantities and byte counts → 3)."""
 
@@ -8,7 +8,7 @@ import struct
 
 import pytest
 
-from cellcal.mocks.mbap import (
+from cellcal.mocks.modbus.mbap import (
     ILLEGAL_FUNCTION,
     ILLEGAL_VALUE,
     Frame,

@@ -18,7 +18,7 @@ from pymodbus.client import ModbusTcpClient
 
 from cellcal.drivers.modbus_map import ModbusMap
 from cellcal.drivers.modbus_robot import ModbusRobot
-from cellcal.mocks.modbus_robot_server import ModbusRobotSimulator
+from cellcal.mocks.modbus.server import ModbusRobotSimulator
 
 pytestmark = [pytest.mark.twin, pytest.mark.timeout(30)]
 

@@ -21,7 +21,7 @@ from pymodbus.client import ModbusTcpClient
 from cellcal.drivers.modbus_map import BUSY, IN_POSITION
 from cellcal.drivers.modbus_robot import ModbusMap, ModbusRobot
 from cellcal.errors import DeviceError, InputError
-from cellcal.mocks.modbus_robot_server import (
+from cellcal.mocks.modbus.server import (
     ModbusRequest,
     ModbusRobotFaults,
     ModbusRobotSimulator,

@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from cellcal.drivers.modbus_map import BUSY, IN_POSITION, READY, REMOTE, ModbusMap
-from cellcal.mocks.modbus_robot_server import ModbusRobotSimulator
+from cellcal.mocks.modbus.server import ModbusRobotSimulator
 
 modbus_tcp = pytest.importorskip("pyModbusTCP.client")
 

@@ -56,10 +56,10 @@ def test_the_cell_pose_is_brand_neutral_and_each_twin_converts_it() -> None:
     from scipy.spatial.transform import Rotation
 
     from cellcal.commands.run import bundled_mock_cell
-    from cellcal.mocks.modbus_robot_server import xyzabc
+    from cellcal.files.models import load_model
+    from cellcal.mocks.modbus.server import xyzabc
     from cellcal.mocks.simulated_cell import SimulatedCell
-    from cellcal.mocks.ur_server import CellInURUnits
-    from cellcal.modelfiles import load_model
+    from cellcal.mocks.ur.server import CellInURUnits
 
     config = bundled_mock_cell()[0]
     cell = SimulatedCell(config, load_model(config.robot.model).model, seed=3)

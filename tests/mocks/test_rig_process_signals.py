@@ -14,8 +14,8 @@ import pytest
 
 from cellcal.commands.mock import simulated_cell_of
 from cellcal.mocks.netns import NamespaceUnavailableError
-from cellcal.mocks.rig_process import serve_in_process
-from cellcal.mocks.rig_twin import RigTruth
+from cellcal.mocks.rig.process import serve_in_process
+from cellcal.mocks.rig.twin import RigTruth
 from tests.e2e.rig_cell import gige_or_skip
 
 pytestmark = [pytest.mark.twin, pytest.mark.timeout(120)]

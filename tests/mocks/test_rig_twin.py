@@ -11,7 +11,7 @@ import pytest
 from cellcal.commands.mock import simulated_cell_of
 from cellcal.drivers.photogrammetry import rig_and_target
 from cellcal.mocks.netns import NamespaceUnavailableError
-from cellcal.mocks.rig_twin import DEVICE_CLOCK_S, RigScene, RigTruth, SetMarks
+from cellcal.mocks.rig.twin import DEVICE_CLOCK_S, RigScene, RigTruth, SetMarks
 
 pytestmark = [pytest.mark.twin, pytest.mark.timeout(120)]
 
@@ -87,7 +87,7 @@ def test_a_frame_s_noise_is_its_set_s_whatever_came_before():
 def test_the_camera_process_ends_when_the_campaign_is_gone():
     """The campaign's end of the pipe closes (as when it is killed): the cameras'
     process stops serving and exits by itself."""
-    from cellcal.mocks.rig_process import serve_in_process
+    from cellcal.mocks.rig.process import serve_in_process
 
     config, cell = simulated_cell_of(None, 3)
     sensor = _rig_sensor(config)

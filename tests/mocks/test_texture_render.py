@@ -1,4 +1,4 @@
-"""The independent renderer (``cellcal/mocks/texture_render.py``) checked on its own terms:
+"""The independent renderer (``cellcal/mocks/rig/texture_render.py``) checked on its own terms:
 OpenCV finds its boards where the camera model says, its pixel centres sit at integer
 coordinates, its grey levels are what it was asked for, it is deterministic, and its
 distortion inversion agrees with ``cv2.projectPoints``."""
@@ -11,8 +11,8 @@ import cv2
 import numpy as np
 import pytest
 
-from cellcal.calib.camera_rig import Camera, Rig
-from cellcal.mocks.texture_render import (
+from cellcal.calib.photogrammetry.camera_rig import Camera, Rig
+from cellcal.mocks.rig.texture_render import (
     Psf,
     RenderParams,
     TexturedPlane,
@@ -25,7 +25,7 @@ from cellcal.mocks.texture_render import (
     render_clean,
     render_target,
 )
-from cellcal.mocks.texture_scenes import (
+from cellcal.mocks.rig.texture_scenes import (
     TEST_BOARD,
     board_views,
     oblique_rig,

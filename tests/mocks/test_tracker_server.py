@@ -21,7 +21,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from cellcal.mocks import link_server
-from cellcal.mocks.tracker_server import MockTracker, TrackerFaults
+from cellcal.mocks.tracker.server import MockTracker, TrackerFaults
 
 pytestmark = [pytest.mark.twin, pytest.mark.timeout(30)]
 

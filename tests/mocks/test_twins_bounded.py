@@ -16,12 +16,13 @@ from collections.abc import Callable, Iterator
 import numpy as np
 import pytest
 
-from cellcal.mocks import link_server, ur_script_port
-from cellcal.mocks import ur_rtde_codec as rtde
-from cellcal.mocks.modbus_robot_server import ModbusRobotSimulator
-from cellcal.mocks.tracker_server import MockTracker
-from cellcal.mocks.ur_rtde_session import RtdeSession
-from cellcal.mocks.ur_script_port import MAX_PROGRAM, ScriptReader
+from cellcal.mocks import link_server
+from cellcal.mocks.modbus.server import ModbusRobotSimulator
+from cellcal.mocks.tracker.server import MockTracker
+from cellcal.mocks.ur import rtde_codec as rtde
+from cellcal.mocks.ur import script_port as ur_script_port
+from cellcal.mocks.ur.rtde_session import RtdeSession
+from cellcal.mocks.ur.script_port import MAX_PROGRAM, ScriptReader
 
 pytestmark = [pytest.mark.twin, pytest.mark.timeout(60)]
 

@@ -29,10 +29,10 @@ from typing import Any
 import pytest
 
 from cellcal.config import load_config
+from cellcal.files.models import load_model
 from cellcal.mocks.simulated_cell import SimulatedCell
-from cellcal.mocks.ur_fields import LATER_OUTPUTS, OUTPUT_TYPES
-from cellcal.mocks.ur_server import URSimulator, simulator_for_cell
-from cellcal.modelfiles import load_model
+from cellcal.mocks.ur.fields import LATER_OUTPUTS, OUTPUT_TYPES
+from cellcal.mocks.ur.server import URSimulator, simulator_for_cell
 from tests.mocks.ur_official_client import client_dir
 
 CLIENT = client_dir()

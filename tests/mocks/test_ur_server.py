@@ -21,9 +21,9 @@ from scipy.spatial.transform import Rotation
 from cellcal.config import load_config
 from cellcal.drivers.ur import URRobot
 from cellcal.errors import DeviceError
+from cellcal.files.models import load_model
 from cellcal.mocks.simulated_cell import SimulatedCell
-from cellcal.mocks.ur_server import POLYSCOPE_VERSION, CellInURUnits, URSimulator
-from cellcal.modelfiles import load_model
+from cellcal.mocks.ur.server import POLYSCOPE_VERSION, CellInURUnits, URSimulator
 from tests.mocks.test_ur_twin_wire import Rtde as RawRTDE
 from tests.mocks.test_ur_twin_wire import dashboard
 

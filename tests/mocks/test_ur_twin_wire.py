@@ -21,11 +21,11 @@ import numpy as np
 import pytest
 
 from cellcal.config import load_config
+from cellcal.files.models import load_model
 from cellcal.mocks.simulated_cell import SimulatedCell
-from cellcal.mocks.ur_fields import OUTPUT_TYPES
-from cellcal.mocks.ur_rtde_codec import TYPE_CODES
-from cellcal.mocks.ur_server import URSimulator, simulator_for_cell
-from cellcal.modelfiles import load_model
+from cellcal.mocks.ur.fields import OUTPUT_TYPES
+from cellcal.mocks.ur.rtde_codec import TYPE_CODES
+from cellcal.mocks.ur.server import URSimulator, simulator_for_cell
 
 pytestmark = [pytest.mark.twin, pytest.mark.timeout(60, method="thread")]
 

@@ -1,0 +1,461 @@
+"""The one runner of every campaign kind (``kinds.py``): it starts a campaign afresh
+(``cellcal run``, ``cellcal iso9283``), queues one (the service), runs a queued one or
+goes on with a paused or interrupted one on devices the service holds, and resumes one
+from its database (``cellcal run --resume``). Whatever the kind, the runner plans,
+creates the campaign's row with its kind, acquires through the engine, records every
+step on the record stream (the store first), and hands the complete campaign to the
+kind's analysis; a pause, an abort, a stop or a fault ends it the same way for all.
+
+A new kind is one module (its plan, options and analysis) and one line in ``KINDS``."""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import threading
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from cellcal.calib.robot_model import RobotModel
+from cellcal.campaign.calibration_kind import CALIBRATION_KIND
+from cellcal.campaign.devices import Devices, build_devices
+from cellcal.campaign.engine import Acquisition, acquire
+from cellcal.campaign.iso9283_kind import ISO9283_KIND
+from cellcal.campaign.kinds import (
+    DEFAULT_KIND,
+    KIND_EVENT,
+    CampaignKind,
+    kind_record,
+    stored_kind,
+)
+from cellcal.campaign.locks import RunLock, claimed_address, robot_claim
+from cellcal.campaign.plan import Plan
+from cellcal.campaign.plan_checks import LIMITS_EVENT, limits_record, same_limits
+from cellcal.campaign.records import (
+    CampaignEnded,
+    CampaignEvent,
+    CampaignStarted,
+    RecordStream,
+    Subscriber,
+)
+from cellcal.campaign.run_parts import (
+    Held,
+    config_digest,
+    holder,
+    note_devices,
+    record_failure,
+    record_stream,
+    unreachable_text,
+    with_seed,
+)
+from cellcal.campaign.stop_request import StopRequest
+from cellcal.clock import Clock, SimulatedClock, WallClock
+from cellcal.config import CellConfig, config_from_dict, upgrade_stored
+from cellcal.errors import AcceptanceError, CampaignError, InputError, UserError
+from cellcal.store.database import Store
+
+if TYPE_CHECKING:
+    from cellcal.campaign.analysis import CampaignSummary
+
+#: Every campaign kind, by the name it is stored and asked for with (``--kind``).
+KINDS: dict[str, CampaignKind] = {
+    "calibration": CALIBRATION_KIND,
+    "iso9283": ISO9283_KIND,
+}
+
+
+def kind_named(name: str) -> CampaignKind:
+    if name not in KINDS:
+        shown = repr(name) if len(repr(name)) <= 40 else repr(name)[:39] + "…"
+        raise InputError(f"kind {shown}: one of {', '.join(KINDS)}")
+    return KINDS[name]
+
+
+@dataclass(frozen=True)
+class CampaignOutcome:
+    """How a run of a campaign ended: ``result`` is its kind's analysis (None when it
+    stopped before its end); ``summary``, a calibration's."""
+
+    campaign_id: int
+    db_path: str
+    config: CellConfig
+    plan: Plan
+    acquisition: Acquisition
+    result: object | None
+    kind: str = DEFAULT_KIND
+    options: Mapping[str, Any] = field(default_factory=dict)
+
+    @property
+    def summary(self) -> CampaignSummary | None:
+        from cellcal.campaign.analysis import CampaignSummary
+
+        return self.result if isinstance(self.result, CampaignSummary) else None
+
+
+@dataclass(frozen=True)
+class StoredCampaign:
+    """A stored campaign as it runs again: its kind and options, its configuration, and
+    its plan computed again (the same as when it was created)."""
+
+    kind: CampaignKind
+    options: dict[str, Any]
+    config: CellConfig
+    plan: Plan
+    nominal: RobotModel
+
+
+def _run(
+    store: Store,
+    stream: RecordStream,
+    campaign_id: int,
+    c: StoredCampaign,
+    devices: Devices,
+    clock: Clock,
+    *,
+    stop: threading.Event | None,
+    accept: bool,
+    resumed: bool,
+    close_devices: bool,
+    held: Held | None = None,
+) -> CampaignOutcome:
+    """Acquire every pose not yet stored, then the kind's analysis; every ending recorded."""
+    held = held or Held()
+    hint = held.hint or (
+        f"campaign {campaign_id} is resumable: cellcal run --resume {campaign_id} --db {store.path}"
+    )
+    config, plan = c.config, c.plan
+    total = len(plan.poses)
+    try:
+        done = store.completed_indices(campaign_id)
+        stream.emit(
+            CampaignStarted(
+                campaign_id, plan, config_digest(config), len(done), resumed, clock.now()
+            )
+        )
+        acquisition = acquire(
+            plan,
+            devices.robot,
+            devices.sensors,
+            clock,
+            campaign_id=campaign_id,
+            done=done,
+            stream=stream,
+            dwell_s=config.campaign.dwell_s,
+            samples_per_pose=config.campaign.samples_per_pose,
+            speed=config.robot.speed,
+            stop=stop,
+            hold=held.hold,
+            phase=held.phase,
+        )
+    except UserError as exc:
+        record_failure(stream, campaign_id, total, f"{type(exc).__name__}: {exc}", held.on_fault)
+        raise CampaignError(f"{exc}; {hint}") from exc
+    except BaseException as exc:
+        record_failure(stream, campaign_id, total, f"{type(exc).__name__}: {exc}", held.on_fault)
+        raise
+    finally:
+        if close_devices:
+            devices.close()
+
+    def outcome(result: object | None) -> CampaignOutcome:
+        return CampaignOutcome(
+            campaign_id, store.path, config, plan, acquisition, result, c.kind.name, c.options
+        )
+
+    n = acquisition.stored
+    if acquisition.interrupted:
+        status = held.halted()
+        verb = "stopped" if status == "interrupted" else status
+        message = f"{verb} after {n} poses"
+        if isinstance(stop, StopRequest) and stop.reason:
+            message += f" ({stop.reason})"
+        stream.emit(CampaignEvent(campaign_id, status, message))
+        stream.emit(CampaignEnded(campaign_id, status, n, total, message))
+        return outcome(None)
+    try:
+        analysis = c.kind.analyse(
+            store, campaign_id, config, plan, c.nominal, c.options, accept=accept
+        )
+    except AcceptanceError as exc:
+        stream.emit(CampaignEvent(campaign_id, "refused", str(exc)))
+        stream.emit(CampaignEnded(campaign_id, "refused", n, total, str(exc)))
+        raise AcceptanceError(
+            exc.check,
+            f"{exc.message}; every sample is stored (campaign {campaign_id} in {store.path}); "
+            f"cellcal run --resume {campaign_id} --accept analyses it anyway",
+        ) from exc
+    except UserError as exc:
+        stream.emit(CampaignEvent(campaign_id, "analysis-failed", str(exc)))
+        stream.emit(CampaignEnded(campaign_id, "interrupted", n, total, str(exc)))
+        raise CampaignError(f"analysis failed: {exc}; every pose is stored; {hint}") from exc
+    stream.emit(CampaignEnded(campaign_id, "complete", n, total, "complete", analysis.summary))
+    return outcome(analysis.result)
+
+
+def plan_campaign(
+    config: CellConfig, kind: str = DEFAULT_KIND, options: Mapping[str, Any] | None = None
+) -> tuple[Plan, dict[str, Any]]:
+    """A campaign's plan (pure; refused when it cannot work) and its kind's options
+    checked, for :func:`queue_campaign`."""
+    k = kind_named(kind)
+    checked = k.options(options or {})
+    return k.plan(config, checked)[0], checked
+
+
+def start_campaign(
+    config: CellConfig,
+    db_path: str,
+    *,
+    config_path: str | None,
+    mock: bool,
+    kind: str = DEFAULT_KIND,
+    options: Mapping[str, Any] | None = None,
+    seed: int | None = None,
+    time_scale: float = 0.0,
+    stop: threading.Event | None = None,
+    subscribers: Sequence[Subscriber] = (),
+    accept: bool = False,
+    devices: Devices | None = None,
+    clock: Clock | None = None,
+) -> CampaignOutcome:
+    """Plan, connect the devices, create a new campaign of ``kind`` in ``db_path``,
+    acquire and analyse it. Nothing is written before the plan and the devices are ready.
+
+    ``devices`` (with the ``clock`` they take time on): devices the caller holds, which
+    the campaign runs on and leaves open; by default it builds and closes its own."""
+    config = with_seed(config, seed)
+    k = kind_named(kind)
+    checked = k.options(options or {})
+    plan, nominal = k.plan(config, checked)
+    c = StoredCampaign(k, checked, config, plan, nominal)
+    if clock is None:
+        clock = SimulatedClock(time_scale) if mock else WallClock()
+    claim = robot_claim(config, holder(db_path), needed=not mock and devices is None)
+    with RunLock(db_path), claim as held:
+        own = devices is None
+        if devices is None:
+            devices = build_devices(
+                config,
+                nominal,
+                clock,
+                mock=mock,
+                seed=config.simulation.seed,
+                robot_address=claimed_address(held),
+            )
+        try:
+            store = Store(db_path)
+        except BaseException:
+            if own:
+                devices.close()
+            raise
+        try:
+            campaign_id = _create(
+                store, k, checked, config, plan, config_path, mock, time_scale, "running"
+            )
+            stream = record_stream(store, subscribers)
+            for u in plan.unreachable:
+                stream.emit(CampaignEvent(campaign_id, "unreachable", unreachable_text(u)))
+            note_devices(stream, campaign_id, devices)
+            return _run(
+                store,
+                stream,
+                campaign_id,
+                c,
+                devices,
+                clock,
+                stop=stop,
+                accept=accept,
+                resumed=False,
+                close_devices=own,
+            )
+        except BaseException:
+            if own:
+                with contextlib.suppress(Exception):
+                    devices.close()
+            raise
+        finally:
+            store.close()
+
+
+def stored_campaign(store: Store, campaign_id: int) -> StoredCampaign:
+    """A stored campaign's kind, options, configuration and plan, computed again; the
+    plan must come out the same as when the campaign was created."""
+    row = store.campaign(campaign_id)
+    name, raw = stored_kind(store, campaign_id)
+    if name not in KINDS:
+        raise CampaignError(
+            f"campaign {campaign_id} is of kind {name!r}, which this cellcal does not know "
+            f"({', '.join(KINDS)})"
+        )
+    kind = KINDS[name]
+    options = kind.options(raw)
+    stored = upgrade_stored(json.loads(row.config_json))
+    config = config_from_dict(stored, f"campaign {campaign_id}")
+    plan, nominal = kind.plan(config, options)
+    if plan.digest != row.plan_digest:
+        raise CampaignError(
+            f"campaign {campaign_id}: the plan computed now differs from the stored one "
+            "(another cellcal version or robot model?); start a new campaign"
+        )
+    recorded = [e["message"] for e in store.events(campaign_id) if e["kind"] == LIMITS_EVENT]
+    same_limits(campaign_id, recorded, plan.limits_deg, config.robot.model)
+    return StoredCampaign(kind, options, config, plan, nominal)
+
+
+def _create(
+    store: Store,
+    kind: CampaignKind,
+    options: Mapping[str, Any],
+    config: CellConfig,
+    plan: Plan,
+    config_path: str | None,
+    mock: bool,
+    time_scale: float,
+    status: str,
+) -> int:
+    """The campaign's row, with what it runs with (its kind, the joint limits it keeps)."""
+    campaign_id = store.create_campaign(
+        config_json=config.model_dump_json(),
+        config_path=config_path,
+        mock=mock,
+        seed=config.simulation.seed if mock else None,
+        time_scale=time_scale if mock else None,
+        model=config.robot.model,
+        sensors=[s.name for s in config.sensor],
+        n_poses=len(plan.poses),
+        samples_per_pose=config.campaign.samples_per_pose,
+        dwell_s=config.campaign.dwell_s,
+        plan_digest=plan.digest,
+        status=status,
+    )
+    if plan.limits_deg:  # what a resumed campaign must keep
+        store.add_event(campaign_id, LIMITS_EVENT, limits_record(plan.limits_deg), None)
+    if kind.name != DEFAULT_KIND:  # a campaign without it is a calibration
+        store.add_event(campaign_id, KIND_EVENT, kind_record(kind.name, options), None)
+    for event, message in kind.created(options):
+        store.add_event(campaign_id, event, message, None)
+    return campaign_id
+
+
+def queue_campaign(
+    store: Store,
+    config: CellConfig,
+    plan: Plan,
+    *,
+    config_path: str | None,
+    mock: bool,
+    time_scale: float,
+    kind: str = DEFAULT_KIND,
+    options: Mapping[str, Any] | None = None,
+) -> int:
+    """Store a planned campaign (``options``: as :func:`plan_campaign` checked them) as
+    ``queued``; the service runs it later with :func:`run_stored`."""
+    k = kind_named(kind)
+    campaign_id = _create(
+        store, k, options or {}, config, plan, config_path, mock, time_scale, "queued"
+    )
+    for u in plan.unreachable:
+        store.add_event(campaign_id, "unreachable", unreachable_text(u), None)
+    return campaign_id
+
+
+def run_stored(
+    store: Store,
+    campaign_id: int,
+    devices: Devices,
+    clock: Clock,
+    *,
+    stop: threading.Event | None = None,
+    held: Held | None = None,
+    subscribers: Sequence[Subscriber] = (),
+    accept: bool = False,
+) -> CampaignOutcome:
+    """Run a queued campaign of any kind, or go on with a paused or interrupted one, on
+    devices the caller holds (the service, which also holds the database's run lock):
+    every pose not yet stored, exactly once."""
+    row = store.campaign(campaign_id)
+    if row.status in ("complete", "aborted"):
+        raise CampaignError(f"campaign {campaign_id} is {row.status}")
+    c = stored_campaign(store, campaign_id)
+    stream = record_stream(store, subscribers)
+    resumed = row.status != "queued"
+    if resumed:
+        stored = len(store.completed_indices(campaign_id))
+        stream.emit(CampaignEvent(campaign_id, "resumed", f"{stored} poses stored"))
+    note_devices(stream, campaign_id, devices)
+    return _run(
+        store,
+        stream,
+        campaign_id,
+        c,
+        devices,
+        clock,
+        stop=stop,
+        accept=accept,
+        resumed=resumed,
+        close_devices=False,
+        held=held,
+    )
+
+
+def resume_campaign(
+    db_path: str,
+    campaign_id: int,
+    *,
+    time_scale: float | None = None,
+    stop: threading.Event | None = None,
+    subscribers: Sequence[Subscriber] = (),
+    accept: bool = False,
+) -> CampaignOutcome:
+    """Continue an interrupted (or refused) campaign of any kind from its last stored
+    pose, with its stored configuration and options; the plan must come out the same."""
+    if not Path(db_path).is_file():
+        raise CampaignError(f"{db_path}: no such database")
+    with RunLock(db_path), contextlib.ExitStack() as claims:
+        store = Store(db_path)
+        try:
+            row = store.campaign(campaign_id)
+            if row.status in ("complete", "aborted"):
+                raise CampaignError(f"campaign {campaign_id} is already {row.status}")
+            c = stored_campaign(store, campaign_id)
+            held = claims.enter_context(robot_claim(c.config, holder(db_path), needed=not row.mock))
+            stored = len(store.completed_indices(campaign_id))
+            scale = time_scale if time_scale is not None else (row.time_scale or 0.0)
+            # The simulated clock goes on from the last stored pose; the noise is fresh.
+            clock: Clock = (
+                SimulatedClock(scale, start=store.last_pose_time(campaign_id))
+                if row.mock
+                else WallClock()
+            )
+            devices = build_devices(
+                c.config,
+                c.nominal,
+                clock,
+                mock=row.mock,
+                seed=c.config.simulation.seed,
+                noise_stream=stored,
+                robot_address=claimed_address(held),
+            )
+            stream = record_stream(store, subscribers)
+            try:
+                stream.emit(CampaignEvent(campaign_id, "resumed", f"{stored} poses stored"))
+                note_devices(stream, campaign_id, devices)
+            except BaseException:
+                devices.close()
+                raise
+            return _run(
+                store,
+                stream,
+                campaign_id,
+                c,
+                devices,
+                clock,
+                stop=stop,
+                accept=accept,
+                resumed=True,
+                close_devices=True,
+            )
+        finally:
+            store.close()

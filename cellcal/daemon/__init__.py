@@ -1,1 +1,0 @@
-"""The campaign: plan, engine, store, analysis, and the service around them."""

@@ -1,0 +1,292 @@
+"""Robot model files, read and written at the edge.
+
+``--model`` is a built-in name (``kuka-kr5-arc``, ``ur5e``, ``ur10e``, shipped as
+package data) or a TOML file in the contract's format; a calibrated model written by
+``cellcal calibrate --out`` is also accepted. Writing is atomic: a temporary file in
+the same folder, renamed over the target only once it is complete.
+"""
+
+from __future__ import annotations
+
+import tomllib
+from collections.abc import Sequence
+from dataclasses import dataclass
+from datetime import UTC, datetime
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import tomli_w
+
+from cellcal import __version__
+from cellcal.calib.geometry import Array, so3_log
+from cellcal.calib.identification import CalibrationResult
+from cellcal.calib.outliers import PointResidual, point_residuals
+from cellcal.calib.robot_model import RobotModel, model_from_dict, model_to_dict
+from cellcal.calib.validation import Validation
+from cellcal.errors import FileFormatError
+from cellcal.extras import require
+from cellcal.files.outputs import write_atomically as write_file_atomically
+from cellcal.files.text import read_toml
+from cellcal.plainvalues import plain
+
+CALIBRATED_FORMAT = "cellcal-calibrated-model"
+FORMAT_VERSION = 1
+
+
+@dataclass(frozen=True)
+class LoadedModel:
+    """A model as read from ``--model``: the geometry, the target offset, and for a
+    calibrated file the sensor frame (``T_sensor_base``, else None). A calibrated
+    file of several targets or sessions also gives each one's offset (``targets``) and
+    frame (``sessions``), by name; the first of each is ``tool`` and ``T_sensor_base``."""
+
+    source: str
+    model: RobotModel
+    tool: Array
+    T_sensor_base: Array | None
+    calibrated: bool
+    targets: dict[str, Array] | None = None
+    sessions: dict[str, Array] | None = None
+
+
+def builtin_names() -> list[str]:
+    folder = resources.files("cellcal") / "data" / "models"
+    return sorted(p.name[: -len(".toml")] for p in folder.iterdir() if p.name.endswith(".toml"))
+
+
+def builtin_models() -> tuple[RobotModel, ...]:
+    """Every built-in model (the alternatives an acceptance diagnosis tries)."""
+    return tuple(load_model(n).model for n in builtin_names())
+
+
+def _read_toml(path: Path, label: str) -> dict[str, Any]:
+    if not path.exists() and not path.is_symlink():
+        raise FileFormatError(
+            f"{label}: no such file, and not a built-in model ({', '.join(builtin_names())})"
+        )
+    return read_toml(path, label=label)
+
+
+def load_model(spec: str) -> LoadedModel:
+    """A built-in model by name, a model / calibrated-model TOML file, or a URDF file
+    (``*.urdf``: the chain to ``tool0``, see ``urdffiles``)."""
+    if spec in builtin_names():
+        ref = resources.files("cellcal") / "data" / "models" / f"{spec}.toml"
+        with resources.as_file(ref) as p:
+            data = _read_toml(p, spec)
+        model = model_from_dict(data, spec)
+        return LoadedModel(spec, model, model.tool, None, False)
+    if spec.lower().endswith(".urdf"):
+        from cellcal.files.urdf import model_from_urdf  # Pinocchio, only when asked
+
+        require(f"reading URDF ({spec})", "pinocchio")
+        urdf = model_from_urdf(spec)
+        return LoadedModel(spec, urdf, urdf.tool, None, False)
+    return _from_data(_read_toml(Path(spec), spec), spec)
+
+
+def model_from_text(text: str, label: str) -> LoadedModel:
+    """A model or calibrated model from its TOML text (a file's, sent or stored), named
+    ``label`` in what it says."""
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise FileFormatError(f"{label}: not valid TOML ({exc})") from None
+    except RecursionError:
+        raise FileFormatError(f"{label}: nested too deeply to be a cellcal file") from None
+    return _from_data(data, label)
+
+
+def _from_data(data: dict[str, Any], spec: str) -> LoadedModel:
+    if data.get("format") == CALIBRATED_FORMAT:
+        version = data.get("format_version")
+        if version != FORMAT_VERSION:
+            raise FileFormatError(f"{spec}: calibrated-model format_version {version!r} unknown")
+        try:
+            geometry = {k: data[k] for k in ("name", "convention", "joint")}
+            # [instrument]: what earlier versions called the sensor frame's table.
+            frame = data["sensor"] if "sensor" in data else data["instrument"]
+            matrix = np.array(frame["matrix"], dtype=np.float64)
+            tool = np.array(data["tool"]["xyz"], dtype=np.float64)
+        except (KeyError, TypeError, ValueError) as exc:
+            raise FileFormatError(f"{spec}: incomplete calibrated model ({exc})") from None
+        if matrix.shape != (4, 4) or tool.shape != (3,) or not np.isfinite(matrix).all():
+            raise FileFormatError(f"{spec}: sensor.matrix must be 4×4, tool.xyz 3 numbers")
+        model = model_from_dict(geometry, spec)
+        targets = _named(data, "target", spec, "xyz", (3,))
+        sessions = _named(data, "session", spec, "matrix", (4, 4))
+        return LoadedModel(spec, model, tool, matrix, True, targets, sessions)
+    model = model_from_dict(data, spec)
+    return LoadedModel(spec, model, model.tool, None, False)
+
+
+def _named(
+    data: dict[str, Any], key: str, spec: str, field: str, shape: tuple[int, ...]
+) -> dict[str, Array] | None:
+    """``[[target]]`` (name, xyz) or ``[[session]]`` (name, matrix) tables, by name."""
+    if key not in data:
+        return None
+    out: dict[str, Array] = {}
+    try:
+        for row in data[key]:
+            value = np.array(row[field], dtype=np.float64)
+            if value.shape != shape or not np.isfinite(value).all():
+                raise ValueError(f"{key}.{field} must be {'×'.join(map(str, shape))} numbers")
+            out[str(row["name"])] = value
+    except (KeyError, TypeError, ValueError) as exc:
+        raise FileFormatError(f"{spec}: bad [[{key}]] table ({exc})") from None
+    return out
+
+
+def _groups_document(result: CalibrationResult) -> dict[str, Any]:
+    """``[[target]]`` and ``[[session]]`` tables of a fit with several targets or sessions,
+    or with orientations (each target's orientation on the flange)."""
+    out: dict[str, Any] = {}
+    if result.tools is not None and (len(result.targets) > 1 or result.tool_rotations is not None):
+        rows = []
+        for k, name in enumerate(result.targets):
+            row: dict[str, Any] = {"name": name or "target", "xyz": result.tools[k]}
+            if result.tools_std is not None:
+                row["std_mm"] = result.tools_std[k]
+            if result.tool_rotations is not None:
+                row["rotation_vector_deg"] = np.degrees(so3_log(result.tool_rotations[k]))
+            rows.append(row)
+        out["target"] = rows
+    if result.frames is not None and len(result.sessions) > 1:
+        out["session"] = [
+            {
+                "name": name,
+                "matrix": T,
+                "rotation_vector_deg": np.degrees(so3_log(T[:3, :3])),
+                "translation_mm": T[:3, 3],
+            }
+            for name, T in zip(result.sessions, result.frames, strict=True)
+        ]
+    return out
+
+
+def _clean(value: Any) -> Any:
+    """TOML has no null and no NaN: None values are dropped, NaN written as a string."""
+
+    def drop_none(v: Any) -> Any:
+        if isinstance(v, dict):
+            return {k: drop_none(x) for k, x in v.items() if x is not None}
+        if isinstance(v, list | tuple):
+            return [drop_none(x) for x in v]
+        return v
+
+    return plain(drop_none(value), str)
+
+
+def calibrated_document(
+    result: CalibrationResult,
+    validation: Validation | None,
+    data_path: str,
+    points: Sequence[PointResidual] = (),
+) -> dict[str, Any]:
+    """The calibrated-model TOML document (mm, deg); ``points``: the per-point residuals
+    of the fit (default: computed from the result, named by row number)."""
+    geometry = model_to_dict(result.calibrated)
+    T = result.T_sensor_base
+    doc: dict[str, Any] = {
+        "format": CALIBRATED_FORMAT,
+        "format_version": FORMAT_VERSION,
+        "created": datetime.now(UTC).isoformat(timespec="seconds"),
+        "cellcal_version": __version__,
+        "data": data_path,
+        "name": geometry["name"],
+        "convention": geometry["convention"],
+        "joint": geometry["joint"],
+        "tool": {"xyz": result.tool, "std_mm": result.tool_std},
+        "sensor": {
+            "matrix": T,
+            "rotation_vector_deg": np.degrees(so3_log(T[:3, :3])),
+            "translation_mm": T[:3, 3],
+            "std_rotation_deg": np.degrees(result.frame_std[:3]),
+            "std_translation_mm": result.frame_std[3:],
+        },
+        **_groups_document(result),
+        "nominal": model_to_dict(result.nominal),
+        "parameter": [
+            {
+                "name": p.name,
+                "joint": p.joint,
+                "kind": p.kind,
+                "unit": p.unit,
+                "identified": p.identified,
+                "error" if p.kind != "tool" else "value": p.value,
+                "std": p.std,
+                "at_nominal": p.at_nominal or None,
+            }
+            for p in result.parameters
+        ],
+        "fit": {
+            "n_points": result.n_points,
+            "dof": result.dof,
+            "sigma0": result.sigma0,
+            "weighted": result.weighted,
+            "robust": result.robust if result.robust else "none",
+            "rms_before_mm": result.rms_before,
+            "rms_after_mm": result.rms_after,
+            "max_after_mm": result.max_after,
+            "condition_number": result.condition_number,
+            "condition_number_equal_weights": result.condition_number_equal_weights,
+            "identified": list(result.identified),
+            "unidentifiable": list(result.unidentifiable),
+            "correlated": [list(c) for c in result.identifiability.correlated],
+            "warnings": list(result.warnings),
+            "accepted_despite": list(result.accepted_despite),
+        },
+        "point": [
+            p.as_dict()
+            for p in (
+                points
+                or point_residuals([str(k + 1) for k in range(result.n_points)], result.residuals)
+            )
+        ],
+    }
+    if validation is not None:
+        doc["validation"] = {
+            "method": validation.method,
+            "n_points": validation.after.n,
+            **{
+                f"before_{k}_mm": getattr(validation.before, k)
+                for k in ("mean", "rms", "max", "p95")
+            },
+            **{
+                f"after_{k}_mm": getattr(validation.after, k) for k in ("mean", "rms", "max", "p95")
+            },
+        }
+    out: dict[str, Any] = _clean(doc)
+    return out
+
+
+def write_atomically(path: str | Path, text: str) -> None:
+    """Write ``text`` to ``path`` so that a reader sees the old file or the whole new one;
+    an existing ``path`` that is not a regular file (a device, a FIFO, a socket, a
+    folder) is refused and left as it was (``cellcal.files.outputs``)."""
+    write_file_atomically(path, text)
+
+
+def calibrated_toml(
+    result: CalibrationResult,
+    validation: Validation | None,
+    data_path: str,
+    points: Sequence[PointResidual] = (),
+) -> str:
+    """The calibrated-model file's text."""
+    text = "# cellcal calibrated robot model: read by `cellcal predict --model FILE`.\n"
+    text += "# Top-level name/convention/[[joint]]/[tool] are the calibrated geometry (mm, deg).\n"
+    return text + tomli_w.dumps(calibrated_document(result, validation, data_path, points))
+
+
+def write_calibrated(
+    path: str | Path,
+    result: CalibrationResult,
+    validation: Validation | None,
+    data_path: str,
+    points: Sequence[PointResidual] = (),
+) -> None:
+    write_atomically(path, calibrated_toml(result, validation, data_path, points))

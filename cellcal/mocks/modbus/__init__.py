@@ -1,0 +1,1 @@
+"""The Modbus TCP robot twin: the MBAP framing, the register map's state and the server."""

@@ -1,0 +1,265 @@
+"""The campaign database's schema: one function per version, applied in order.
+
+The version is SQLite's ``user_version``: schema 1 holds the acquisition (``campaigns``,
+``poses``, ``samples``, ``events``), schema 2 adds the analysis (``registrations``,
+``calibrations``, ``reports``), schema 3 adds each sample's covariance and orientation,
+the covariance of each pose's mean, and the fused positions (``fused``), schema 4 the
+cellcal version that created each campaign and made each calibration
+(``cellcal_version``; NULL in rows an older cellcal wrote).
+:data:`MIGRATIONS` [v] brings a file from version v to v + 1; ``cellcal.store.database``
+runs them when it opens an older file. The core tables
+and columns are public (``docs/database.md``) and are never renamed.
+"""
+
+from __future__ import annotations
+
+import functools
+import sqlite3
+from collections.abc import Callable, Iterable
+from datetime import UTC, datetime
+
+import numpy as np
+import sqlite_utils
+
+from cellcal.calib.geometry import Array
+
+SCHEMA_VERSION = 4
+
+#: A symmetric 3×3 covariance (mm²) as six columns.
+COV_COLUMNS = ("cov_xx", "cov_xy", "cov_xz", "cov_yy", "cov_yz", "cov_zz")
+#: A unit quaternion (w, x, y, z) as four columns.
+ORI_COLUMNS = ("ori_w", "ori_x", "ori_y", "ori_z")
+
+#: the sample columns after (pose_id, sensor), in the order the store writes them
+SAMPLE_COLUMNS = ("host_time", "device_time", "x", "y", "z", *COV_COLUMNS, *ORI_COLUMNS)
+#: the upper triangle of a 3×3 matrix in COV_COLUMNS' order
+UPPER = (np.array([0, 0, 0, 1, 1, 2]), np.array([0, 1, 2, 1, 2, 2]))
+
+
+def utc_now() -> str:
+    """A row's time stamp: UTC, ISO 8601, milliseconds."""
+    return datetime.now(UTC).isoformat(timespec="milliseconds")
+
+
+def sql_value(v: float) -> float | None:
+    """NaN is NULL in the database."""
+    return None if v != v else float(v)
+
+
+def floats(values: Iterable[float | None]) -> Array:
+    return np.array([np.nan if v is None else v for v in values], dtype=np.float64)
+
+
+def symmetric(upper: Array) -> Array:
+    out = np.empty((3, 3))
+    out[UPPER] = upper
+    out[UPPER[1], UPPER[0]] = upper
+    return out
+
+
+def _schema_1(db: sqlite_utils.Database) -> None:
+    db.execute(
+        """CREATE TABLE campaigns (
+            id INTEGER PRIMARY KEY,
+            created TEXT NOT NULL,
+            status TEXT NOT NULL,
+            mock INTEGER NOT NULL,
+            seed INTEGER,
+            time_scale REAL,
+            model TEXT NOT NULL,
+            sensors TEXT NOT NULL,
+            n_poses INTEGER NOT NULL,
+            samples_per_pose INTEGER NOT NULL,
+            dwell_s REAL NOT NULL,
+            plan_digest TEXT NOT NULL,
+            config_path TEXT,
+            config_json TEXT NOT NULL
+        )"""
+    )
+    db.execute(
+        """CREATE TABLE poses (
+            id INTEGER PRIMARY KEY,
+            campaign_id INTEGER NOT NULL REFERENCES campaigns(id),
+            idx INTEGER NOT NULL,
+            role TEXT NOT NULL,
+            region TEXT NOT NULL,
+            target_x REAL, target_y REAL, target_z REAL,
+            planned_q_deg TEXT NOT NULL,
+            reached_q_deg TEXT NOT NULL,
+            t_start REAL NOT NULL,
+            t_end REAL NOT NULL,
+            stored TEXT NOT NULL,
+            UNIQUE (campaign_id, idx)
+        )"""
+    )
+    db.execute(
+        """CREATE TABLE samples (
+            id INTEGER PRIMARY KEY,
+            pose_id INTEGER NOT NULL REFERENCES poses(id),
+            sensor TEXT NOT NULL,
+            host_time REAL NOT NULL,
+            device_time REAL NOT NULL,
+            x REAL NOT NULL, y REAL NOT NULL, z REAL NOT NULL
+        )"""
+    )
+    db.execute("CREATE INDEX samples_pose ON samples (pose_id, sensor)")
+    db.execute(
+        """CREATE TABLE pose_stats (
+            pose_id INTEGER NOT NULL REFERENCES poses(id),
+            sensor TEXT NOT NULL,
+            n INTEGER NOT NULL,
+            mean_x REAL, mean_y REAL, mean_z REAL,
+            std_x REAL, std_y REAL, std_z REAL,
+            retries INTEGER NOT NULL,
+            PRIMARY KEY (pose_id, sensor)
+        )"""
+    )
+    db.execute(
+        """CREATE TABLE events (
+            id INTEGER PRIMARY KEY,
+            campaign_id INTEGER NOT NULL REFERENCES campaigns(id),
+            time TEXT NOT NULL,
+            kind TEXT NOT NULL,
+            pose_idx INTEGER,
+            message TEXT NOT NULL
+        )"""
+    )
+
+
+def _schema_2(db: sqlite_utils.Database) -> None:
+    db.execute("ALTER TABLE campaigns ADD COLUMN finished TEXT")
+    db.execute(
+        """CREATE TABLE registrations (
+            id INTEGER PRIMARY KEY,
+            campaign_id INTEGER NOT NULL REFERENCES campaigns(id),
+            sensor TEXT NOT NULL,
+            geometry TEXT NOT NULL,
+            created TEXT NOT NULL,
+            n INTEGER NOT NULL,
+            rms_mm REAL NOT NULL,
+            max_mm REAL NOT NULL,
+            T_sensor_base TEXT NOT NULL,
+            target_offset_mm TEXT NOT NULL
+        )"""
+    )
+    db.execute(
+        """CREATE TABLE calibrations (
+            id INTEGER PRIMARY KEY,
+            campaign_id INTEGER NOT NULL REFERENCES campaigns(id),
+            sensor TEXT NOT NULL,
+            created TEXT NOT NULL,
+            n_points INTEGER NOT NULL,
+            rms_before_mm REAL NOT NULL,
+            rms_after_mm REAL NOT NULL,
+            condition_number REAL NOT NULL,
+            identified TEXT NOT NULL,
+            unidentifiable TEXT NOT NULL,
+            model_toml TEXT NOT NULL
+        )"""
+    )
+    db.execute(
+        """CREATE TABLE reports (
+            id INTEGER PRIMARY KEY,
+            campaign_id INTEGER NOT NULL REFERENCES campaigns(id),
+            created TEXT NOT NULL,
+            summary TEXT NOT NULL
+        )"""
+    )
+
+
+def _schema_3(db: sqlite_utils.Database) -> None:
+    # NULL where a sensor gives no covariance or orientation (the tracker; old rows)
+    for column in (*COV_COLUMNS, *ORI_COLUMNS):
+        db.execute(f"ALTER TABLE samples ADD COLUMN {column} REAL")
+    for column in COV_COLUMNS:
+        db.execute(f"ALTER TABLE pose_stats ADD COLUMN {column} REAL")
+    cov = ", ".join(f"{c} REAL NOT NULL" for c in COV_COLUMNS)
+    db.execute(
+        f"""CREATE TABLE fused (
+            id INTEGER PRIMARY KEY,
+            campaign_id INTEGER NOT NULL REFERENCES campaigns(id),
+            pose_id INTEGER NOT NULL REFERENCES poses(id),
+            created TEXT NOT NULL,
+            sensors TEXT NOT NULL,
+            x REAL NOT NULL, y REAL NOT NULL, z REAL NOT NULL,
+            {cov},
+            mahalanobis2 REAL
+        )"""
+    )
+    db.execute("CREATE INDEX fused_pose ON fused (pose_id)")
+
+
+def _schema_4(db: sqlite_utils.Database) -> None:
+    # which cellcal acquired a campaign and which analysed it: a report is only as good
+    # as the code that made it
+    db.execute("ALTER TABLE campaigns ADD COLUMN cellcal_version TEXT")
+    db.execute("ALTER TABLE calibrations ADD COLUMN cellcal_version TEXT")
+
+
+MIGRATIONS: tuple[Callable[[sqlite_utils.Database], None], ...] = (
+    _schema_1,
+    _schema_2,
+    _schema_3,
+    _schema_4,
+)
+
+
+#: The tables every campaign database has; a file without any of them is another's.
+CORE_TABLES = ("campaigns", "poses", "samples")
+
+
+@functools.cache
+def expected_columns(version: int) -> dict[str, frozenset[str]]:
+    """The tables and columns of schema ``version`` (the migrations run on a database in
+    memory)."""
+    conn = sqlite3.connect(":memory:")
+    try:
+        db = sqlite_utils.Database(conn)
+        for migrate in MIGRATIONS[:version]:
+            migrate(db)
+        return {t: frozenset(c.name for c in db[t].columns) for t in db.table_names()}
+    finally:
+        conn.close()
+
+
+def schema_problem(tables: dict[str, set[str]], version: int) -> str | None:
+    """What is wrong with a file's ``tables`` (name → columns) for the schema its
+    ``user_version`` says, in words; None when they fit. A newer version is the caller's
+    to refuse (it may be a newer cellcal's file)."""
+    if version < 0:
+        return (
+            f"not a cellcal database: its user_version {version} is no schema version "
+            f"(cellcal's are 1 to {SCHEMA_VERSION})"
+        )
+    if version == 0:
+        return "not a cellcal database (an SQLite file of another program)" if tables else None
+    if version > SCHEMA_VERSION:
+        return None
+    if not set(CORE_TABLES) & set(tables):
+        return (
+            f"not a cellcal database: an SQLite file of another program (schema version "
+            f"{version} but no cellcal tables)"
+        )
+    missing = []
+    for table, columns in sorted(expected_columns(version).items()):
+        if table not in tables:
+            missing.append(f"table {table}")
+        elif lacking := sorted(columns - tables[table]):
+            missing.append(f"{table}.{', '.join(lacking)}")
+    if missing:
+        return (
+            f"not a complete cellcal database of schema {version}: no {'; no '.join(missing)} "
+            "(changed by another program, or damaged?)"
+        )
+    fits = [
+        v
+        for v in range(version, SCHEMA_VERSION + 1)
+        if all(c <= tables.get(t, set()) for t, c in expected_columns(v).items())
+    ]
+    if fits[-1] > version:
+        return (
+            f"its user_version says schema {version} but its tables are schema {fits[-1]}'s: "
+            f"the version was changed by another program (PRAGMA user_version = {fits[-1]} "
+            "puts it right)"
+        )
+    return None
