@@ -14,6 +14,7 @@ import signal
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -164,19 +165,24 @@ def test_an_interrupt_python_drops_is_still_an_interrupt(
     class Module:
         pass
 
-    def raise_interrupt(_ref: object) -> None:
-        raise KeyboardInterrupt
+    def run_dropping(error: BaseException, interrupted: bool) -> Callable[[list[str], bool], int]:
+        """A command whose ``error`` is raised where Python drops it: a weakref callback."""
 
-    def interrupted_in_a_callback(args: list[str], program: bool) -> int:
-        cli._interrupted = True  # as _interrupt_once leaves it
-        module = Module()
-        ref = weakref.ref(module, raise_interrupt)
-        del module
-        gc.collect()
-        assert ref() is None
-        return 0
+        def raise_error(_ref: object) -> None:
+            raise error
 
-    monkeypatch.setattr(cli, "_run", interrupted_in_a_callback)
+        def run(args: list[str], program: bool) -> int:
+            cli._interrupted = interrupted  # as _interrupt_once leaves it, or not
+            module = Module()
+            ref = weakref.ref(module, raise_error)
+            del module
+            gc.collect()
+            assert ref() is None
+            return 0
+
+        return run
+
+    monkeypatch.setattr(cli, "_run", run_dropping(KeyboardInterrupt(), interrupted=True))
     with pytest.raises(SystemExit) as done:
         cli.main(["models"])
     assert done.value.code == 130
@@ -185,19 +191,7 @@ def test_an_interrupt_python_drops_is_still_an_interrupt(
 
     seen: list[type[BaseException]] = []
     monkeypatch.setattr(sys, "unraisablehook", lambda a: seen.append(type(a.exc_value)))
-
-    def other_error_in_a_callback(args: list[str], program: bool) -> int:
-        def raise_error(_ref: object) -> None:
-            raise ValueError("a bug, kept")
-
-        module = Module()
-        ref = weakref.ref(module, raise_error)
-        del module
-        gc.collect()
-        assert ref() is None
-        return 0
-
-    monkeypatch.setattr(cli, "_run", other_error_in_a_callback)
+    monkeypatch.setattr(cli, "_run", run_dropping(ValueError("a bug, kept"), interrupted=False))
     with pytest.raises(SystemExit) as done:
         cli.main(["models"])
     assert done.value.code == 0
