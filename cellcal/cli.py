@@ -151,9 +151,9 @@ COMMANDS: dict[str, tuple[str, str]] = {
     ),
 }
 #: Subcommands that live in another module than their group's: group → (name, where).
+#: (``cellcal mock``'s come from the registry of device families: ``commands/mock.py``.)
 EXTRA = {
     "rig": ("capture", "cellcal.commands.rig_capture:rig_capture"),
-    "mock": ("cameras", "cellcal.commands.rig_capture:mock_cameras"),
 }
 
 

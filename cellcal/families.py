@@ -1,6 +1,7 @@
 """The device families cellcal knows: one table, read by the configuration (each
-device section's options), the device factory (the driver, and in mock mode the twin)
-and the contract test suites.
+device section's options), the device factory (the driver, and in mock mode the twin),
+``cellcal mock`` (a command per twin) and the contract test suites; and the camera
+backends of the photogrammetry rig, a second table read the same way.
 
 A family is a role (robot or sensor), a kind and a driver. Its line names, as
 ``module:attribute`` strings imported only when needed (python-can's interface table,
@@ -18,9 +19,17 @@ pyserial's URL handlers):
   ``None`` for an in-process simulation (``mock_only``: refused without ``--mock``);
 * ``libraries`` — the optional libraries the driver needs (``cellcal/extras.py``),
   imported before the driver is built or its twin started: a missing one ends in one
-  line naming the extra that brings it.
+  line naming the extra that brings it;
+* ``mock``, ``mock_command`` — ``cellcal mock <mock>`` serves the twin on its own (the
+  driver's name when not given): the click command at ``mock_command``, or without one
+  a command made from the line (:func:`cellcal.commands.mock.family_command`);
+* ``simulated_as`` — what the simulated cell gives a sensor's twin: ``point`` (the
+  target's position, placed and with the noise of ``[simulation]``'s tracker) or
+  ``images`` (placed where ``[simulation]`` puts the rig; its twin renders them).
 
-Adding a family: a driver module, a twin module, one line below (``docs/device-families.md``).
+Adding a family: a driver module, a twin module, one line below — or, outside cellcal,
+a distribution whose entry point of the group :data:`GROUP` (``cellcal.families``) is a
+:class:`Family` or a sequence of them (:func:`installed`): docs/device-families.md.
 
 This module is also the registry of the twins: the one module outside ``cellcal.mocks``
 that imports it (the import contract's one exception, ``[tool.importlinter]`` in
@@ -32,11 +41,16 @@ are imported only when first asked for, so a real cell's run loads none of it.
 from __future__ import annotations
 
 import importlib
-from dataclasses import dataclass
+import re
+import sys
+import threading
+from dataclasses import dataclass, field, replace
+from importlib.metadata import EntryPoint, entry_points
 from types import ModuleType
 from typing import TYPE_CHECKING, Any, Literal
 
-from cellcal.extras import needs, require
+from cellcal.errors import UserError
+from cellcal.extras import PROVIDERS, needs, require
 
 if TYPE_CHECKING:  # what ``__getattr__`` hands out, for the type checker
     from cellcal.mocks.modbus.server import ModbusRobotFaults as ModbusRobotFaults
@@ -60,6 +74,11 @@ Role = Literal["robot", "sensor"]
 ROBOT = "robot"
 
 
+class FamilyError(UserError):
+    """A family of an installed distribution that cannot be used: the line names its
+    entry point (:attr:`Family.origin`)."""
+
+
 @dataclass(frozen=True)
 class Family:
     role: Role
@@ -71,6 +90,12 @@ class Family:
     summary: str
     mock_only: bool = False
     libraries: tuple[str, ...] = ()
+    mock: str = ""
+    mock_command: str | None = None
+    simulated_as: Literal["point", "images"] = "point"
+    #: where the line comes from: "" for cellcal's table; for a distribution's, its entry
+    #: point (set by :func:`installed`, whatever the distribution wrote)
+    origin: str = field(default="", compare=False)
 
     @property
     def tag(self) -> str:
@@ -82,42 +107,128 @@ class Family:
         """The family in a missing library's line: ``the robot driver "ur"``."""
         return f'the {self.role if self.role == "robot" else self.kind} driver "{self.driver}"'
 
+    @property
+    def mock_name(self) -> str | None:
+        """Its ``cellcal mock`` subcommand; None for a family without a twin."""
+        return None if self.twin is None else self.mock or self.driver
+
     def options_model(self) -> Any:
-        return load(self.options)
+        model = load(self.options)
+        if self.origin:
+            _check_options(self, model)
+        return model
 
     def device_class(self) -> Any:
         return load(self.device)
 
     def require(self) -> None:
-        """Import the driver's optional libraries (:attr:`libraries`) now."""
-        require(self.feature, *self.libraries)
+        """Import the driver's optional libraries (:attr:`libraries`) now: cellcal's own
+        through its extras; a distribution's others by name, a missing one a line
+        naming its entry point."""
+        if not self.origin:
+            require(self.feature, *self.libraries)
+            return
+        require(self.feature, *(m for m in self.libraries if m in PROVIDERS))
+        for module in self.libraries:
+            if module not in PROVIDERS:
+                try:
+                    importlib.import_module(module)
+                except ImportError:
+                    raise FamilyError(
+                        f"{self.feature} needs {module}, which is not installed "
+                        f"(the family of {self.origin})"
+                    ) from None
 
 
 FAMILIES: tuple[Family, ...] = (
     Family("robot", ROBOT, "simulated", "cellcal.device_options:SimulatedRobotOptions", "cellcal.mocks.simulated_devices:SimulatedRobot", None, "the simulated cell's robot, in-process", mock_only=True),  # noqa: E501
-    Family("robot", ROBOT, "modbus", "cellcal.drivers.modbus_robot:ModbusRobotOptions", "cellcal.drivers.modbus_robot:ModbusRobot", "cellcal.mocks.modbus.server:serve", "a controller behind Modbus TCP with the handshake map of docs/robots.md", libraries=("pymodbus",)),  # noqa: E501
-    Family("robot", ROBOT, "ur", "cellcal.drivers.ur:UROptions", "cellcal.drivers.ur:URRobot", "cellcal.mocks.ur.server:serve", "a Universal Robots e-Series controller through ur_rtde", libraries=("rtde_control", "rtde_receive")),  # noqa: E501
-    Family("sensor", "laser-tracker", "line-protocol", "cellcal.drivers.tracker:LineTrackerOptions", "cellcal.drivers.tracker:LineTracker", "cellcal.mocks.tracker.server:serve", "a laser tracker speaking cellcal's line protocol over serial or TCP (docs/tracker.md)"),  # noqa: E501
-    Family("sensor", "photogrammetry", "cameras", "cellcal.drivers.photogrammetry:CameraRigOptions", "cellcal.drivers.photogrammetry:CameraRigSensor", "cellcal.mocks.rig.twin:serve", "a photogrammetry rig of cameras: marker corners, the target's pose from every camera (docs/photogrammetry.md)", libraries=("cv2",)),  # noqa: E501
+    Family("robot", ROBOT, "modbus", "cellcal.drivers.modbus_options:ModbusRobotOptions", "cellcal.drivers.modbus_robot:ModbusRobot", "cellcal.mocks.modbus.server:serve", "a controller behind Modbus TCP with the handshake map of docs/robots.md", libraries=("pymodbus",), mock="modbus-robot", mock_command="cellcal.commands.mock:mock_modbus_robot"),  # noqa: E501
+    Family("robot", ROBOT, "ur", "cellcal.drivers.ur:UROptions", "cellcal.drivers.ur:URRobot", "cellcal.mocks.ur.server:serve", "a Universal Robots e-Series controller through ur_rtde", libraries=("rtde_control", "rtde_receive"), mock_command="cellcal.commands.mock:mock_ur"),  # noqa: E501
+    Family("sensor", "laser-tracker", "line-protocol", "cellcal.drivers.tracker:LineTrackerOptions", "cellcal.drivers.tracker:LineTracker", "cellcal.mocks.tracker.server:serve", "a laser tracker speaking cellcal's line protocol over serial or TCP (docs/tracker.md)", mock="tracker", mock_command="cellcal.commands.mock:mock_tracker"),  # noqa: E501
+    Family("sensor", "photogrammetry", "cameras", "cellcal.drivers.photogrammetry:CameraRigOptions", "cellcal.drivers.photogrammetry:CameraRigSensor", "cellcal.mocks.rig.twin:serve", "a photogrammetry rig of cameras: marker corners, the target's pose from every camera (docs/photogrammetry.md)", libraries=("cv2",), mock_command="cellcal.commands.rig_capture:mock_cameras", simulated_as="images"),  # noqa: E501
 )  # fmt: skip
 
 
-def load(path: str) -> Any:
+@dataclass(frozen=True)
+class CameraBackend:
+    """A camera backend of the photogrammetry rig (``backend`` in ``[sensor.capture]``):
+    ``options``, its rig options (a :class:`~cellcal.drivers.cameras.backends.RigOptions`
+    with ``backend`` a one-value ``Literal``); ``rig``, the rig class
+    (``from_options(options, clock=None)``); ``twin``, mock mode's cameras speaking its
+    protocol, ``serve(options, scene)`` (the sensor's options and a scene whose frames
+    they serve; its ``options`` are the capture's, pointed at the twin), or ``None``
+    when mock mode renders its frames in-process; ``unavailable``, a function that says
+    why the twin cannot run here (one line; None when it can); ``mock_only``, a backend
+    no configuration may name."""
+
+    name: str
+    options: str
+    rig: str
+    twin: str | None
+    summary: str
+    libraries: tuple[str, ...] = ()
+    unavailable: str | None = None
+    mock_only: bool = False
+
+    @property
+    def feature(self) -> str:
+        return f'the camera backend "{self.name}"'
+
+    def require(self) -> None:
+        require(self.feature, *self.libraries)
+
+
+CAMERA_BACKENDS: tuple[CameraBackend, ...] = (
+    CameraBackend("aravis", "cellcal.drivers.cameras.aravis:AravisRigOptions", "cellcal.drivers.cameras.aravis:AravisRig", "cellcal.mocks.rig.twin:serve_gige", "GigE Vision and USB3 Vision cameras of any vendor, through Aravis 0.8 (PyGObject and Debian's packages: the cameras extra, checked as it connects)", unavailable="cellcal.drivers.cameras.aravis:aravis_missing"),  # noqa: E501
+    CameraBackend("opencv", "cellcal.drivers.cameras.opencv:OpenCVRigOptions", "cellcal.drivers.cameras.opencv:OpenCVRig", None, "UVC devices, RTSP and HTTP/MJPEG cameras through cv2.VideoCapture", libraries=("cv2",)),  # noqa: E501
+    CameraBackend("files", "cellcal.drivers.cameras.files:FilesRigOptions", "cellcal.drivers.cameras.files:FilesRig", None, "recorded image sets played back, <camera>.png in a folder per set", libraries=("cv2",)),  # noqa: E501
+    CameraBackend("rendered", "cellcal.mocks.rig.twin:RenderedRigOptions", "cellcal.mocks.rig.twin:RenderedRig", None, "mock mode's in-process cameras: the simulated cell's frames rendered", libraries=("cv2",), mock_only=True),  # noqa: E501
+)  # fmt: skip
+
+
+def camera_backend(name: str) -> CameraBackend | None:
+    return next((b for b in CAMERA_BACKENDS if b.name == name), None)
+
+
+def load(path: str, *, libraries: bool = True) -> Any:
     """Import ``module:attribute``: a module of ``cellcal.mocks`` through
-    :func:`twin_module`; a driver or twin of the table with its family's optional
-    libraries (:meth:`Family.require`), a missing one in one line naming its extra."""
+    :func:`twin_module`; a driver, a twin, a rig class of the tables with its optional
+    libraries (``libraries=False``: without), a missing one in one line naming its
+    extra. A distribution's family that cannot be imported is a line naming its entry
+    point."""
     module, _, attribute = path.partition(":")
-    family = next((f for f in FAMILIES if path in (f.options, f.device, f.twin)), None)
-    with needs(family.feature if family is not None else path):
-        if family is not None and path != family.options:
-            family.require()
-        if module.startswith(MOCKS):
-            return getattr(twin_module(module.removeprefix(MOCKS)), attribute)
-        return getattr(importlib.import_module(module), attribute)
+    owner = _owner(path)
+    try:
+        with needs(owner.feature if owner is not None else path):
+            if libraries and owner is not None and path not in (owner.options, _command(owner)):
+                owner.require()
+            if module.startswith(MOCKS):
+                return getattr(twin_module(module.removeprefix(MOCKS)), attribute)
+            return getattr(importlib.import_module(module), attribute)
+    except (ImportError, AttributeError) as exc:
+        if isinstance(owner, Family) and owner.origin:
+            raise FamilyError(f"{owner.origin}: cannot load {path} ({_one_line(exc)})") from None
+        raise
+
+
+def _owner(path: str) -> Family | CameraBackend | None:
+    for f in registered():
+        if path in (f.options, f.device, f.twin, f.mock_command):
+            return f
+    return next((b for b in CAMERA_BACKENDS if path in (b.options, b.rig, b.twin)), None)
+
+
+def _command(owner: Family | CameraBackend) -> str | None:
+    return owner.mock_command if isinstance(owner, Family) else None
+
+
+def registered() -> tuple[Family, ...]:
+    """Every family: cellcal's table, then those of installed distributions."""
+    return (*FAMILIES, *installed())
 
 
 def families(role: Role) -> tuple[Family, ...]:
-    return tuple(f for f in FAMILIES if f.role == role)
+    return tuple(f for f in registered() if f.role == role)
 
 
 def kinds(role: Role) -> tuple[str, ...]:
@@ -134,6 +245,124 @@ def find(role: Role, kind: str, driver: str) -> Family | None:
         (f for f in families(role) if f.kind == kind and f.driver == driver),
         None,
     )
+
+
+# --------------------------------------------------- families of other distributions
+
+#: The entry point group a distribution registers its families in.
+GROUP = "cellcal.families"
+_NAME = re.compile(r"^[A-Za-z0-9_.-]+$")
+_PATH = re.compile(r"^[A-Za-z_][\w.]*:[A-Za-z_][\w.]*$")
+
+
+def warn(line: str) -> None:
+    """A refused entry point, in one line on stderr (as the command line warns)."""
+    print(f"cellcal: warning: {line}", file=sys.stderr)
+
+
+#: The distributions' families once loaded (:func:`installed`).
+_INSTALLED: list[tuple[Family, ...]] = []
+_LOADING = threading.RLock()
+
+
+def installed() -> tuple[Family, ...]:
+    """The families that installed distributions register: each entry point of the
+    group :data:`GROUP` is a :class:`Family` or a sequence of them, loaded once (the
+    first time a family is looked up). One that cannot be imported, is no Family, or
+    clashes with a family or a ``cellcal mock`` command already registered is refused
+    in one line through :func:`warn`, and the others, cellcal's own first, stay."""
+    with _LOADING:
+        if not _INSTALLED:
+            _INSTALLED.append(())  # a lookup while an entry point imports sees none yet
+            _INSTALLED[0] = _load_installed()
+        return _INSTALLED[0]
+
+
+def _load_installed() -> tuple[Family, ...]:
+    accepted: list[Family] = []
+    for ep in entry_points(group=GROUP):
+        origin = _origin(ep)
+        try:
+            found = _families_in(ep)
+        except Exception as exc:  # a distribution's bug must not stop cellcal's families
+            warn(f"{origin} refused: {_one_line(exc)}")
+            continue
+        for family in found:
+            why = _refusal(family, (*FAMILIES, *accepted))
+            if why is not None:
+                warn(f"{origin} refused: {why}")
+            else:
+                accepted.append(replace(family, origin=origin))
+    return tuple(accepted)
+
+
+def _origin(ep: EntryPoint) -> str:
+    dist = f" ({ep.dist.name} {ep.dist.version})" if ep.dist is not None else ""
+    return f"entry point {ep.name} = {ep.value}{dist}"
+
+
+def _families_in(ep: EntryPoint) -> tuple[Family, ...]:
+    try:
+        value = ep.load()
+    except Exception as exc:
+        raise FamilyError(f"cannot import it ({type(exc).__name__}: {exc})") from None
+    found = (value,) if isinstance(value, Family) else value
+    if not isinstance(found, list | tuple) or not all(isinstance(f, Family) for f in found):
+        raise FamilyError(
+            f"its value is of type {type(value).__name__}, not a cellcal.families.Family "
+            "or a sequence of them"
+        )
+    return tuple(found)
+
+
+def _refusal(f: Family, taken: tuple[Family, ...]) -> str | None:
+    """Why a distribution's family cannot join ``taken``, or None."""
+    if f.role not in ("robot", "sensor"):
+        return f"role {f.role!r}: robot or sensor"
+    if f.role == "robot" and f.kind != ROBOT:
+        return f"a robot's kind is {ROBOT!r}, not {f.kind!r}"
+    names = [("kind", f.kind), ("driver", f.driver)] + ([("mock", f.mock)] if f.mock else [])
+    for what, value in names:
+        if not isinstance(value, str) or not _NAME.match(value):
+            return f"{what} {value!r}: letters, digits, '_', '.', '-'"
+    paths = [("options", f.options), ("device", f.device)]
+    paths += [(k, p) for k, p in (("twin", f.twin), ("mock_command", f.mock_command)) if p]
+    for what, path in paths:
+        if not isinstance(path, str) or not _PATH.match(path) or path.startswith(MOCKS):
+            return f"{what} {path!r}: module:attribute of the distribution's own"
+    if (f.twin is None) != f.mock_only:
+        return f"{f.tag}: a family without a twin is mock_only, one with a twin is not"
+    if f.simulated_as not in ("point", "images"):
+        return f"simulated_as {f.simulated_as!r}: point or images"
+    if not isinstance(f.libraries, tuple) or not all(isinstance(m, str) for m in f.libraries):
+        return "libraries: a tuple of module names"
+    for other in taken:
+        by = other.origin or "cellcal"
+        if (other.role, other.kind, other.driver) == (f.role, f.kind, f.driver):
+            return f"the {f.role} family {f.tag} is {by}'s already"
+        if f.mock_name is not None and other.mock_name == f.mock_name:
+            return f'cellcal mock {f.mock_name} is {by}\'s already ({other.tag}); set mock = "…"'
+    return None
+
+
+def _check_options(f: Family, model: Any) -> None:
+    """A distribution's options model, checked when first loaded."""
+    from cellcal.device_options import RobotOptions, SensorOptions
+
+    base = RobotOptions if f.role == "robot" else SensorOptions
+    why = None
+    if not isinstance(model, type) or not issubclass(model, base):
+        why = f"is not a subclass of cellcal.device_options.{base.__name__}"
+    elif model.model_fields["driver"].default != f.driver:
+        why = f"has driver {model.model_fields['driver'].default!r}, not {f.driver!r}"
+    elif f.role == "sensor" and model.model_fields["kind"].default != f.kind:
+        why = f"has kind {model.model_fields['kind'].default!r}, not {f.kind!r}"
+    if why is not None:
+        raise FamilyError(f"{f.origin}: options {f.options} {why}")
+
+
+def _one_line(exc: BaseException) -> str:
+    return " ".join(str(exc).split()) or type(exc).__name__
 
 
 # ------------------------------------------------------------------------- the twins

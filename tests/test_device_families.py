@@ -11,6 +11,7 @@ import socketserver
 import threading
 from typing import Literal
 
+import click
 import numpy as np
 import pytest
 
@@ -20,10 +21,11 @@ from cellcal.clock import Clock, SimulatedClock
 from cellcal.config import ConfigError, config_from_dict, upgrade_stored
 from cellcal.device_options import SensorOptions
 from cellcal.drivers.base import DeviceContext, Series, host_port, label
-from cellcal.errors import DeviceError
+from cellcal.errors import DeviceError, InputError
 from cellcal.families import Family
 from cellcal.files.models import load_model
 from cellcal.mocks.twins import RunningTwin
+from tests.conftest import TRACKER_CELL
 from tests.drivers import test_sensor_contract
 from tests.drivers.families import bundled_cells, cell_for
 
@@ -144,9 +146,39 @@ def test_a_family_added_to_the_table_is_configured_built_and_contract_tested(ech
     assert cell_for(echo_family).sensor[-1].driver == "echo"
 
 
+def test_a_family_added_to_the_table_has_its_cellcal_mock_command(echo_family):
+    """A line without a command of its own gets the one made from it: its twin, served
+    for the configuration's device of the family."""
+    from click.testing import CliRunner
+
+    from cellcal.commands.mock import mock
+
+    result = CliRunner().invoke(mock, ["--help"])
+    assert result.exit_code == 0
+    assert "echo" in result.output.partition("Commands:")[2].split()
+    result = CliRunner().invoke(mock, ["echo", "--help"])
+    assert result.exit_code == 0, result.output
+    for option in ("--config", "--sensor", "--seed", "--time-scale"):
+        assert option in result.output
+    result = CliRunner().invoke(mock, ["echo"])
+    assert result.exit_code == 2 and "Missing option '--config'" in result.output
+    # the configuration's device of the family is served, and there is none in this one
+    cell = str(TRACKER_CELL)
+    result = CliRunner().invoke(mock, ["echo", "--config", cell])
+    assert isinstance(result.exception, InputError)
+    assert str(result.exception) == f"no laser-tracker/echo sensor in {cell} (its: none)"
+    robot = Family("robot", "robot", "echo-arm", "x:O", "x:R", "x:serve", "an arm")
+    with pytest.MonkeyPatch.context() as m:
+        m.setattr(registry, "FAMILIES", (*registry.FAMILIES, robot))
+        result = CliRunner().invoke(mock, ["echo-arm", "--config", cell])
+    assert str(result.exception) == f"{cell}: the robot has driver = 'modbus', not 'echo-arm'"
+
+
 def test_the_table_is_consistent():
     tags = [f.tag for f in registry.FAMILIES]
     assert len(set(tags)) == len(tags)
+    names = [f.mock_name for f in registry.FAMILIES if f.mock_name is not None]
+    assert sorted(names) == ["cameras", "modbus-robot", "tracker", "ur"]
     for f in registry.FAMILIES:
         options = f.options_model()
         assert options.model_fields["driver"].default == f.driver
@@ -156,6 +188,30 @@ def test_the_table_is_consistent():
         assert (f.twin is None) == f.mock_only
         if f.twin is not None:
             assert callable(registry.load(f.twin))
+        if f.mock_command is not None:
+            assert isinstance(registry.load(f.mock_command), click.Command)
+        assert f.simulated_as == ("images" if f.kind == "photogrammetry" else "point")
+
+
+def test_the_camera_backends_are_rows_of_the_registry():
+    """Each backend's options, rig class and twin load from its row; the backends a
+    configuration may name are the table's, and those ``[sensor.capture]`` takes."""
+    from typing import get_args
+
+    from cellcal.drivers.cameras.backends import BACKENDS, rig_class
+    from cellcal.drivers.photogrammetry import CameraRigOptions
+
+    for b in registry.CAMERA_BACKENDS:
+        assert registry.load(b.options).model_fields["backend"].default == b.name
+        assert rig_class(b.name) is registry.load(b.rig)
+        assert hasattr(rig_class(b.name), "from_options")
+        assert b.twin is None or callable(registry.load(b.twin))
+        assert b.unavailable is None or callable(registry.load(b.unavailable))
+    capture = get_args(CameraRigOptions.model_fields["capture"].annotation)
+    assert sorted(BACKENDS) == sorted(m.model_fields["backend"].default for m in capture)
+    assert "rendered" not in BACKENDS and rig_class("rendered").__name__ == "RenderedRig"
+    with pytest.raises(KeyError):
+        rig_class("gstreamer")
 
 
 @pytest.mark.parametrize(

@@ -7,6 +7,8 @@ line naming the extra, exit 2."""
 from __future__ import annotations
 
 import os
+import signal
+import socket
 import subprocess
 import sys
 import textwrap
@@ -243,16 +245,10 @@ def test_export_urdf_writes_without_pinocchio(blocker, tmp_path):
             "cellcal: error: cellcal mock cameras needs opencv-contrib-python-headless: "
             'pip install "cellcal[opencv]"',
         ),
-        (
-            ("pymodbus",),
-            ("mock", "modbus-robot", "--listen", "127.0.0.201:0", "--config", TRACKER_CELL),
-            'cellcal: error: cellcal mock modbus-robot needs pymodbus: '
-            'pip install "cellcal[modbus]"',
-        ),
     ],
     ids=[
         "ur", "modbus", "cameras", "run-report", "report", "urdf", "daemon", "campaign",
-        "service-install", "rig", "mock-cameras", "mock-modbus-robot",
+        "service-install", "rig", "mock-cameras",
     ],
 )  # fmt: skip
 def test_a_missing_extra_is_one_line_naming_it(blocker, tmp_path, blocked, args, line):
@@ -263,6 +259,59 @@ def test_a_missing_extra_is_one_line_naming_it(blocker, tmp_path, blocked, args,
     assert "Traceback" not in result.stderr
     # refused before any work: no database, no report (a robot claim's lock file at most)
     assert [p.name for p in tmp_path.iterdir() if p.suffix != ".lock"] == []
+
+
+# ------------------------------------ a Modbus cell: its options are not its driver
+
+
+def test_a_modbus_configuration_is_read_and_planned_without_pymodbus(blocker, tmp_path):
+    """The Modbus robot's options live apart from its driver: a configuration with a
+    Modbus robot is read and planned with no optional library at all, and driving the
+    robot — a real cell's run — is refused before any work in one line naming the
+    extra."""
+    plan = _cellcal(blocker, OPTIONAL, "plan", "--config", TRACKER_CELL)
+    assert plan.returncode == 0, plan.stderr
+    assert "reachable" in plan.stdout and "Traceback" not in plan.stderr
+    cell = tmp_path / "cell.toml"
+    text = (ROOT / TRACKER_CELL).read_text()
+    cell.write_text(text.replace("[robot]\n", '[robot]\naddress = "127.0.0.60:1502"\n', 1))
+    run = _cellcal(blocker, OPTIONAL, "run", "--config", str(cell), "--db", str(tmp_path / "c.db"))
+    assert run.returncode == 2, run.stderr
+    lines = [x for x in run.stderr.splitlines() if x.startswith("cellcal:")]
+    assert lines == [
+        'cellcal: error: the robot driver "modbus" needs pymodbus: pip install "cellcal[modbus]"'
+    ], run.stderr
+    assert sorted(p.name for p in tmp_path.iterdir() if p.suffix != ".lock") == ["cell.toml"]
+
+
+@pytest.mark.twin
+@pytest.mark.timeout(60)
+def test_the_modbus_twin_serves_without_pymodbus(blocker):
+    """``cellcal mock modbus-robot`` reads the configuration's Modbus robot and serves
+    its twin, which speaks Modbus TCP by itself: pymodbus is the driver's, not the
+    twin's. A Modbus request of the holding register 0 (the heartbeat) is answered."""
+    twin = subprocess.Popen(
+        [sys.executable, "-m", "cellcal", "mock", "modbus-robot", "--listen", "127.0.0.61:0",
+         "--config", TRACKER_CELL, "--time-scale", "0"],
+        cwd=ROOT, env=_env(blocker, OPTIONAL), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+        text=True,
+    )  # fmt: skip
+    try:
+        assert twin.stdout is not None
+        where = twin.stdout.readline().strip()  # printed once it listens
+        assert where.startswith("127.0.0.61:"), twin.communicate(timeout=10)[1]
+        host, _, port = where.rpartition(":")
+        with socket.create_connection((host, int(port)), timeout=10) as s:
+            # MBAP: transaction 7, protocol 0, 6 bytes, device 1; read holding registers 0, 1
+            s.sendall(bytes.fromhex("0007 0000 0006 01 03 0000 0001"))
+            reply = s.recv(64)
+        assert reply[:2] == b"\x00\x07" and reply[7:9] == b"\x03\x02" and len(reply) == 11
+    finally:
+        twin.send_signal(signal.SIGTERM)
+        _, err = twin.communicate(timeout=20)
+    # SIGTERM ends it (at once, if it comes before the command waits for it)
+    assert twin.returncode in (0, -signal.SIGTERM), err
+    assert "Traceback" not in err and "pymodbus" not in err
 
 
 # ---------------------------------------------------------- the extras themselves

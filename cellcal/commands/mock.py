@@ -1,18 +1,26 @@
-"""``cellcal mock …``: the simulated cell's devices as protocol-level servers."""
+"""``cellcal mock …``: the simulated cell's devices as protocol-level servers.
+
+The subcommands are the twins of the registry of device families
+(``cellcal/families.py``, cellcal's table and the families of installed distributions):
+one per family with a twin, named by its line (``mock``, else its driver). A line that
+names its own click command (``mock_command``: ``tracker``, ``modbus-robot``, ``ur``
+here, ``cameras`` in ``rig_capture.py``) gets it; any other gets
+:func:`family_command`, which serves the configured device's twin as mock mode does.
+"""
 
 from __future__ import annotations
 
 import signal
 import threading
 from types import FrameType
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import click
 
 from cellcal.commands.output import NON_NEGATIVE, SEED, TIME_SCALE
 from cellcal.config import CellConfig, load_config
 from cellcal.errors import InputError
-from cellcal.extras import needs
+from cellcal.families import Family, FamilyError, load, registered
 from cellcal.files.models import load_model
 
 if TYPE_CHECKING:
@@ -38,12 +46,39 @@ def wait_for_signal() -> None:
         pass
 
 
-@click.group()
+def twins() -> dict[str, Family]:
+    """``cellcal mock`` subcommand → its family: every registered family with a twin."""
+    return {f.mock_name: f for f in registered() if f.mock_name is not None}
+
+
+def command_of(family: Family, name: str) -> click.Command:
+    """The family's ``cellcal mock`` command: the one its line names, else made here."""
+    if family.mock_command is None:
+        return family_command(family, name)
+    command = load(family.mock_command)
+    if not isinstance(command, click.Command):
+        where = family.origin or "cellcal"
+        raise FamilyError(f"{where}: {family.mock_command} is not a click command")
+    return command
+
+
+class MockGroup(click.Group):
+    """``cellcal mock``: a subcommand per twin of the registry (:func:`twins`)."""
+
+    def list_commands(self, ctx: click.Context) -> list[str]:
+        return sorted(twins())
+
+    def get_command(self, ctx: click.Context, cmd_name: str) -> click.Command | None:
+        family = twins().get(cmd_name)
+        return None if family is None else command_of(family, cmd_name)
+
+
+@click.group(cls=MockGroup)
 def mock() -> None:
     """Serve the simulated cell's devices over their real wire protocols."""
 
 
-@mock.command("tracker")
+@click.command("tracker")
 @click.option("--listen", help="TCP address HOST:PORT (a 127.0.0.x address for tests).")
 @click.option("--pty", "use_pty", is_flag=True, help="Serve on a pseudo-terminal instead.")
 @click.option(
@@ -143,7 +178,7 @@ def simulated_cell_of(
     return config, SimulatedCell(config, load_model(config.robot.model).model, seed)
 
 
-@mock.command("modbus-robot")
+@click.command("modbus-robot")
 @click.option(
     "--listen", required=True, help="TCP address HOST:PORT (a 127.0.0.x address for tests)."
 )
@@ -181,8 +216,7 @@ def mock_modbus_robot(
     """The configured Modbus robot's twin: its map, word order and device id (docs/robots.md)."""
     import math
 
-    with needs("cellcal mock modbus-robot"):  # the driver's options: pymodbus's module
-        from cellcal.drivers.modbus_robot import ModbusRobotOptions
+    from cellcal.drivers.modbus_options import ModbusRobotOptions
     from cellcal.families import ModbusRobotFaults, ModbusRobotSimulator, limits_deg, xyzabc
 
     config, cell = simulated_cell_of(config_path, seed)
@@ -218,7 +252,7 @@ def mock_modbus_robot(
         sim.stop()
 
 
-@mock.command("ur")
+@click.command("ur")
 @click.option(
     "--host",
     required=True,
@@ -255,3 +289,80 @@ def mock_ur(host: str, config_path: str | None, seed: int | None, time_scale: fl
         wait_for_signal()
     finally:
         sim.stop()
+
+
+def family_command(family: Family, name: str) -> click.Command:
+    """``cellcal mock <name>`` for a family whose line names no command of its own: the
+    twin of the configured device of that family, as mock mode starts it, until Ctrl-C
+    or SIGTERM; where it serves on stdout."""
+    params: list[click.Parameter] = [
+        click.Option(
+            ["--config", "config_path"],
+            required=True,
+            help=f"Cell configuration with a {family.tag} device.",
+        ),
+        click.Option(["--seed"], type=SEED, help="Seed of the simulated truth and noise."),
+        click.Option(
+            ["--time-scale"],
+            type=TIME_SCALE,
+            default=1.0,
+            show_default=True,
+            help="Wall seconds per second of the device.",
+        ),
+    ]
+    if family.role == "sensor":
+        params.insert(
+            1,
+            click.Option(
+                ["--sensor"], default=None, help=f"Which {family.tag} sensor (default: the first)."
+            ),
+        )
+
+    def run(**options: Any) -> None:
+        serve_family(family, **options)
+
+    return click.Command(
+        name,
+        callback=run,
+        params=params,
+        help=f"The twin of a {family.tag} device ({family.summary}), served until Ctrl-C "
+        "or SIGTERM; prints where it serves.",
+    )
+
+
+def serve_family(
+    family: Family,
+    config_path: str,
+    seed: int | None,
+    time_scale: float,
+    sensor: str | None = None,
+) -> None:
+    """Serve the twin of the configuration's device of ``family`` (the robot, or the
+    sensor named, else the first of the family) until Ctrl-C or SIGTERM."""
+    assert family.twin is not None
+    config, cell = simulated_cell_of(config_path, seed)
+    if family.role == "robot":
+        if config.robot.driver != family.driver:
+            raise InputError(
+                f"{config_path}: the robot has driver = {config.robot.driver!r}, "
+                f"not {family.driver!r}"
+            )
+        options: Any = config.robot
+        name = "robot"
+    else:
+        mine = [s for s in config.sensor if (s.kind, s.driver) == (family.kind, family.driver)]
+        names = ", ".join(s.name for s in mine) or "none"
+        options = next((s for s in mine if sensor is None or s.name == sensor), None)
+        if options is None:
+            what = f"sensor {sensor!r}" if sensor is not None else "sensor"
+            raise InputError(f"no {family.tag} {what} in {config_path} (its: {names})")
+        name = options.name
+    # the twin alone: the driver's libraries are not its
+    twin = load(family.twin, libraries=False)(options, cell, time_scale)
+    try:
+        where = twin.options.address if family.role == "robot" else twin.options.endpoint()
+        click.echo(f"mock {family.tag} {name!r} of {config.name!r} serving on {where}", err=True)
+        click.echo(where)
+        wait_for_signal()
+    finally:
+        twin.stop()

@@ -29,6 +29,9 @@ The handshake, and what the driver does about faults:
   reconnects.
 * ``heartbeat_timeout_s`` is also the timeout of one request: a device that does not
   answer that long is as good as one whose heartbeat stopped.
+
+The options (``[robot]`` with ``driver = "modbus"``) are ``drivers/modbus_options.py``'s,
+a module without pymodbus: a configuration is read and planned without it.
 """
 
 from __future__ import annotations
@@ -37,16 +40,13 @@ import logging
 import math
 import time
 from dataclasses import dataclass
-from typing import Annotated, Literal
 
 import numpy as np
-from pydantic import Field
 from pymodbus.client import ModbusTcpClient
 from pymodbus.constants import ExcCodes
 from pymodbus.exceptions import ModbusException
 
 from cellcal.calib.geometry import Array
-from cellcal.device_options import Positive, RobotOptions
 from cellcal.drivers.base import ROBOT_NAME, DeviceContext, DeviceDescription, host_port, label
 from cellcal.drivers.modbus_map import (
     BIT_NAMES,
@@ -62,6 +62,7 @@ from cellcal.drivers.modbus_map import (
     REMOTE,
     ModbusMap,
 )
+from cellcal.drivers.modbus_options import ModbusRobotOptions as ModbusRobotOptions
 from cellcal.errors import DeviceError, InputError
 
 log = logging.getLogger("cellcal.modbus_robot")
@@ -75,20 +76,6 @@ MAX_JOINT_DEG = 1e4  # beyond this a joint reading is taken for garbage
 MIN_NONZERO_DEG = 1e-20  # a word-swapped float32 of a round value lands below this
 _F32 = ModbusTcpClient.DATATYPE.FLOAT32
 DEFAULT_PORT = 502
-
-
-class ModbusRobotOptions(RobotOptions):
-    """``[robot]`` with ``driver = "modbus"``: ``address`` is host or host:port (502),
-    ``[robot.map]`` the controller's handshake map; a move that is not done within
-    ``move_timeout_s`` has failed, a heartbeat that does not change for
-    ``heartbeat_timeout_s`` during a move is a comms fault, and the status registers are
-    read every ``poll_s`` while a move runs."""
-
-    driver: Literal["modbus"] = "modbus"
-    map: ModbusMap = Field(default_factory=ModbusMap)
-    move_timeout_s: Positive = 60.0
-    heartbeat_timeout_s: Annotated[float, Field(gt=0, le=60)] = 2.0
-    poll_s: Annotated[float, Field(gt=0, le=1)] = 0.01
 
 
 @dataclass(frozen=True)

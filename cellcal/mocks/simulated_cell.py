@@ -4,10 +4,14 @@ A robot whose real geometry differs from nominal by seeded errors, each sensor's
 pose in the cell, each target's real offset on the flange (the nominal offset in the
 configuration is only a guess, off by up to 0.5 mm), and the sensors' noise:
 
-* laser tracker: 10 µm along the beam (distance meter) and 6 µm per metre of range
-  across it (angle encoders), 1σ per sample — the class of a FARO / Leica tracker;
-* photogrammetry rig: no noise model here; its cameras see rendered images
-  (``mocks/rig/twin.py``), and their noise is the images' (grey levels, blur).
+* a point sensor — a laser tracker, or any family whose line of the registry says
+  ``simulated_as = "point"`` (``cellcal/families.py``) — stands where
+  ``[simulation]`` puts the tracker, with a tracker's noise: 10 µm along the beam
+  (distance meter) and 6 µm per metre of range across it (angle encoders), 1σ per
+  sample — the class of a FARO / Leica tracker;
+* a camera rig (``simulated_as = "images"``) stands where ``[simulation]`` puts the
+  rig; no noise model here: its cameras see rendered images (``mocks/rig/twin.py``),
+  and their noise is the images' (grey levels, blur).
 
 Same seed, same truth. The noise is drawn per sample, from a generator seeded by the
 seed, the noise stream, the sensor, where the robot is (:attr:`SimulatedCell.pose_key`:
@@ -32,16 +36,19 @@ from cellcal.calib.kinematics import target_kinematics
 from cellcal.calib.robot_model import RobotModel
 from cellcal.config import CellConfig
 from cellcal.device_options import SensorOptions
+from cellcal.families import find
 from cellcal.mocks.robot_truth import perturbed_model
 
 
 @dataclass(frozen=True)
 class SensorTruth:
     """Where a sensor is (T_sensor_base), where its target really is on the flange,
-    and a tracker's noise (σ values in mm)."""
+    and a point sensor's noise (σ values in mm; ``point``: it is sampled as a point,
+    :meth:`SimulatedCell.sample`)."""
 
     name: str
     kind: str
+    point: bool
     T_sensor_base: Array
     target_offset: Array
     sigma_radial: float
@@ -97,18 +104,20 @@ class SimulatedCell:
     ) -> SensorTruth:
         sim = config.simulation
         offset = np.asarray(s.target_offset_mm, dtype=np.float64) + rng.uniform(-0.5, 0.5, 3)
-        if s.kind == "laser-tracker":
+        family = find("sensor", s.kind, s.driver)
+        if family is None or family.simulated_as == "point":
             T_base_sensor = _pose(sim.tracker_position_mm, sim.tracker_rotation_deg)
             return SensorTruth(
                 s.name,
                 s.kind,
+                True,
                 invert(T_base_sensor),
                 offset,
                 sim.tracker_radial_um / 1000.0,
                 sim.tracker_transverse_um_per_m / 1000.0 / 1000.0,
             )
         T_base_sensor = _pose(sim.rig_position_mm, sim.rig_rotation_deg)
-        return SensorTruth(s.name, s.kind, invert(T_base_sensor), offset, 0.0, 0.0)
+        return SensorTruth(s.name, s.kind, False, invert(T_base_sensor), offset, 0.0, 0.0)
 
     @property
     def q(self) -> Array:
@@ -181,12 +190,12 @@ class SimulatedCell:
         return out if q is not None and np.ndim(q) == 2 else out[0]
 
     def sample(self, sensor: str, n: int, first: int | None = None) -> Array:
-        """n noisy measurements of a tracker's target at the robot's current position
+        """n noisy measurements of a point sensor's target at the robot's current position
         (n×3, mm): samples ``first`` … ``first + n - 1`` of the pose's series, or
         without ``first`` the next ``n`` fresh ones at this pose."""
         s = self.sensors[sensor]
-        if s.kind != "laser-tracker":
-            raise ValueError(f"{sensor}: the simulated cell samples trackers only")
+        if not s.point:
+            raise ValueError(f"{sensor}: the simulated cell samples point sensors only")
         p = self.true_position(sensor)
         k = self._sensor_k[sensor]
         with self._lock:

@@ -6,10 +6,12 @@ clock). A camera that misses a frame (lost, incomplete, timed out) is asked agai
 ``retries`` times; what was retried is counted, and a camera that still gives nothing is
 named in the set as lost, never silently absent.
 
-Backends (``backend`` in the rig's configuration): ``aravis`` (GigE Vision and USB3
-Vision cameras of any vendor, opened by address), ``opencv`` (UVC, RTSP and HTTP
-cameras through VideoCapture) and ``files`` (recorded image sets: one folder per set,
-``<camera>.png`` in each).
+Backends (``backend`` in the rig's configuration) are rows of a table of the registry
+(``CAMERA_BACKENDS`` in ``cellcal/families.py``: the options, the rig class, mock
+mode's twin, the libraries): ``aravis`` (GigE Vision and USB3 Vision cameras of any
+vendor, opened by address), ``opencv`` (UVC, RTSP and HTTP cameras through
+VideoCapture) and ``files`` (recorded image sets: one folder per set, ``<camera>.png``
+in each).
 """
 
 from __future__ import annotations
@@ -22,7 +24,7 @@ from pydantic import Field, model_validator
 
 from cellcal.device_options import Name, Strict
 from cellcal.drivers.base import DeviceDescription
-from cellcal.extras import needs
+from cellcal.families import CAMERA_BACKENDS, camera_backend, load
 
 #: An image as the camera delivers it: (height, width), 8- or 16-bit grey.
 Pixels = NDArray[Any]
@@ -109,30 +111,17 @@ class RigOptions(Strict):
         return self
 
 
-#: The backends a configuration may name; each rig class is imported only when asked
-#: for (``aravis`` needs PyGObject, ``opencv`` OpenCV).
-BACKENDS = ("aravis", "opencv", "files")
+#: The backends a configuration may name: the rows of the registry's table
+#: (``CAMERA_BACKENDS`` in ``cellcal/families.py``) that are not mock mode's own.
+BACKENDS = tuple(b.name for b in CAMERA_BACKENDS if not b.mock_only)
 
 
 def rig_class(backend: str) -> Any:
-    """The rig class of ``backend`` (it has ``from_options(options, clock=None)``); also
-    ``rendered``, mock mode's in-process fallback, which a configuration cannot name: a
-    twin, from the registry of device families."""
-    with needs(f'the camera backend "{backend}"'):
-        if backend == "aravis":
-            from cellcal.drivers.cameras.aravis import AravisRig
-
-            return AravisRig
-        if backend == "opencv":
-            from cellcal.drivers.cameras.opencv import OpenCVRig
-
-            return OpenCVRig
-        if backend == "files":
-            from cellcal.drivers.cameras.files import FilesRig
-
-            return FilesRig
-        if backend == "rendered":
-            from cellcal.families import RenderedRig
-
-            return RenderedRig
-    raise KeyError(backend)
+    """The rig class of ``backend`` (it has ``from_options(options, clock=None)``), its
+    row of the registry's table imported now with its libraries (a missing one is a
+    line naming its extra); also ``rendered``, mock mode's in-process cameras, which a
+    configuration cannot name: a twin, handed out by the registry."""
+    row = camera_backend(backend)
+    if row is None:
+        raise KeyError(backend)
+    return load(row.rig)

@@ -3,9 +3,11 @@ cameras, reached through the configured driver as in a campaign, showing the fla
 target where the simulated robot holds it, or a ChArUco board held up at a new pose for
 every set (:class:`~cellcal.mocks.rig.board_views.BoardScene`).
 
-Where the configured capture is ``aravis`` and a network namespace can be made, the
-cameras are GigE Vision twins and the ``aravis`` driver grabs them; otherwise the frames
-are rendered in-process and a warning says why (as ``cellcal run --mock`` does).
+Where the configured backend's row of the registry (``CAMERA_BACKENDS`` in
+``cellcal/families.py``) has a twin that can run here — ``aravis``: GigE Vision cameras,
+in a network namespace — the board's views are served by it and the configured driver
+grabs them; otherwise the frames are rendered in-process and a warning says why (as
+``cellcal run --mock`` does).
 """
 
 from __future__ import annotations
@@ -17,9 +19,9 @@ from typing import Any
 
 from cellcal.clock import WallClock
 from cellcal.config import CellConfig
-from cellcal.drivers.cameras.aravis import AravisRigOptions, aravis_missing
 from cellcal.drivers.cameras.backends import Frame, FrameSet, rig_class
 from cellcal.drivers.photogrammetry import CameraRigOptions, rig_and_target
+from cellcal.families import CameraBackend, camera_backend, load
 from cellcal.mocks.rig.board_views import BoardScene
 
 log = logging.getLogger(__name__)
@@ -88,24 +90,26 @@ def mock_rig(
     truth = RigTruth.of(cell, options.name)
     scene = BoardScene(rig, board, n_sets, truth.seed, truth.blur_px, truth.noise_grey)
     names = tuple(c.name for c in options.capture.cameras)
-    why = _why_not_gige(options)
+    backend = camera_backend(options.capture.backend)
+    why = _why_no_twin(options.capture.backend, backend)
     if why is None:
         from cellcal.mocks.netns import NamespaceUnavailableError
-        from cellcal.mocks.rig.twin import serve_gige
 
+        assert backend is not None and backend.twin is not None
         try:
-            running = serve_gige(options, scene)
+            running = load(backend.twin)(options, scene)
         except NamespaceUnavailableError as exc:
             why = str(exc)
         else:
-            assert isinstance(running.options, AravisRigOptions)
-            cameras = rig_class("aravis").from_options(running.options)
+            capture = running.options
+            cameras = rig_class(capture.backend).from_options(capture)
             return MockRig(cameras, running.stop, scene.announce)
     log.warning("sensor %s: cameras simulated in-process (%s)", options.name, why)
     return MockRig(SceneRig(scene, names), _nothing, scene.announce)
 
 
-def _why_not_gige(options: CameraRigOptions) -> str | None:
-    if not isinstance(options.capture, AravisRigOptions):
-        return f'backend "{options.capture.backend}" has no protocol twin'
-    return aravis_missing()
+def _why_no_twin(name: str, backend: CameraBackend | None) -> str | None:
+    """Why the backend's cameras cannot be served by a twin here, or None."""
+    if backend is None or backend.twin is None:
+        return f'backend "{name}" has no protocol twin'
+    return load(backend.unavailable)() if backend.unavailable is not None else None
