@@ -10,69 +10,26 @@ import json
 import numpy as np
 import pytest
 
-from cellcal.calib.kinematics import flange_transforms
 from cellcal.campaign.devices import build_devices
 from cellcal.clock import SimulatedClock
 from cellcal.config import config_from_dict
 from cellcal.drivers.safety import GuardedRobot, SafetyError
-from cellcal.files.models import load_model
 from tests.conftest import TRACKER_CELL, tracker_cell
+from tests.daemon.stand_ins import KR5, Q0, Q1, TOOL, Robot, box_around_the_ends, flange_and_target
 from tests.inprocess import cellcal
-
-KR5 = load_model("kuka-kr5-arc").model
-TOOL = np.array([25.0, -40.0, 130.0])
-Q0 = np.radians([-45.0, -30.0, 40.0, 0.0, -20.0, 0.0])
-Q1 = np.radians([45.0, -30.0, 40.0, 0.0, -20.0, 0.0])
-
-
-class Robot:
-    """A robot that is at ``q`` and records the moves sent to it."""
-
-    name = "robot"
-
-    def __init__(self, q):
-        self.q = np.array(q, dtype=float)
-        self.moves = []
-
-    def connect(self):
-        """Nothing to connect: the robot is this object."""
-
-    def move_joints(self, q, speed):
-        self.moves.append(np.array(q))
-        self.q = np.array(q)
-
-    def actual_joints(self):
-        return self.q
-
-    def stop(self):
-        """It never moves by itself: nothing to stop."""
-
-    def close(self):
-        """Nothing to close."""
-
-
-def _points(q):
-    T = flange_transforms(KR5, np.atleast_2d(q))
-    return T[:, :3, 3], T[:, :3, 3] + T[:, :3, :3] @ TOOL
-
-
-def _box_around_the_ends():
-    """A box that holds the flange and the target at both ends, with 20 mm to spare."""
-    pts = np.concatenate([*_points(Q0), *_points(Q1)])
-    return pts.min(axis=0) - 20.0, pts.max(axis=0) + 20.0
 
 
 def _worst_outside(lo, hi):
     """How far the path's flange and target go outside the box, by brute force."""
     s = np.linspace(0, 1, 20001)[:, None]
-    flange, target = _points(Q0 + s * (Q1 - Q0))
+    flange, target = flange_and_target(Q0 + s * (Q1 - Q0))
     p = np.concatenate([flange, target])
     d = np.maximum(lo - p, 0) + np.maximum(p - hi, 0)
     return float(np.linalg.norm(d, axis=1).max())
 
 
 def test_a_move_whose_path_leaves_the_box_is_refused_and_says_by_how_much():
-    lo, hi = _box_around_the_ends()
+    lo, hi = box_around_the_ends()
     robot = Robot(Q0)
     gate = GuardedRobot(robot, KR5, TOOL, lo, hi, 0.5)
     gate.check(Q1, 0.25)  # the end alone is inside the box
@@ -93,7 +50,7 @@ def test_a_move_whose_path_leaves_the_box_is_refused_and_says_by_how_much():
 
 
 def test_a_robot_outside_its_limits_or_the_box_is_not_moved():
-    lo, hi = _box_around_the_ends()
+    lo, hi = box_around_the_ends()
     beyond = Q0.copy()
     beyond[2] = np.radians(170.0)  # A3 beyond +158°
     robot = Robot(beyond)
@@ -112,7 +69,7 @@ def test_a_robot_outside_its_limits_or_the_box_is_not_moved():
 @pytest.mark.timeout(120)
 def test_the_campaigns_robot_refuses_such_a_move_before_the_controller_sees_it():
     """Through the device factory: the real Modbus driver behind the gate, its twin."""
-    lo, hi = _box_around_the_ends()
+    lo, hi = box_around_the_ends()
     config = tracker_cell()
     data = config.model_dump()
     data["robot"]["home_deg"] = np.degrees(Q0).tolist()

@@ -1,29 +1,34 @@
 """The calibration campaign as a kind (``kinds.py``): the cube's calibration poses and
 the validation poses (``plan.py``), then registration, calibration and validation
-(``analysis.py``). It takes no options of its own: its configuration says it all."""
+(``analysis.py``). It takes no options of its own: its configuration says it all.
+
+Light to import (the command line reads the kinds before its first line): the plan's and
+the analysis' modules load when they are used."""
 
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from cellcal.calib.robot_model import RobotModel
-from cellcal.campaign.analysis import analyse
-from cellcal.campaign.kinds import Analysis
-from cellcal.campaign.plan import CALIBRATION, VALIDATION, Plan, make_plan, plan_identifiability
-from cellcal.campaign.plan_checks import refuse_moves_outside
+from cellcal.campaign.kinds import Acquired, Analysis, KindOption
 from cellcal.config import CellConfig
 from cellcal.errors import CampaignError, InputError
-from cellcal.files.models import load_model
-from cellcal.store.database import Store
+
+if TYPE_CHECKING:
+    from cellcal.calib.robot_model import RobotModel
+    from cellcal.campaign.plan import Plan
 
 
 def calibration_plan(config: CellConfig) -> tuple[Plan, RobotModel]:
     """The campaign's plan and the nominal model; refused before any motion when it
     cannot work (nothing reachable, too few poses to identify, a move out of the box)."""
+    from cellcal.campaign.plan import CALIBRATION, VALIDATION, make_plan, plan_identifiability
+    from cellcal.campaign.plan_checks import refuse_moves_outside
+    from cellcal.files.models import load_model
+
     nominal = load_model(config.robot.model).model
     home = np.radians(np.asarray(config.robot.home_deg, dtype=np.float64))
     if len(home) != nominal.dof:
@@ -53,6 +58,7 @@ def calibration_plan(config: CellConfig) -> tuple[Plan, RobotModel]:
 class CalibrationKind:
     name: str = "calibration"
     title: str = "campaign"
+    command_options: tuple[KindOption, ...] = ()
 
     def options(self, raw: Mapping[str, Any]) -> dict[str, Any]:
         if raw:
@@ -71,18 +77,11 @@ class CalibrationKind:
     def created(self, options: Mapping[str, Any]) -> Sequence[tuple[str, str]]:
         return ()
 
-    def analyse(
-        self,
-        store: Store,
-        campaign_id: int,
-        config: CellConfig,
-        plan: Plan,
-        nominal: RobotModel,
-        options: Mapping[str, Any],
-        *,
-        accept: bool,
-    ) -> Analysis:
-        summary = analyse(store, campaign_id, nominal, config.reference_sensor.name, accept=accept)
+    def analyse(self, done: Acquired) -> Analysis:
+        from cellcal.campaign.analysis import analyse
+
+        reference = done.config.reference_sensor.name
+        summary = analyse(done.store, done.campaign_id, done.nominal, reference, accept=done.accept)
         return Analysis(summary, summary)
 
 

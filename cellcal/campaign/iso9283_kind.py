@@ -9,7 +9,10 @@ Positions are compared in the robot base frame of the calibrated model: the refe
 sensor's means are brought there through the calibrated model's sensor frame, for both
 stages (the base frame a registration of the nominal model would find is a slightly
 different one, which would hide part of the nominal model's error). An interrupted test
-is not resumed: run it again (its samples stay in the database).
+is resumed like any campaign (``cellcal run --resume``), its kind and options read back.
+
+Light to import (the command line reads the kinds and their options before its first
+line): inverse kinematics, the plan's modules and the model files load when used.
 """
 
 from __future__ import annotations
@@ -17,24 +20,23 @@ from __future__ import annotations
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from cellcal.calib.compensation import compensate
 from cellcal.calib.geometry import Array, apply, invert
-from cellcal.calib.inverse_kinematics import solve
 from cellcal.calib.iso9283 import CYCLES, PointResult, iso_points, pose_characteristics
 from cellcal.calib.kinematics import target_kinematics
-from cellcal.calib.robot_model import RobotModel
-from cellcal.campaign.kinds import ISO_EVENT, Analysis
-from cellcal.campaign.plan import Plan, PlannedPose
-from cellcal.campaign.plan_checks import refuse_moves_outside
+from cellcal.campaign.kinds import ISO_EVENT, Acquired, Analysis, KindOption
 from cellcal.config import CellConfig
 from cellcal.errors import CampaignError, InputError
-from cellcal.files.models import LoadedModel, load_model, model_from_text
 from cellcal.files.text import read_text
-from cellcal.store.database import Store
+
+if TYPE_CHECKING:
+    from cellcal.calib.robot_model import RobotModel
+    from cellcal.campaign.plan import Plan
+    from cellcal.files.models import LoadedModel
+    from cellcal.store.database import Store
 
 BEFORE, AFTER = "iso-before", "iso-after"
 STAGES = {BEFORE: "nominal model", AFTER: "calibrated model"}
@@ -86,6 +88,12 @@ class IsoOutcome:
 def iso_plan(config: CellConfig, calibrated: LoadedModel, cycles: int) -> Plan:
     """Both stages' poses: the five points, ``cycles`` times, with the flange held at the
     orientation it has at the robot's home."""
+    from cellcal.calib.compensation import compensate
+    from cellcal.calib.inverse_kinematics import solve
+    from cellcal.campaign.plan import Plan, PlannedPose
+    from cellcal.campaign.plan_checks import refuse_moves_outside
+    from cellcal.files.models import load_model
+
     if cycles < 2:
         raise InputError(f"--cycles {cycles}: AP and RP need at least 2 cycles (ISO 9283: 30)")
     nominal = load_model(config.robot.model).model
@@ -122,6 +130,8 @@ def iso_plan(config: CellConfig, calibrated: LoadedModel, cycles: int) -> Plan:
 def iso_options(model_spec: str, cycles: int) -> dict[str, Any]:
     """The test's options from the command line: the calibrated model named by
     ``model_spec`` (read here: its text goes with the campaign) and the cycles."""
+    from cellcal.files.models import load_model
+
     calibrated = load_model(model_spec)
     if not calibrated.calibrated or calibrated.T_sensor_base is None:
         raise InputError(f"--model {model_spec}: the test compares against a calibrated model")
@@ -132,9 +142,21 @@ def iso_options(model_spec: str, cycles: int) -> dict[str, Any]:
 #: The options of an ISO 9283 test (``--cycles``, ``--model``): the calibrated model's
 #: text and the name it is known by (a file's absolute path).
 OPTIONS = ("cycles", "model", "model_toml")
+#: ... as the command line gives them: the calibrated model's file, read there (its text
+#: is sent to the service), and the cycles.
+MODEL = KindOption(
+    "model",
+    "the calibrated model (model.toml).",
+    sent="the calibrated model (its text is sent).",
+)
+CYCLE_COUNT = KindOption(
+    "cycles", f"cycles (the standard: {CYCLES}).", low=2, high=1000, default=CYCLES
+)
 
 
 def _calibrated(options: Mapping[str, Any]) -> LoadedModel:
+    from cellcal.files.models import model_from_text
+
     label = str(options.get("model") or "the calibrated model")
     calibrated = model_from_text(str(options["model_toml"]), label)
     if not calibrated.calibrated or calibrated.T_sensor_base is None:
@@ -148,6 +170,7 @@ class Iso9283Kind:
 
     name: str = "iso9283"
     title: str = "ISO 9283 test"
+    command_options: tuple[KindOption, ...] = (MODEL, CYCLE_COUNT)
 
     def options(self, raw: Mapping[str, Any]) -> dict[str, Any]:
         unknown = sorted(set(raw) - set(OPTIONS))
@@ -156,11 +179,11 @@ class Iso9283Kind:
                 f"an ISO 9283 test takes no option {unknown[0][:40]!r} (it takes "
                 f"{', '.join(OPTIONS)})"
             )
-        cycles = raw.get("cycles", CYCLES)
-        if isinstance(cycles, bool) or not isinstance(cycles, int) or not 2 <= cycles <= 1000:
+        cycles = raw.get("cycles", CYCLE_COUNT.default)
+        if not CYCLE_COUNT.accepts(cycles):
             raise InputError(
-                f"cycles {str(cycles)[:40]}: a whole number from 2 to 1000 (AP and RP need "
-                "at least 2 cycles; ISO 9283: 30)"
+                f"cycles {str(cycles)[:40]}: a whole number from {CYCLE_COUNT.low} to "
+                f"{CYCLE_COUNT.high} (AP and RP need at least 2 cycles; ISO 9283: {CYCLES})"
             )
         text, label = raw.get("model_toml"), raw.get("model", "the calibrated model")
         if not isinstance(text, str) or not text:
@@ -172,48 +195,47 @@ class Iso9283Kind:
         return options
 
     def read_options(self, given: Mapping[str, Any]) -> dict[str, Any]:
-        spec = given.get("model")
+        own = [o.name for o in self.command_options]
+        other = sorted(k for k, v in given.items() if v is not None and k not in own)
+        if other:
+            raise InputError(
+                f"an ISO 9283 test takes no option --{other[0][:40]} (it takes "
+                f"{', '.join('--' + o for o in own)}); it is for another --kind"
+            )
+        spec = given.get(MODEL.name)
         if spec is None:
             raise InputError("an ISO 9283 test needs the calibrated model: give --model FILE")
-        cycles = given.get("cycles")
+        cycles = given.get(CYCLE_COUNT.name)
         return iso_options(str(spec), CYCLES if cycles is None else int(cycles))
 
     def plan(self, config: CellConfig, options: Mapping[str, Any]) -> tuple[Plan, RobotModel]:
+        from cellcal.files.models import load_model
+
         plan = iso_plan(config, _calibrated(options), int(options["cycles"]))
         return plan, load_model(config.robot.model).model
 
     def created(self, options: Mapping[str, Any]) -> Sequence[tuple[str, str]]:
         return ((ISO_EVENT, f"{options['cycles']} cycles, joints from {options['model']}"),)
 
-    def analyse(
-        self,
-        store: Store,
-        campaign_id: int,
-        config: CellConfig,
-        plan: Plan,
-        nominal: RobotModel,
-        options: Mapping[str, Any],
-        *,
-        accept: bool,
-    ) -> Analysis:
-        calibrated = _calibrated(options)
+    def analyse(self, done: Acquired) -> Analysis:
+        calibrated = _calibrated(done.options)
         assert calibrated.T_sensor_base is not None  # _calibrated refuses any other
-        cycles = int(options["cycles"])
-        reference = config.reference_sensor.name
-        points = np.array([p.target_mm for p in plan.poses[:5]])
+        cycles = int(done.options["cycles"])
+        reference = done.config.reference_sensor.name
+        points = np.array([p.target_mm for p in done.plan.poses[:5]])
         T = np.asarray(calibrated.T_sensor_base, dtype=np.float64)
-        results = _results(store, campaign_id, reference, T, cycles, points)
+        results = _results(done.store, done.campaign_id, reference, T, cycles, points)
         outcome = IsoOutcome(
-            campaign_id,
-            store.path,
+            done.campaign_id,
+            done.store.path,
             results,
             cycles=cycles,
-            nominal_model=config.robot.model,
-            calibrated_model=str(options["model"]),
+            nominal_model=done.config.robot.model,
+            calibrated_model=str(done.options["model"]),
             reference_sensor=reference,
             T_sensor_base=T,
         )
-        store.add_report(campaign_id, outcome.to_dict())
+        done.store.add_report(done.campaign_id, outcome.to_dict())
         return Analysis(outcome, None)
 
 

@@ -6,7 +6,8 @@ creates the campaign's row with its kind, acquires through the engine, records e
 step on the record stream (the store first), and hands the complete campaign to the
 kind's analysis; a pause, an abort, a stop or a fault ends it the same way for all.
 
-A new kind is one module (its plan, options and analysis) and one line in ``KINDS``."""
+A new kind is one module (its plan, options and analysis), listed in
+``kinds.all_kinds``."""
 
 from __future__ import annotations
 
@@ -19,14 +20,15 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from cellcal.calib.robot_model import RobotModel
-from cellcal.campaign.calibration_kind import CALIBRATION_KIND
 from cellcal.campaign.devices import Devices, build_devices
 from cellcal.campaign.engine import Acquisition, acquire
-from cellcal.campaign.iso9283_kind import ISO9283_KIND
 from cellcal.campaign.kinds import (
     DEFAULT_KIND,
     KIND_EVENT,
+    Acquired,
     CampaignKind,
+    all_kinds,
+    kind_named,
     kind_record,
     stored_kind,
 )
@@ -37,7 +39,6 @@ from cellcal.campaign.records import (
     CampaignEnded,
     CampaignEvent,
     CampaignStarted,
-    RecordStream,
     Subscriber,
 )
 from cellcal.campaign.run_parts import (
@@ -53,24 +54,11 @@ from cellcal.campaign.run_parts import (
 from cellcal.campaign.stop_request import StopRequest
 from cellcal.clock import Clock, SimulatedClock, WallClock
 from cellcal.config import CellConfig, config_from_dict, upgrade_stored
-from cellcal.errors import AcceptanceError, CampaignError, InputError, UserError
+from cellcal.errors import AcceptanceError, CampaignError, UserError
 from cellcal.store.database import Store
 
 if TYPE_CHECKING:
     from cellcal.campaign.analysis import CampaignSummary
-
-#: Every campaign kind, by the name it is stored and asked for with (``--kind``).
-KINDS: dict[str, CampaignKind] = {
-    "calibration": CALIBRATION_KIND,
-    "iso9283": ISO9283_KIND,
-}
-
-
-def kind_named(name: str) -> CampaignKind:
-    if name not in KINDS:
-        shown = repr(name) if len(repr(name)) <= 40 else repr(name)[:39] + "…"
-        raise InputError(f"kind {shown}: one of {', '.join(KINDS)}")
-    return KINDS[name]
 
 
 @dataclass(frozen=True)
@@ -106,22 +94,43 @@ class StoredCampaign:
     nominal: RobotModel
 
 
+@dataclass(frozen=True)
+class _Asked:
+    """What the caller asks of a run: a stop request, the record stream's other
+    subscribers, whether a failed acceptance check is overridden, how the service holds
+    it (``Held``)."""
+
+    stop: threading.Event | None
+    subscribers: Sequence[Subscriber]
+    accept: bool
+    held: Held = field(default_factory=Held)
+
+
 def _run(
     store: Store,
-    stream: RecordStream,
     campaign_id: int,
     c: StoredCampaign,
-    devices: Devices,
-    clock: Clock,
+    on: tuple[Devices, Clock],
+    asked: _Asked,
+    opening: Sequence[CampaignEvent],
     *,
-    stop: threading.Event | None,
-    accept: bool,
     resumed: bool,
     close_devices: bool,
-    held: Held | None = None,
 ) -> CampaignOutcome:
-    """Acquire every pose not yet stored, then the kind's analysis; every ending recorded."""
-    held = held or Held()
+    """Record what the campaign starts with (``opening``, then its devices), acquire
+    every pose not yet stored on ``on`` (the devices and the clock they take time on),
+    then the kind's analysis; every ending recorded."""
+    devices, clock = on
+    stream = record_stream(store, asked.subscribers)
+    try:
+        for event in opening:
+            stream.emit(event)
+        note_devices(stream, campaign_id, devices)
+    except BaseException:
+        if close_devices:
+            devices.close()
+        raise
+    held, stop = asked.held, asked.stop
     hint = held.hint or (
         f"campaign {campaign_id} is resumable: cellcal run --resume {campaign_id} --db {store.path}"
     )
@@ -149,48 +158,52 @@ def _run(
             hold=held.hold,
             phase=held.phase,
         )
-    except UserError as exc:
-        record_failure(stream, campaign_id, total, f"{type(exc).__name__}: {exc}", held.on_fault)
-        raise CampaignError(f"{exc}; {hint}") from exc
     except BaseException as exc:
         record_failure(stream, campaign_id, total, f"{type(exc).__name__}: {exc}", held.on_fault)
+        if isinstance(exc, UserError):
+            raise CampaignError(f"{exc}; {hint}") from exc
         raise
     finally:
         if close_devices:
             devices.close()
+
+    n = acquisition.stored
+
+    def end(
+        status: str, message: str, event: str | None, summary: CampaignSummary | None = None
+    ) -> None:
+        """The campaign's end: its ``event`` (none: None), then the end record."""
+        if event is not None:
+            stream.emit(CampaignEvent(campaign_id, event, message))
+        stream.emit(CampaignEnded(campaign_id, status, n, total, message, summary))
 
     def outcome(result: object | None) -> CampaignOutcome:
         return CampaignOutcome(
             campaign_id, store.path, config, plan, acquisition, result, c.kind.name, c.options
         )
 
-    n = acquisition.stored
     if acquisition.interrupted:
         status = held.halted()
         verb = "stopped" if status == "interrupted" else status
         message = f"{verb} after {n} poses"
         if isinstance(stop, StopRequest) and stop.reason:
             message += f" ({stop.reason})"
-        stream.emit(CampaignEvent(campaign_id, status, message))
-        stream.emit(CampaignEnded(campaign_id, status, n, total, message))
+        end(status, message, status)
         return outcome(None)
+    finished = Acquired(store, campaign_id, config, plan, c.nominal, c.options, asked.accept)
     try:
-        analysis = c.kind.analyse(
-            store, campaign_id, config, plan, c.nominal, c.options, accept=accept
-        )
+        analysis = c.kind.analyse(finished)
     except AcceptanceError as exc:
-        stream.emit(CampaignEvent(campaign_id, "refused", str(exc)))
-        stream.emit(CampaignEnded(campaign_id, "refused", n, total, str(exc)))
+        end("refused", str(exc), "refused")
         raise AcceptanceError(
             exc.check,
             f"{exc.message}; every sample is stored (campaign {campaign_id} in {store.path}); "
             f"cellcal run --resume {campaign_id} --accept analyses it anyway",
         ) from exc
     except UserError as exc:
-        stream.emit(CampaignEvent(campaign_id, "analysis-failed", str(exc)))
-        stream.emit(CampaignEnded(campaign_id, "interrupted", n, total, str(exc)))
+        end("interrupted", str(exc), "analysis-failed")
         raise CampaignError(f"analysis failed: {exc}; every pose is stored; {hint}") from exc
-    stream.emit(CampaignEnded(campaign_id, "complete", n, total, "complete", analysis.summary))
+    end("complete", "complete", None, analysis.summary)
     return outcome(analysis.result)
 
 
@@ -254,21 +267,14 @@ def start_campaign(
             campaign_id = _create(
                 store, k, checked, config, plan, config_path, mock, time_scale, "running"
             )
-            stream = record_stream(store, subscribers)
-            for u in plan.unreachable:
-                stream.emit(CampaignEvent(campaign_id, "unreachable", unreachable_text(u)))
-            note_devices(stream, campaign_id, devices)
+            unreachable = [
+                CampaignEvent(campaign_id, "unreachable", unreachable_text(u))
+                for u in plan.unreachable
+            ]
+            asked = _Asked(stop, subscribers, accept)
+            on = (devices, clock)
             return _run(
-                store,
-                stream,
-                campaign_id,
-                c,
-                devices,
-                clock,
-                stop=stop,
-                accept=accept,
-                resumed=False,
-                close_devices=own,
+                store, campaign_id, c, on, asked, unreachable, resumed=False, close_devices=own
             )
         except BaseException:
             if own:
@@ -284,12 +290,13 @@ def stored_campaign(store: Store, campaign_id: int) -> StoredCampaign:
     plan must come out the same as when the campaign was created."""
     row = store.campaign(campaign_id)
     name, raw = stored_kind(store, campaign_id)
-    if name not in KINDS:
+    kinds = all_kinds()
+    if name not in kinds:
         raise CampaignError(
             f"campaign {campaign_id} is of kind {name!r}, which this cellcal does not know "
-            f"({', '.join(KINDS)})"
+            f"({', '.join(kinds)})"
         )
-    kind = KINDS[name]
+    kind = kinds[name]
     options = kind.options(raw)
     stored = upgrade_stored(json.loads(row.config_json))
     config = config_from_dict(stored, f"campaign {campaign_id}")
@@ -379,25 +386,14 @@ def run_stored(
     if row.status in ("complete", "aborted"):
         raise CampaignError(f"campaign {campaign_id} is {row.status}")
     c = stored_campaign(store, campaign_id)
-    stream = record_stream(store, subscribers)
     resumed = row.status != "queued"
+    opening = []
     if resumed:
         stored = len(store.completed_indices(campaign_id))
-        stream.emit(CampaignEvent(campaign_id, "resumed", f"{stored} poses stored"))
-    note_devices(stream, campaign_id, devices)
-    return _run(
-        store,
-        stream,
-        campaign_id,
-        c,
-        devices,
-        clock,
-        stop=stop,
-        accept=accept,
-        resumed=resumed,
-        close_devices=False,
-        held=held,
-    )
+        opening.append(CampaignEvent(campaign_id, "resumed", f"{stored} poses stored"))
+    asked = _Asked(stop, subscribers, accept, held or Held())
+    on = (devices, clock)
+    return _run(store, campaign_id, c, on, asked, opening, resumed=resumed, close_devices=False)
 
 
 def resume_campaign(
@@ -438,24 +434,9 @@ def resume_campaign(
                 noise_stream=stored,
                 robot_address=claimed_address(held),
             )
-            stream = record_stream(store, subscribers)
-            try:
-                stream.emit(CampaignEvent(campaign_id, "resumed", f"{stored} poses stored"))
-                note_devices(stream, campaign_id, devices)
-            except BaseException:
-                devices.close()
-                raise
-            return _run(
-                store,
-                stream,
-                campaign_id,
-                c,
-                devices,
-                clock,
-                stop=stop,
-                accept=accept,
-                resumed=True,
-                close_devices=True,
-            )
+            opening = [CampaignEvent(campaign_id, "resumed", f"{stored} poses stored")]
+            asked = _Asked(stop, subscribers, accept)
+            on = (devices, clock)
+            return _run(store, campaign_id, c, on, asked, opening, resumed=True, close_devices=True)
         finally:
             store.close()

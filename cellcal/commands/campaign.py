@@ -10,8 +10,10 @@ from typing import Any
 
 import click
 
+from cellcal.campaign.kinds import kind_named
 from cellcal.commands.output import SEED, print_json
-from cellcal.commands.service_client import answer_of, call, follow, socket_path
+from cellcal.commands.run import kind_options, other_kind_asked
+from cellcal.commands.service_client import answer_of, call, follow, one_line, socket_path
 from cellcal.errors import InputError, UserError
 from cellcal.reports.folder import list_campaigns
 from cellcal.store.database import Store
@@ -29,6 +31,12 @@ JSON = click.option("--json", "as_json", is_flag=True, help="Print JSON on stdou
 
 def _fmt(v: float | None) -> str:
     return "—" if v is None else f"{v:.4f}"
+
+
+def _kind(campaign: dict[str, Any]) -> str:
+    """A campaign's kind as the service or the database says it (— from a service of an
+    earlier cellcal, which does not), in one short line."""
+    return one_line(campaign.get("kind") or "—", 40)
 
 
 @click.group()
@@ -64,15 +72,15 @@ def list_command(db_path: str | None, sock: str | None, as_json: bool) -> None:
         print_json({"database" if db_path else "socket": source, "campaigns": rows})
         return
     lines = [
-        f"{'id':>4}  {'created (UTC)':<19} {'status':<12} {'poses':>11}  {'RMS before':>11}"
-        f"  {'RMS after':>10}  model / sensors"
+        f"{'id':>4}  {'created (UTC)':<19} {'status':<12} {'kind':<12} {'poses':>11}  "
+        f"{'RMS before':>11}  {'RMS after':>10}  model / sensors"
     ]
     with answer_of(source, "list of campaigns"):
         for r in rows:
             created = r["created"][:19].replace("T", " ")
             lines.append(
-                f"{r['id']:>4}  {created:<19} {r['status']:<12} {r['poses_stored']:>5} / "
-                f"{r['n_poses']:<4} {_fmt(r['rms_before_mm']):>11}  "
+                f"{r['id']:>4}  {created:<19} {r['status']:<12} {_kind(r):<12} "
+                f"{r['poses_stored']:>5} / {r['n_poses']:<4} {_fmt(r['rms_before_mm']):>11}  "
                 f"{_fmt(r['rms_after_mm']):>10}  {r['model']} / {', '.join(r['sensors'])}"
             )
     for line in lines:
@@ -84,18 +92,7 @@ def list_command(db_path: str | None, sock: str | None, as_json: bool) -> None:
 @click.option("--mock", is_flag=True, help="The service's simulated cell (a --mock service).")
 @click.option("--seed", type=SEED, help="Mock mode: the plan's seed.")
 @click.option("--queue", is_flag=True, help="Queue it behind the campaign that runs.")
-@click.option(
-    "--kind",
-    default="calibration",
-    show_default=True,
-    help="The campaign's kind: calibration, or iso9283 (the ISO 9283 test: --model, --cycles).",
-)
-@click.option(
-    "--model", "model_spec", help="--kind iso9283: the calibrated model (its text is sent)."
-)
-@click.option(
-    "--cycles", type=click.IntRange(2, 1000), help="--kind iso9283: cycles (the standard: 30)."
-)
+@kind_options(sent=True)
 @SOCKET
 @JSON
 def start(
@@ -104,19 +101,15 @@ def start(
     seed: int | None,
     queue: bool,
     kind: str,
-    model_spec: str | None,
-    cycles: int | None,
     sock: str | None,
     as_json: bool,
+    **given: Any,
 ) -> None:
     """Ask the service to run a campaign (with this configuration's text, or its own) of
     a kind: a calibration, or an ISO 9283 test (--kind iso9283 --model FILE)."""
     body: dict[str, Any] = {"when": "queue" if queue else "now", "seed": seed}
-    given = {"model": model_spec, "cycles": cycles}
     what = ""
-    if kind != "calibration" or any(v is not None for v in given.values()):
-        from cellcal.campaign.runner import kind_named
-
+    if other_kind_asked(kind, given):
         # The options as the service takes them: a file they name is read here, sent.
         body["kind"] = kind
         body["options"] = kind_named(kind).read_options(given)
@@ -172,9 +165,10 @@ def _status_lines(snap: dict[str, Any]) -> list[str]:
         going = snap["state"] == "running" and c.get("status") != "paused"
         eta = c.get("eta_s") if going else None
         status = f" ({c['status']})" if c.get("status") else ""
+        kind = f"{_kind(c)} " if c.get("kind") else ""
         lines.append(
-            f"campaign {c['id']}{status}: {c.get('stored', 0)} of {c.get('planned', 0)} poses "
-            f"stored, phase {c.get('phase')}" + (f", about {eta:.0f} s to go" if eta else "")
+            f"{kind}campaign {c['id']}{status}: {c.get('stored', 0)} of {c.get('planned', 0)} "
+            f"poses stored, phase {c.get('phase')}" + (f", about {eta:.0f} s to go" if eta else "")
         )
     devices = ", ".join(f"{k} {v['state']}" for k, v in snap["devices"].items())
     lines.append(f"devices: {devices}")

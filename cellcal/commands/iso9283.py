@@ -8,9 +8,9 @@ from typing import TYPE_CHECKING
 
 import click
 
-from cellcal.calib.iso9283 import CYCLES
+from cellcal.campaign.iso9283_kind import CYCLE_COUNT, MODEL
 from cellcal.commands.output import TIME_SCALE, print_json
-from cellcal.commands.run import run_kind
+from cellcal.commands.run import CampaignRun, option_type, run_kind
 
 if TYPE_CHECKING:
     from cellcal.campaign.runner import CampaignOutcome
@@ -25,10 +25,10 @@ if TYPE_CHECKING:
 @click.option("--db", "db_path", help="Database (default: storage.database of the config).")
 @click.option(
     "--cycles",
-    type=click.IntRange(2, 1000),
-    default=CYCLES,
+    type=option_type(CYCLE_COUNT),
+    default=CYCLE_COUNT.default,
     show_default=True,
-    help="Cycles through the five points (the standard: 30).",
+    help=f"Cycles through the five points (the standard: {CYCLE_COUNT.default}).",
 )
 @click.option("--time-scale", type=TIME_SCALE, default=0.0, help="Mock mode: wall s per s.")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout.")
@@ -46,19 +46,16 @@ def iso9283(
     Every sample is stored in the database like a campaign's; an interrupted test goes
     on with `cellcal run --resume ID`."""
     run_kind(
-        config_path,
-        mock,
-        db_path,
-        None,
-        time_scale if mock else None,
-        None,
-        False,
-        None,
-        False,
-        as_json,
-        kind="iso9283",
-        given={"model": model_spec, "cycles": cycles},
-        quiet=True,
+        CampaignRun(
+            kind="iso9283",
+            given={MODEL.name: model_spec, CYCLE_COUNT.name: cycles},
+            config_path=config_path,
+            mock=mock,
+            db_path=db_path,
+            time_scale=time_scale if mock else None,
+            as_json=as_json,
+            quiet=True,
+        )
     )
 
 

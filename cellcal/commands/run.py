@@ -7,13 +7,16 @@ from __future__ import annotations
 
 import signal
 import sys
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
 from types import FrameType
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, TypeVar
 
 import click
 
+from cellcal.campaign.kinds import DEFAULT_KIND, CampaignKind, KindOption, all_kinds, kind_named
 from cellcal.campaign.stop_request import StopRequest
 from cellcal.commands.output import SEED, TIME_SCALE, print_json
 from cellcal.config import CellConfig, default_database, load_config
@@ -231,6 +234,87 @@ def _print_summary(out: CampaignOutcome, folder: str | None, residuals: bool) ->
         click.echo(f"the report, every figure: cellcal report {where} --out DIR")
 
 
+F = TypeVar("F", bound=Callable[..., Any])
+
+
+def _listed(names: list[str]) -> str:
+    return names[0] if len(names) == 1 else ", ".join(names[:-1]) + ", or " + names[-1]
+
+
+def option_type(o: KindOption) -> click.IntRange | None:
+    """A kind's option's type on the command line (None: a text)."""
+    return None if o.low is None or o.high is None else click.IntRange(o.low, o.high)
+
+
+def kind_options(
+    kinds: Mapping[str, CampaignKind] | None = None, *, sent: bool = False
+) -> Callable[[F], F]:
+    """``--kind`` and every kind's own options (``KindOption``), as ``cellcal run`` and
+    (``sent``: the values go to the service) ``cellcal campaign start`` take them: from
+    the table of kinds (``kinds.all_kinds``), so that a new kind's options come with it.
+    The command is given each option by its name, None where it is not given. An option
+    two kinds declare is one option (the first's type), for either ``--kind``."""
+    table = all_kinds() if kinds is None else kinds
+    declared: dict[str, tuple[KindOption, list[str]]] = {}
+    for k in table.values():
+        for o in k.command_options:
+            declared.setdefault(o.name, (o, []))[1].append(k.name)
+    each = [
+        f"{name} (the {k.title}: {', '.join('--' + o.name for o in k.command_options)})"
+        if k.command_options
+        else name
+        for name, k in table.items()
+    ]
+
+    def add(f: F) -> F:
+        # a decorator's option shows above those added before it: the last one first
+        for o, names in reversed(declared.values()):
+            text = o.sent if sent and o.sent else o.help
+            help_ = f"--kind {', '.join(names)}: {text}"
+            f = click.option(f"--{o.name}", o.name, type=option_type(o), help=help_)(f)
+        return click.option(
+            "--kind",
+            default=DEFAULT_KIND,
+            show_default=True,
+            help=f"The campaign's kind: {_listed(each)}.",
+        )(f)
+
+    return add
+
+
+def given_options(params: dict[str, Any]) -> dict[str, Any]:
+    """The kinds' options out of a command's parameters (taken out of ``params``)."""
+    names = {o.name for k in all_kinds().values() for o in k.command_options}
+    return {name: params.pop(name) for name in list(params) if name in names}
+
+
+def other_kind_asked(kind: str, given: Mapping[str, Any]) -> bool:
+    """Whether a command line asks for a kind other than the default, or gives options."""
+    return kind != DEFAULT_KIND or any(v is not None for v in given.values())
+
+
+@dataclass(frozen=True)
+class CampaignRun:
+    """What ``cellcal run`` (and ``cellcal iso9283``) asks for: a campaign of ``kind``
+    started (``given``: its options as the command line has them, None where not given)
+    or resumed (``resume_id``), with its outcome printed as its kind's (``quiet``: no
+    progress, only the result)."""
+
+    kind: str = DEFAULT_KIND
+    given: Mapping[str, Any] = field(default_factory=dict)
+    config_path: str | None = None
+    mock: bool = False
+    db_path: str | None = None
+    seed: int | None = None
+    time_scale: float | None = None
+    resume_id: int | None = None
+    accept: bool = False
+    report_dir: str | None = None
+    residuals: bool = False
+    as_json: bool = False
+    quiet: bool = False
+
+
 @click.command()
 @click.option("--config", "config_path", help="Cell configuration (TOML).")
 @click.option("--mock", is_flag=True, help="Simulated devices; without --config, the bundled cell.")
@@ -259,32 +343,9 @@ def _print_summary(out: CampaignOutcome, folder: str | None, residuals: bool) ->
     is_flag=True,
     help="Also list the reference sensor's residual at every calibration pose.",
 )
-@click.option(
-    "--kind",
-    default="calibration",
-    show_default=True,
-    help="The campaign's kind: calibration, or iso9283 (the ISO 9283 test: --model, --cycles).",
-)
-@click.option("--model", "model_spec", help="--kind iso9283: the calibrated model (model.toml).")
-@click.option(
-    "--cycles", type=click.IntRange(2, 1000), help="--kind iso9283: cycles (the standard: 30)."
-)
+@kind_options()
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout.")
-def run(
-    config_path: str | None,
-    mock: bool,
-    db_path: str | None,
-    seed: int | None,
-    time_scale: float | None,
-    resume_id: int | None,
-    accept: bool,
-    report_dir: str | None,
-    residuals: bool,
-    kind: str,
-    model_spec: str | None,
-    cycles: int | None,
-    as_json: bool,
-) -> None:
+def run(**params: Any) -> None:
     """Run a whole campaign: plan, acquire, store, register, calibrate, validate, report.
 
     Every sample is stored before the analysis; a result that fails an acceptance check
@@ -295,53 +356,24 @@ def run(
     summary; --residuals adds every calibration pose's residual (the report and --json
     have them). --kind iso9283 runs the ISO 9283 test instead (as `cellcal iso9283`);
     --resume goes on with a campaign of any kind."""
-    given = {"model": model_spec, "cycles": cycles}
-    if resume_id is not None and (
-        kind != "calibration" or any(v is not None for v in given.values())
-    ):
+    given = given_options(params)
+    asked = CampaignRun(given=given, **params)
+    if asked.resume_id is not None and other_kind_asked(asked.kind, given):
         raise InputError("--resume takes the campaign's kind and options from the database")
-    run_kind(
-        config_path,
-        mock,
-        db_path,
-        seed,
-        time_scale,
-        resume_id,
-        accept,
-        report_dir,
-        residuals,
-        as_json,
-        kind=kind,
-        given=given,
-    )
+    run_kind(asked)
 
 
-def run_kind(
-    config_path: str | None,
-    mock: bool,
-    db_path: str | None,
-    seed: int | None,
-    time_scale: float | None,
-    resume_id: int | None,
-    accept: bool,
-    report_dir: str | None,
-    residuals: bool,
-    as_json: bool,
-    *,
-    kind: str,
-    given: dict[str, Any],
-    quiet: bool = False,
-) -> None:
-    """A campaign of ``kind`` started (``given``: its options as the command line has
-    them) or resumed, through the one runner; its outcome printed as its kind's."""
-    if report_dir is not None and Path(report_dir).exists() and not Path(report_dir).is_dir():
-        raise InputError(f"--report {report_dir}: exists and is not a folder")
-    if report_dir is not None:  # before the campaign, not after it
+def run_kind(a: CampaignRun) -> None:
+    """A campaign started or resumed through the one runner (see :class:`CampaignRun`);
+    its outcome printed as its kind's."""
+    if a.report_dir is not None and Path(a.report_dir).exists() and not Path(a.report_dir).is_dir():
+        raise InputError(f"--report {a.report_dir}: exists and is not a folder")
+    if a.report_dir is not None:  # before the campaign, not after it
         require("cellcal run --report", "matplotlib")
-    if db_path is not None:
-        database_path(db_path)  # an empty path, :memory:, a URI: one line, before anything
-        if not Path(db_path).resolve().parent.is_dir():
-            raise InputError(f"--db {db_path}: folder {Path(db_path).parent} does not exist")
+    if a.db_path is not None:
+        database_path(a.db_path)  # an empty path, :memory:, a URI: one line, before anything
+        if not Path(a.db_path).resolve().parent.is_dir():
+            raise InputError(f"--db {a.db_path}: folder {Path(a.db_path).parent} does not exist")
     stop = StopRequest()
 
     def on_signal(signum: int, frame: FrameType | None) -> None:
@@ -351,41 +383,41 @@ def run_kind(
         stop.request(name)
 
     previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
-    progress: Subscriber = BarProgress() if sys.stderr.isatty() and not as_json else LineProgress()
-    if quiet:
+    progress: Subscriber = (
+        BarProgress() if sys.stderr.isatty() and not a.as_json else LineProgress()
+    )
+    if a.quiet:
         progress = _silent
-    devices = "starting the devices' twins" if mock else "connecting the devices"
+    devices = "starting the devices' twins" if a.mock else "connecting the devices"
     try:
-        if resume_id is not None:
-            if config_path or mock or seed is not None:
+        if a.resume_id is not None:
+            if a.config_path or a.mock or a.seed is not None:
                 raise InputError(
                     "--resume takes only --db, --time-scale, --accept, --report, --residuals "
                     "and --json"
                 )
-            db = db_path if db_path is not None else default_database()
-            if Path(db).is_file() and not quiet:  # else one line says so
-                click.echo(f"resuming campaign {resume_id}: connecting the devices…", err=True)
+            db = a.db_path if a.db_path is not None else default_database()
+            if Path(db).is_file() and not a.quiet:  # else one line says so
+                click.echo(f"resuming campaign {a.resume_id}: connecting the devices…", err=True)
             from cellcal.campaign.runner import resume_campaign
 
             outcome = resume_campaign(
                 db,
-                resume_id,
-                time_scale=time_scale,
+                a.resume_id,
+                time_scale=a.time_scale,
                 stop=stop,
                 subscribers=[progress],
-                accept=accept,
+                accept=a.accept,
             )
         else:
             options: dict[str, Any] = {}
-            if kind != "calibration" or any(v is not None for v in given.values()):
-                from cellcal.campaign.runner import kind_named
-
-                options = kind_named(kind).read_options(given)  # a file it names: read first
-            config, source = cell_config(config_path, mock)
-            if not mock and (seed is not None or time_scale is not None):
+            if other_kind_asked(a.kind, a.given):  # a file it names: read first
+                options = kind_named(a.kind).read_options(a.given)
+            config, source = cell_config(a.config_path, a.mock)
+            if not a.mock and (a.seed is not None or a.time_scale is not None):
                 raise InputError("--seed and --time-scale apply to mock mode (--mock)")
-            db = db_path if db_path is not None else database_path(config.storage.database)
-            if not quiet:
+            db = a.db_path if a.db_path is not None else database_path(config.storage.database)
+            if not a.quiet:
                 click.echo(f"{config.name}: planning the poses and {devices}…", err=True)
             from cellcal.campaign.runner import start_campaign
 
@@ -393,14 +425,14 @@ def run_kind(
                 config,
                 db,
                 config_path=source,
-                mock=mock,
-                kind=kind,
+                mock=a.mock,
+                kind=a.kind,
                 options=options,
-                seed=seed,
-                time_scale=time_scale or 0.0,
+                seed=a.seed,
+                time_scale=a.time_scale or 0.0,
                 stop=stop,
                 subscribers=[progress],
-                accept=accept,
+                accept=a.accept,
             )
     finally:
         if isinstance(progress, BarProgress):
@@ -418,22 +450,22 @@ def run_kind(
         )
         sys.exit(EXIT_INTERRUPTED)
     folder = None
-    if report_dir is not None:
-        click.echo(f"writing the report into {report_dir}…", err=True)
+    if a.report_dir is not None:
+        click.echo(f"writing the report into {a.report_dir}…", err=True)
         from cellcal.reports.folder import write_report
         from cellcal.store.database import Store
 
         store = Store(outcome.db_path, readonly=True)
         try:
-            folder = write_report(store, outcome.campaign_id, report_dir).folder
+            folder = write_report(store, outcome.campaign_id, a.report_dir).folder
         finally:
             store.close()
     if outcome.summary is None:  # another kind's result: its own output
         from cellcal.commands.iso9283 import print_outcome
 
-        print_outcome(outcome, folder, as_json)
+        print_outcome(outcome, folder, a.as_json)
         return
-    if as_json:
+    if a.as_json:
         s = outcome.summary
         doc: dict[str, Any] = {
             "campaign_id": outcome.campaign_id,
@@ -451,4 +483,4 @@ def run_kind(
         }
         print_json(doc)
     else:
-        _print_summary(outcome, folder, residuals)
+        _print_summary(outcome, folder, a.residuals)

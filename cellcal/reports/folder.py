@@ -14,6 +14,7 @@ Files are written atomically; the database is only read.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import json
 import math
 from dataclasses import dataclass
@@ -25,6 +26,7 @@ import numpy as np
 from cellcal import __version__
 from cellcal.calib.geometry import apply, invert
 from cellcal.campaign.analysis import mean_sigma
+from cellcal.campaign.kinds import DEFAULT_KIND, shown_kinds
 from cellcal.campaign.plan import CALIBRATION, VALIDATION
 from cellcal.errors import CampaignError, InputError
 from cellcal.files.models import write_atomically
@@ -36,7 +38,12 @@ from cellcal.store.queries import CampaignListing
 
 
 def list_campaigns(store: Store) -> list[CampaignListing]:
-    return store.campaign_listings()
+    """Every campaign, oldest first, with its kind (``calibration``, ``iso9283``)."""
+    kinds = shown_kinds(store)
+    return [
+        dataclasses.replace(row, kind=kinds.get(row.id, DEFAULT_KIND))
+        for row in store.campaign_listings()
+    ]
 
 
 def latest_campaign(store: Store) -> int:

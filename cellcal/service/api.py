@@ -1,37 +1,31 @@
-"""(Size: about 500 lines — the routes and the event hub are one aiohttp application; the
-request reading is already apart in api_requests.py. It goes into the service sub-
-package in the planned daemon split.)
-
-The control API: HTTP/1.1 and JSON on a Unix socket (aiohttp), server-sent events
-for watching. A mutating call answers ``202`` once accepted; clients learn the outcome
-from the event stream. Errors have one shape: ``{"error": {"code", "message"}}`` with
-one line of message, whatever refused the request (``api_requests.py`` reads and checks
-each with bounds before anything acts on it). Every mutating call records the caller
-(SO_PEERCRED) in the campaign's events. The event stream sends a keep-alive comment
-when quiet, and drops a watcher that takes nothing in, or that falls behind by more
-than ``WATCHER_BACKLOG`` events (what waits for each watcher is bounded: a slow one
-neither grows the service nor holds up the campaign, which never waits for a watcher)."""
+"""The control API: HTTP/1.1 and JSON on a Unix socket (aiohttp), server-sent events
+for watching (``event_stream.py``: the hub and the stream, bounded for slow watchers).
+A mutating call answers ``202`` once accepted; clients learn the outcome from the event
+stream. Errors have one shape: ``{"error": {"code", "message"}}`` with one line of
+message, whatever refused the request (``api_requests.py`` reads and checks each with
+bounds before anything acts on it). Every mutating call records the caller
+(SO_PEERCRED) in the campaign's events."""
 
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import json
 import logging
 import pwd
 import socket
+import sqlite3
 import struct
 import tomllib
-from collections import deque
 from collections.abc import Awaitable, Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from aiohttp import web
 
 from cellcal import __version__
-from cellcal.campaign.runner import KINDS, plan_campaign, queue_campaign
+from cellcal.campaign.kinds import DEFAULT_KIND, kind_named, shown_kinds
+from cellcal.campaign.runner import plan_campaign, queue_campaign
 from cellcal.config import CellConfig, config_from_dict, relative_to, upgrade_stored
 from cellcal.errors import CellcalError
 from cellcal.reports.folder import list_campaigns
@@ -50,78 +44,15 @@ from cellcal.service.api_requests import (
     start_request,
 )
 from cellcal.service.control import Control, ControlError
+from cellcal.service.event_stream import WATCHER_BACKLOG as WATCHER_BACKLOG
+from cellcal.service.event_stream import EventHub as EventHub  # the service's hub
+from cellcal.service.event_stream import event_stream
 from cellcal.store.database import Store
 
 log = logging.getLogger("cellcal.service")
 
 API_VERSION = 1
-#: Events kept for ``Last-Event-ID``.
-EVENT_BUFFER = 2000
-#: Seconds between keep-alive comments on a quiet event stream: a watcher that hears
-#: nothing for much longer knows the service is gone or hung.
-KEEPALIVE_S = 15.0
-#: Seconds a watcher may take to take in what is sent to it; a slower one is dropped.
-SEND_TIMEOUT_S = 30.0
-#: Events that may wait for one watcher; one further behind is dropped. Half the replay
-#: buffer: a dropped watcher that reconnects with ``Last-Event-ID`` finds what it missed.
-WATCHER_BACKLOG = EVENT_BUFFER // 2
 SO_PEERGROUPS = 59  # Linux 4.13+, not in Python's socket module
-
-
-#: What an event stream's queue holds: an event (id, kind, data), or its end: ``None``
-#: (the service stops) or :data:`BEHIND` (the watcher fell behind and is dropped).
-Item = tuple[int, str, str] | None | str
-BEHIND = "behind"
-
-
-class EventHub:
-    """The event stream's buffer and its listeners (loop thread only). Each listener's
-    queue holds at most :data:`WATCHER_BACKLOG` events: publishing never waits, and a
-    listener that falls further behind is dropped at once — its queue emptied and ended,
-    its ``drop`` called (which closes its connection)."""
-
-    def __init__(self) -> None:
-        self.next_id = 1
-        self.buffer: deque[tuple[int, str, str]] = deque(maxlen=EVENT_BUFFER)
-        self.listeners: dict[asyncio.Queue[Item], Callable[[], None]] = {}
-        self.dropped = 0  # listeners dropped for falling behind
-
-    def listen(self, drop: Callable[[], None] = lambda: None) -> asyncio.Queue[Item]:
-        """A new listener's queue, bounded; ``drop``: called if it falls behind."""
-        q: asyncio.Queue[Item] = asyncio.Queue(maxsize=WATCHER_BACKLOG)
-        self.listeners[q] = drop
-        return q
-
-    def publish(self, kind: str, data: dict[str, Any]) -> None:
-        item = (self.next_id, kind, json.dumps(data, separators=(",", ":")))
-        self.next_id += 1
-        self.buffer.append(item)
-        for q in list(self.listeners):
-            try:
-                q.put_nowait(item)
-            except asyncio.QueueFull:
-                drop = self.listeners.pop(q)
-                self.dropped += 1
-                _end(q, BEHIND)
-                drop()
-
-    def since(self, last_id: int) -> list[tuple[int, str, str]]:
-        return [e for e in self.buffer if e[0] > last_id]
-
-    def close(self) -> None:
-        """The service stops: each stream ends after what waits for it (a full one now)."""
-        for q in self.listeners:
-            try:
-                q.put_nowait(None)
-            except asyncio.QueueFull:
-                _end(q, None)
-
-
-def _end(q: asyncio.Queue[Item], mark: Item) -> None:
-    """End a listener's stream: what waits in its queue is dropped, ``mark`` follows."""
-    while not q.empty():
-        q.get_nowait()
-    q.put_nowait(mark)
 
 
 @dataclass(frozen=True)
@@ -173,7 +104,8 @@ STATUS_OF_CODE = {
 @dataclass
 class Service:
     """What the handlers need: the control object, the loop thread's database
-    connection, the event hub, the service's configuration and where it listens."""
+    connection, the event hub, the service's configuration and where it listens (and the
+    kinds of the campaigns shown so far: a campaign's kind never changes)."""
 
     control: Control
     store: Store
@@ -185,6 +117,7 @@ class Service:
     socket_path: str
     http: str | None
     group_id: int  # the socket's group: its members may control the service
+    kinds: dict[int, str] = field(default_factory=dict)
 
 
 Handler = Callable[[web.Request], Awaitable[web.StreamResponse]]
@@ -193,6 +126,7 @@ Handler = Callable[[web.Request], Awaitable[web.StreamResponse]]
 def make_app(svc: Service) -> web.Application:
     app = web.Application(middlewares=[_errors, _allowed(svc)], client_max_size=MAX_BODY)
     app["svc"] = svc
+    svc.hub.status_view = lambda snap: _with_kind(svc, snap)
     app.router.add_get("/v1/info", info)
     app.router.add_get("/v1/status", status)
     app.router.add_get("/v1/events", events)
@@ -279,9 +213,25 @@ def _queue(store: Store) -> list[int]:
 
 def _snapshot(svc: Service) -> dict[str, Any]:
     """The control object's snapshot with the queue from the database."""
-    snap = svc.control.snapshot(recent=True)
+    snap = _with_kind(svc, svc.control.snapshot(recent=True))
     snap["queue"] = _queue(svc.store)
     return snap
+
+
+def _with_kind(svc: Service, snap: dict[str, Any]) -> dict[str, Any]:
+    """A status whose campaign shown carries its kind (``calibration``, ``iso9283``), read
+    from the database once per campaign (loop thread: the loop's connection)."""
+    c = snap.get("campaign")
+    if not c or "kind" in c:
+        return snap
+    cid = int(c["id"])
+    if cid not in svc.kinds:
+        try:
+            svc.kinds[cid] = shown_kinds(svc.store, cid).get(cid, DEFAULT_KIND)
+        except (CellcalError, sqlite3.Error) as exc:  # the status goes out without it
+            log.warning("campaign %d: its kind not read (%s)", cid, exc)
+            return snap
+    return {**snap, "campaign": {**c, "kind": svc.kinds[cid]}}
 
 
 async def status(request: web.Request) -> web.Response:
@@ -289,75 +239,9 @@ async def status(request: web.Request) -> web.Response:
 
 
 async def events(request: web.Request) -> web.StreamResponse:
-    """Server-sent events: ``status``, ``pose``, ``event``, ``campaign-end``; a client
-    that reconnects with ``Last-Event-ID`` gets what it missed (while buffered)."""
+    """Server-sent events (``event_stream.py``); a new watcher starts with the status."""
     svc = _svc(request)
-    resp = web.StreamResponse(
-        headers={"Content-Type": "text/event-stream", "Cache-Control": "no-cache"}
-    )
-    await resp.prepare(request)
-    header = request.headers.get("Last-Event-ID")
-    try:
-        last = int(header) if header else None
-    except ValueError:
-        last = None
-    # A new watcher starts from now (with a snapshot); one that reconnects gets what
-    # it missed, as far as the buffer reaches.
-    backlog = svc.hub.since(last) if last is not None else []
-
-    def behind() -> None:  # dropped for falling behind: closed at once, a send with it
-        log.info("an event stream's reader fell %d events behind: dropped", WATCHER_BACKLOG)
-        if request.transport is not None:
-            request.transport.abort()
-
-    q = svc.hub.listen(behind)
-    # A watcher that goes away (or is dropped) ends its stream; nothing else is wrong.
-    try:
-        with contextlib.suppress(ConnectionResetError):
-            await _stream_events(svc, resp, q, backlog)
-    except TimeoutError:  # a watcher that does not read: dropped, its descriptor freed
-        log.info("an event stream's reader took nothing for %.0f s: dropped", SEND_TIMEOUT_S)
-        if request.transport is not None:
-            request.transport.abort()
-    return resp
-
-
-async def _stream_events(
-    svc: Service,
-    resp: web.StreamResponse,
-    q: asyncio.Queue[Item],
-    backlog: list[tuple[int, str, str]],
-) -> None:
-    """The backlog, a status, then what the hub publishes, until the stream's end."""
-    try:
-        for item in backlog:
-            await _send(resp, item)
-        if not backlog or backlog[-1][1] != "status":
-            snap = json.dumps(_snapshot(svc))
-            await _send(resp, (svc.hub.next_id - 1, "status", snap))
-        while True:
-            try:
-                async with asyncio.timeout(KEEPALIVE_S):
-                    pending = await q.get()
-            except TimeoutError:
-                await _write(resp, b": keep-alive\n\n")  # a comment: EventSource skips it
-                continue
-            if pending is None or isinstance(pending, str):
-                return
-            await _send(resp, pending)
-    finally:
-        svc.hub.listeners.pop(q, None)
-
-
-async def _send(resp: web.StreamResponse, item: tuple[int, str, str]) -> None:
-    i, kind, data = item
-    await _write(resp, f"id: {i}\nevent: {kind}\ndata: {data}\n\n".encode())
-
-
-async def _write(resp: web.StreamResponse, data: bytes) -> None:
-    """Out to one watcher, which must take it within ``SEND_TIMEOUT_S`` (TimeoutError)."""
-    async with asyncio.timeout(SEND_TIMEOUT_S):
-        await resp.write(data)
+    return await event_stream(request, svc.hub, lambda: _snapshot(svc))
 
 
 async def campaigns(request: web.Request) -> web.Response:
@@ -456,7 +340,7 @@ async def start(request: web.Request) -> web.Response:
         )
     except CellcalError as exc:
         raise ControlError("invalid-params", str(exc)) from None
-    what = "" if req.kind == "calibration" else f"{KINDS[req.kind].title}, "  # known: planned
+    what = "" if req.kind == DEFAULT_KIND else f"{kind_named(req.kind).title}, "  # planned
     _note(svc, request, cid, f"queued ({what}{len(plan.poses)} poses)")
     svc.control.work_queued()
     return web.json_response({"campaign_id": cid, "n_poses": len(plan.poses)}, status=202)

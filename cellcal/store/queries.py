@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import sqlite3
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, NamedTuple
 
@@ -26,12 +27,16 @@ class CampaignListing:
     stored: int
     rms_before_mm: float | None
     rms_after_mm: float | None
+    #: the campaign's kind (``calibration``, ``iso9283``), as the campaign layer reads it
+    #: from the campaign's events (``campaign/kinds.py``: ``shown_kinds``)
+    kind: str = "calibration"
 
     def as_dict(self) -> dict[str, Any]:
         return {
             "id": self.id,
             "created": self.created,
             "status": self.status,
+            "kind": self.kind,
             "model": self.model,
             "sensors": list(self.sensors),
             "n_poses": self.n_poses,
@@ -176,6 +181,23 @@ class CampaignQueries:
             "SELECT 1 FROM events WHERE campaign_id = ? AND kind = ? LIMIT 1", (campaign_id, kind)
         ).fetchone()
         return row is not None
+
+    def first_events(
+        self, kinds: Sequence[str], campaign_id: int | None = None
+    ) -> dict[int, dict[str, str]]:
+        """Per campaign that has any (every one, or ``campaign_id``'s alone), the message
+        of its first event of each of ``kinds``: ``{campaign id: {kind: message}}``."""
+        marks = ", ".join("?" * len(kinds))
+        one = "" if campaign_id is None else " AND campaign_id = ?"
+        rows = self.conn.execute(
+            f"""SELECT campaign_id, kind, message FROM events WHERE id IN (SELECT MIN(id)
+            FROM events WHERE kind IN ({marks}){one} GROUP BY campaign_id, kind)""",
+            (*kinds, *(() if campaign_id is None else (campaign_id,))),
+        )
+        out: dict[int, dict[str, str]] = {}
+        for cid, kind, message in rows:
+            out.setdefault(int(cid), {})[str(kind)] = str(message)
+        return out
 
     def event_rows(self, campaign_id: int) -> tuple[EventRow, ...]:
         rows = self.conn.execute(

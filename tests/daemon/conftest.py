@@ -170,6 +170,16 @@ def small_cell(folder: Path) -> Path:
 
 
 @pytest.fixture
+def locks(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
+    """A folder of the test's own for the robots' claims and the databases' run locks
+    (``$CELLCAL_LOCK_DIR``), instead of /run/lock."""
+    folder = tmp_path / "locks"
+    folder.mkdir()
+    monkeypatch.setenv("CELLCAL_LOCK_DIR", str(folder))
+    return folder
+
+
+@pytest.fixture
 def folder() -> Iterator[Path]:
     # Unix socket paths are limited to 108 bytes: pytest's temp paths may be longer
     path = Path(tempfile.mkdtemp(prefix="cc-svc-", dir="/tmp"))

@@ -6,18 +6,20 @@ of another kind are refused in one line."""
 
 from __future__ import annotations
 
+import json
 import threading
 from pathlib import Path
 
 import pytest
 
 from cellcal.campaign.iso9283_kind import IsoOutcome
-from cellcal.campaign.kinds import stored_kind
+from cellcal.campaign.kinds import all_kinds, stored_kind
 from cellcal.campaign.records import PoseStored, Record
-from cellcal.campaign.runner import KINDS, resume_campaign, start_campaign
+from cellcal.campaign.runner import resume_campaign, start_campaign
 from cellcal.config import load_config
 from cellcal.errors import InputError
 from cellcal.store.database import Store
+from tests.daemon.cells import CALIBRATION_DB, calibrated_model
 from tests.daemon.conftest import small_cell
 from tests.inprocess import cellcal
 
@@ -27,18 +29,14 @@ pytestmark = [pytest.mark.twin, pytest.mark.timeout(240)]
 def test_an_iso9283_test_stops_and_resumes_like_a_calibration(tmp_path: Path) -> None:
     cell = small_cell(tmp_path)
     config = load_config(cell)
-    db = str(tmp_path / "c.db")
-    cal = start_campaign(config, db, config_path=str(cell), mock=True)
-    assert cal.kind == "calibration" and cal.summary is not None
-    store = Store(db, readonly=True)
+    model = calibrated_model(tmp_path, cell)
+    store = Store(tmp_path / CALIBRATION_DB, readonly=True)
     try:
-        assert stored_kind(store, cal.campaign_id) == ("calibration", {})  # no kind event
-        text = store.latest_model_toml(cal.campaign_id)
+        assert stored_kind(store, 1) == ("calibration", {})  # no kind event
+        assert store.campaign(1).status == "complete"
     finally:
         store.close()
-    assert text is not None
-    model = tmp_path / "model.toml"
-    model.write_text(text, encoding="utf-8")
+    db = str(tmp_path / "c.db")
 
     stop = threading.Event()
 
@@ -46,7 +44,7 @@ def test_an_iso9283_test_stops_and_resumes_like_a_calibration(tmp_path: Path) ->
         if isinstance(record, PoseStored) and record.done >= 3:
             stop.set()
 
-    options = KINDS["iso9283"].read_options({"model": str(model), "cycles": 2})
+    options = all_kinds()["iso9283"].read_options({"model": str(model), "cycles": 2})
     first = start_campaign(
         config,
         db,
@@ -75,16 +73,19 @@ def test_an_iso9283_test_stops_and_resumes_like_a_calibration(tmp_path: Path) ->
     finally:
         store.close()
 
-    # The command line says the same: a complete campaign is not run again.
+    # The command line says the same: a complete campaign is not run again; the list
+    # names its kind.
     run = cellcal("run", "--resume", cid, "--db", db)
     assert run.returncode == 2 and "already complete" in run.stderr
+    listed = cellcal("campaign", "list", "--db", db, "--json")
+    assert {r["id"]: r["kind"] for r in json.loads(listed.stdout)["campaigns"]} == {cid: "iso9283"}
 
 
 def test_unknown_kinds_and_other_kinds_options_are_refused_in_one_line(tmp_path: Path) -> None:
     with pytest.raises(InputError, match="a calibration takes no options"):
-        KINDS["calibration"].options({"cycles": 3})
+        all_kinds()["calibration"].options({"cycles": 3})
     with pytest.raises(InputError, match="takes no option 'seed'"):
-        KINDS["iso9283"].options({"seed": 3})
+        all_kinds()["iso9283"].options({"seed": 3})
     for args, words in (
         (("run", "--mock", "--kind", "drift"), "kind 'drift': one of calibration, iso9283"),
         (("run", "--mock", "--model", "m.toml"), "a calibration takes no options"),

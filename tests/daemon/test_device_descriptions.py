@@ -18,13 +18,11 @@ import numpy as np
 import pytest
 
 from cellcal.campaign.devices import build_devices
-from cellcal.campaign.engine import SensorSetting, acquire
-from cellcal.campaign.plan import CALIBRATION, Plan, PlannedPose
-from cellcal.campaign.records import CampaignEvent, PoseStored, RecordStream
+from cellcal.campaign.records import CampaignEvent, PoseStored
 from cellcal.campaign.runner import resume_campaign, start_campaign
 from cellcal.clock import SimulatedClock
 from cellcal.config import CellConfig, config_from_dict, with_robot
-from cellcal.drivers.base import DeviceDescription, Series
+from cellcal.drivers.base import DeviceDescription
 from cellcal.errors import CampaignError, DeviceError, NoTargetError, device_of
 from cellcal.families import find
 from cellcal.files.models import load_model
@@ -39,6 +37,7 @@ from cellcal.store.devices import (
     stored_descriptions,
 )
 from tests.conftest import tracker_cell
+from tests.daemon.stand_ins import Robot, Sensor, acquire_at
 from tests.drivers.families import cell_for
 
 Q = np.radians([0.0, -30.0, 40.0, 0.0, -20.0, 0.0])
@@ -46,82 +45,29 @@ Q = np.radians([0.0, -30.0, 40.0, 0.0, -20.0, 0.0])
 # ---------------------------------------------------------------- the engine
 
 
-class Robot:
+def _arm(fault: DeviceError | None = None, off: float = 0.0) -> Robot:
     """Goes where it is sent, or raises ``fault`` (a DeviceError that names nothing)."""
-
-    name = "arm-7"
-
-    def __init__(self, fault: DeviceError | None = None, off: float = 0.0) -> None:
-        self.q, self.fault, self.off = Q.copy(), fault, off
-
-    def connect(self) -> None:
-        """Nothing to connect."""
-
-    def move_joints(self, q: np.ndarray, speed: float) -> None:
-        if self.fault is not None:
-            raise self.fault
-        self.q = np.array(q) + self.off
-
-    def actual_joints(self) -> np.ndarray:
-        return self.q
-
-    def stop(self) -> None:
-        """Nothing moves by itself."""
-
-    def close(self) -> None:
-        """Nothing to close."""
-
-
-class Sensor:
-    """Measures, or raises ``fault`` every time (a DeviceError that names nothing)."""
-
-    def __init__(self, name: str, fault: DeviceError | None = None) -> None:
-        self.name, self.fault = name, fault
-
-    def measure(self, n: int, rate_hz: float) -> Series:
-        if self.fault is not None:
-            raise self.fault
-        t = np.arange(n, dtype=float)
-        return Series(self.name, t, t, np.zeros((n, 3)))
+    return Robot(Q, off, fault, name="arm-7")
 
 
 def _acquire(robot: Robot, *sensors: Sensor) -> tuple[BaseException | None, list[CampaignEvent]]:
-    plan = Plan((PlannedPose(0, CALIBRATION, "cube", np.zeros(3), Q),), ())
-    events: list[CampaignEvent] = []
-    stream = RecordStream()
-    stream.subscribe(lambda r: events.append(r) if isinstance(r, CampaignEvent) else None)
-    try:
-        acquire(
-            plan,
-            robot,  # type: ignore[arg-type]
-            [SensorSetting(s, 10.0) for s in sensors],  # type: ignore[arg-type]
-            SimulatedClock(),
-            campaign_id=1,
-            done=set(),
-            stream=stream,
-            dwell_s=0.0,
-            samples_per_pose=2,
-            speed=0.25,
-        )
-    except DeviceError as exc:
-        return exc, events
-    return None, events
+    return acquire_at(robot, list(sensors), Q)
 
 
 @pytest.mark.timeout(30)
 def test_every_device_error_leaving_the_engine_names_its_device() -> None:
-    error, events = _acquire(Robot(DeviceError("arm-7: protective stop")), Sensor("t1"))
+    error, events = _acquire(_arm(DeviceError("arm-7: protective stop")), Sensor("t1"))
     assert error is not None and error.device == "robot"
     assert str(error) == "arm-7: protective stop"  # the message as it was
     assert [e.kind for e in events] == ["device-error"]
-    error, _ = _acquire(Robot(off=0.01), Sensor("t1"))
+    error, _ = _acquire(_arm(off=0.01), Sensor("t1"))
     assert error is not None and error.device == "robot"
     assert str(error).startswith("pose 0: arm-7: reports ")
-    error, events = _acquire(Robot(), Sensor("t1"), Sensor("rig", DeviceError("rig: no frame")))
+    error, events = _acquire(_arm(), Sensor("t1"), Sensor("rig", DeviceError("rig: no frame")))
     assert error is not None and error.device == "rig" and str(error) == "rig: no frame"
     assert [e.kind for e in events] == ["sensor-retry", "sensor-retry", "device-error"]
     # a sensor that does not see its target is left out of the pose, not a fault
-    error, events = _acquire(Robot(), Sensor("t1"), Sensor("rig", NoTargetError("rig: nothing")))
+    error, events = _acquire(_arm(), Sensor("t1"), Sensor("rig", NoTargetError("rig: nothing")))
     assert error is None and [e.kind for e in events] == ["no-target"]
 
 

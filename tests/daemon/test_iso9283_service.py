@@ -1,8 +1,9 @@
 """An ISO 9283 test run by the service like a calibration (campaign kinds under one
 runner): started with ``cellcal campaign start --kind iso9283``, paused, resumed, run to
 its end with every pose exactly once, and reported (the stored summary, the report
-folder the service writes). The control API refuses a kind it does not know and a
-kind's options that are not its own, as one line, before anything is queued."""
+folder the service writes); its kind shown by the status and the list. The control API
+refuses a kind it does not know and a kind's options that are not its own, as one line,
+before anything is queued."""
 
 from __future__ import annotations
 
@@ -12,32 +13,15 @@ from typing import Any
 
 import pytest
 
-from cellcal.campaign.runner import start_campaign
 from cellcal.commands.service_client import call
-from cellcal.config import load_config
 from cellcal.errors import UserError
-from cellcal.store.database import Store
+from tests.daemon.cells import calibrated_model
 from tests.daemon.conftest import small_cell
 from tests.inprocess import cellcal
 
 pytestmark = [pytest.mark.twin, pytest.mark.slow, pytest.mark.timeout(240)]
 
 CYCLES = 2
-
-
-def calibrated_model(folder: Path, cell: Path) -> Path:
-    """A calibration of the small cell's simulated robot (the service's), its model."""
-    db = str(folder / "cal.db")
-    out = start_campaign(load_config(cell), db, config_path=str(cell), mock=True)
-    store = Store(db, readonly=True)
-    try:
-        text = store.latest_model_toml(out.campaign_id)
-    finally:
-        store.close()
-    assert text is not None
-    path = folder / "model.toml"
-    path.write_text(text, encoding="utf-8")
-    return path
 
 
 def stored(d: Any, cid: int) -> int:
@@ -99,6 +83,12 @@ def test_the_service_starts_pauses_resumes_and_reports_an_iso9283_test(
     assert d.rows(f"SELECT status FROM campaigns WHERE id = {cid}")[0][0] == "paused"
     roles = {r for (r,) in d.rows(f"SELECT role FROM poses WHERE campaign_id = {cid}")}
     assert roles == {"iso-before"}
+    # Its kind is shown: in the status, by `campaign status` and `campaign list`.
+    assert s["campaign"]["kind"] == "iso9283"
+    run = cellcal("campaign", "status", "--socket", d.sock)
+    assert f"iso9283 campaign {cid} (paused): {n} of {planned} poses stored" in run.stdout
+    run = cellcal("campaign", "list", "--socket", d.sock, "--json")
+    assert [r["kind"] for r in json.loads(run.stdout)["campaigns"]] == ["iso9283"]
 
     # Resumed through the CLI, it runs to its end: every pose exactly once, complete.
     run = cellcal("campaign", "resume", str(cid), "--socket", d.sock)
@@ -133,5 +123,6 @@ def test_the_service_starts_pauses_resumes_and_reports_an_iso9283_test(
     d.start()
     s = d.status()
     assert s["campaign"]["id"] == cid and s["campaign"]["status"] == "complete"
+    assert s["campaign"]["kind"] == "iso9283"  # read from the database
     assert s["last_end"] is None or "validation_mm" not in s["last_end"]
     assert d.stop() == 0

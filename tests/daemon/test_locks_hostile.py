@@ -43,14 +43,6 @@ SPELLINGS = [
 ]
 
 
-@pytest.fixture
-def locks(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
-    folder = tmp_path / "locks"
-    folder.mkdir()
-    monkeypatch.setenv("CELLCAL_LOCK_DIR", str(folder))
-    return folder
-
-
 def _held_elsewhere(path: Path) -> Iterator[int]:
     """``path`` flock'ed through an open file of its own (as another process would)."""
     fd = os.open(path, os.O_RDONLY)

@@ -36,14 +36,6 @@ NAME = "robot.cellcal.test"
 CLAIMED, ELSEWHERE = "127.0.0.163", "127.0.0.166"
 
 
-@pytest.fixture
-def locks(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
-    folder = tmp_path / "locks"
-    folder.mkdir()
-    monkeypatch.setenv("CELLCAL_LOCK_DIR", str(folder))
-    return folder
-
-
 @pytest.mark.parametrize(
     ("first", "second"),
     [

@@ -159,6 +159,7 @@ def test_the_page_in_chromium_follows_a_campaign_to_its_errors(
     assert text("phase").startswith("phase: pose ")
     assert "calibration" in text("roles") and "validation" in text("roles")
     assert text("campaign-id") == str(cid)
+    assert text("campaign-kind") == "calibration"
     shots.append(folder / "status-page-running.png")
     browser.save_screenshot(str(shots[-1]))
     rows = browser.find_elements(By.CSS_SELECTOR, "#poses tbody tr")

@@ -130,6 +130,7 @@
     const c = snap && snap.campaign;
     if (!c) return;
     $("campaign-id").textContent = c.id;
+    $("campaign-kind").textContent = c.kind || ""; // calibration, iso9283 (from the service)
     $("campaign-status").textContent = c.status || "";
     $("campaign-status").className = `cstatus ${c.status || ""}`;
     const planned = c.planned || 0;
