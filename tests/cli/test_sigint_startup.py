@@ -196,3 +196,21 @@ def test_an_interrupt_python_drops_is_still_an_interrupt(
         cli.main(["models"])
     assert done.value.code == 0
     assert seen == [ValueError]
+
+
+def test_an_interrupt_while_the_handler_is_installed_is_the_line(tmp_path: Path) -> None:
+    """Seen in CI: SIGINT 0.015 s into ``python -m cellcal``; ``signal.signal`` ran the
+    pending signal's old handler (Python's) before installing cellcal's, and the
+    KeyboardInterrupt left a traceback through ``cellcal/__main__.py``. Here the install
+    itself raises it, as it did."""
+    code = (
+        "import _signal, runpy\n"
+        "def pending(*args):\n"
+        "    raise KeyboardInterrupt\n"
+        "_signal.signal = pending\n"
+        "runpy.run_module('cellcal', run_name='__main__')\n"
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", code, "models"], capture_output=True, text=True, cwd=tmp_path
+    )
+    assert (done.returncode, done.stderr, done.stdout) == (130, "cellcal: interrupted\n", "")
