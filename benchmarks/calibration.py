@@ -128,8 +128,8 @@ def print_conclusion(
         f"outside it the fixed-orientation model is off by {fixed.outside_after.rms:.1f} mm RMS "
         f"against {varied.outside_after.rms:.3f} mm."
     )
-    if "tool_x" in fixed.result.unidentifiable:
-        off = np.linalg.norm(np.asarray(TOOL_MM) - fixed.result.tool)
+    if "target_offset_x" in fixed.result.unidentifiable:
+        off = np.linalg.norm(np.asarray(TOOL_MM) - fixed.result.target_offset)
         print(
             "   At one flange orientation the target offset moves every point by the same "
             "vector, so the sensor translation absorbs it: the model keeps the nominal "

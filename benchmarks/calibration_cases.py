@@ -74,7 +74,9 @@ def noise_bound(c: Comparison, rng: np.random.Generator, draws: int) -> Bound:
     sc, res = c.sc, c.result
     # calibrate() turns the sensor frame about the measurements' centroid.
     T_ib = res.T_sensor_base
-    pivot = State(res.calibrated, res.tool, T_ib[:3, :3], T_ib[:3, 3], sc.measured.mean(axis=0))
+    pivot = State(
+        res.calibrated, res.target_offset, T_ib[:3, :3], T_ib[:3, 3], sc.measured.mean(axis=0)
+    )
     b2, C = bound_sq(pivot, res, sc.q, sc.q_val)
     b2_origin, _ = bound_sq(res.state, res, sc.q, sc.q_val)
     # cellcal's reported standard uncertainties, rescaled from σ₀ to σ, against √diag C.
@@ -185,17 +187,17 @@ def cube_case(
 ) -> CubeCase:
     sc = c.sc
     nominal = sc.nominal
-    tool = np.asarray(TOOL_MM)
+    target_offset = np.asarray(TOOL_MM)
     q_seed = np.radians(CUBE_SEED_DEG)
-    R0 = target_kinematics(nominal, q_seed[None], tool, jacobian=False).R_flange[0]
+    R0 = target_kinematics(nominal, q_seed[None], target_offset, jacobian=False).R_flange[0]
     P = cube_points()
-    ik = solve(nominal, tool, P, orientations(R0, len(P), varied, rng), q_seed)
+    ik = solve(nominal, target_offset, P, orientations(R0, len(P), varied, rng), q_seed)
     q = ik.q[ik.ok]
     m = measure(sc.cell, q, rng, SIGMA_MM)
     result = calibrate(nominal, q, m)
     base = fit_frames(nominal, q, m)
     Pv = rng.uniform(-CUBE_MM / 2, CUBE_MM / 2, (n_val, 3)) + np.asarray(CUBE_CENTRE_MM)
-    ikv = solve(nominal, tool, Pv, orientations(R0, n_val, varied, rng), q_seed)
+    ikv = solve(nominal, target_offset, Pv, orientations(R0, n_val, varied, rng), q_seed)
     qv = ikv.q[ikv.ok]
     truth = sc.cell.positions(qv)
     return CubeCase(

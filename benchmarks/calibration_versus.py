@@ -87,7 +87,7 @@ def compare(
         cmp.figaroh_acc = Accuracy.of(run.predict(sc.q_val), sc)
         cmp.figaroh_train_mm = ErrorStats.of(run.predict(sc.q) - sc.measured).rms
         # The URDF is right: FIGAROH's FK of the nominal model equals cellcal's.
-        k = target_kinematics(nominal, sc.q_val, nominal.tool, jacobian=False)
+        k = target_kinematics(nominal, sc.q_val, nominal.target_offset, jacobian=False)
         p0 = run.predict(sc.q_val, np.zeros(0), [])
         cmp.fk_agree_mm = float(np.max(np.abs(p0 - k.p)))
         tool_run = run_figaroh(

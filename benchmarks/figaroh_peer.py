@@ -56,7 +56,7 @@ def import_figaroh() -> tuple[Figaroh | None, str]:
         with quiet():
             from figaroh.calibration.base_calibration import BaseCalibration
             from figaroh.calibration.calibration_tools import calc_updated_fkm
-            from figaroh.tools.load_robot import load_robot
+            from figaroh.target_offsets.load_robot import load_robot
     except Exception as exc:  # ImportError, or a binary extension that fails to load
         return None, f"{type(exc).__name__}: {exc}"
     import_s = time.perf_counter() - t0
@@ -104,7 +104,7 @@ def _elementary(kind: str, v: float) -> Array:
     return T4
 
 
-def model_urdf(model: RobotModel, tool: Array) -> str:
+def model_urdf(model: RobotModel, target_offset: Array) -> str:
     """URDF of a cellcal model: joint i turns about z of its placement; the fixed rows of
     the DH (Rz(θ) Tz(d) Tx(a) Rx(α) Ry(β)) or MDH table are the placements, then a
     ``flange`` and a ``tool`` frame (the target, ``tool`` mm in the flange frame)."""
@@ -146,7 +146,7 @@ def model_urdf(model: RobotModel, tool: Array) -> str:
         f'<child link="flange"/>{_origin(flange)}</joint><link name="flange"/>'
     )
     T_tool = np.eye(4)
-    T_tool[:3, 3] = tool
+    T_tool[:3, 3] = target_offset
     out.append(
         '<joint name="tool_joint" type="fixed"><parent link="flange"/>'
         f'<child link="tool"/>{_origin(T_tool)}</joint><link name="tool"/>'
@@ -239,8 +239,8 @@ def run_figaroh(
     urdf = workdir / f"{tag}.urdf"
     data = workdir / f"{tag}.csv"
     config = workdir / f"{tag}.yaml"
-    tool = nominal.tool if urdf_tool is None else urdf_tool
-    urdf.write_text(model_urdf(nominal, np.asarray(tool, dtype=np.float64)))
+    target_offset = nominal.target_offset if urdf_tool is None else urdf_tool
+    urdf.write_text(model_urdf(nominal, np.asarray(target_offset, dtype=np.float64)))
     joints = [f"joint{i}" for i in range(1, nominal.dof + 1)]
     header = ",".join(["x1", "y1", "z1", *joints])
     table = np.hstack([measured / 1000.0, q])

@@ -63,7 +63,7 @@ def _exit(e: CellcalError) -> str:
 
 
 def _largest(res: CalibrationResult) -> str:
-    kin = [p for p in res.parameters if p.identified and p.kind != "tool"]
+    kin = [p for p in res.parameters if p.identified and p.kind != "target_offset"]
     mm = max(kin, key=lambda p: abs(p.value) if p.unit == "mm" else 0.0)
     deg = max(kin, key=lambda p: abs(p.value) if p.unit == "deg" else 0.0)
     return f"{mm.name} {mm.value:+.2f} mm, {deg.name} {deg.value:+.2f}°"
@@ -163,11 +163,11 @@ class Row:
 
 def _summary(res: CalibrationResult) -> tuple[str, ...]:
     kinds = [s.kind for s in res.covariance_specs]
-    frames, tools = sum(k.startswith("frame") for k in kinds), kinds.count("tool")
+    frames, offsets = sum(k.startswith("frame") for k in kinds), kinds.count("target_offset")
     at = {w: [p.name for p in res.parameters if p.at_nominal == w] for w in ("rank", "weak")}
     fixed = sum(p.at_nominal == "fixed" for p in res.parameters)
     return (
-        f"fitted {len(kinds)} parameters ({len(kinds) - frames - tools} kinematic, {tools} "
+        f"fitted {len(kinds)} parameters ({len(kinds) - frames - offsets} kinematic, {offsets} "
         f"offset, {frames} frame); at nominal: not identifiable {', '.join(at['rank']) or 'none'}"
         f"; hidden by the noise {', '.join(at['weak']) or 'none'}"
         + (f"; {fixed} fixed" if fixed else ""),
@@ -277,10 +277,10 @@ def _print_row(r: Row) -> None:
         print(f"   {'':<5}plain fit: scipy says {pf.message}")
     res = r.result
     if pf is not None and res is not None:
-        held = [p.name for p in res.parameters if p.kind == "tool" and not p.identified]
+        held = [p.name for p in res.parameters if p.kind == "target_offset" and not p.identified]
         if held:  # not fitted by either: each keeps the value it starts from
-            xyz = ", ".join(f"{v:.1f}" for v in pf.state.tool)
-            ours = ", ".join(f"{v:.1f}" for v in res.tool)
+            xyz = ", ".join(f"{v:.1f}" for v in pf.state.target_offset)
+            ours = ", ".join(f"{v:.1f}" for v in res.target_offset)
             print(
                 f"   {'':<5}plain fit: {', '.join(held)} not fitted, so at the closed-form "
                 f"start's value: offset ({xyz}) mm; cellcal's ({ours}) mm, {', '.join(held)} "
@@ -336,12 +336,23 @@ def print_layouts(robots: Sequence[str] = ROBOTS) -> None:
         for k in ("curve", "surface"):
             res = rows[k].result
             if res is not None and any(
-                p.kind == "tool" and not p.identified for p in res.parameters
+                p.kind == "target_offset" and not p.identified for p in res.parameters
             ):
-                _print_row(fit_row(robot, f"{k} alone, fix tool", [lay[k]], fix=("tool",)))
+                _print_row(
+                    fit_row(
+                        robot, f"{k} alone, fix target_offset", [lay[k]], fix=("target_offset",)
+                    )
+                )
             if cal is not None:
-                model = replace(cal.calibrated, tool_xyz=(cal.tool[0], cal.tool[1], cal.tool[2]))
-                fix = ("kinematics", "tool")
+                model = replace(
+                    cal.calibrated,
+                    target_offset_xyz=(
+                        cal.target_offset[0],
+                        cal.target_offset[1],
+                        cal.target_offset[2],
+                    ),
+                )
+                fix = ("kinematics", "target_offset")
                 _print_row(
                     fit_row(robot, f"{k}, fix kinematics, tool", [lay[k]], fix=fix, model=model)
                 )

@@ -43,7 +43,7 @@ def test_calibrated_model_round_trip(tmp_path):
             [a.a, a.alpha, a.d, a.theta, a.beta], [b.a, b.alpha, b.d, b.theta, b.beta], atol=1e-13
         )
     assert loaded.model.parallel == res.calibrated.parallel
-    np.testing.assert_allclose(loaded.tool, res.tool)
+    np.testing.assert_allclose(loaded.target_offset, res.target_offset)
     np.testing.assert_allclose(loaded.T_sensor_base, res.T_sensor_base)
     text = out.read_text()
     assert 'format = "cellcal-calibrated-model"' in text

@@ -67,7 +67,7 @@ def test_exported_models_predict_what_cellcal_predicts(name, tmp_path):
     run = _cli("export", "urdf", "--model", name, "--out", str(out))
     assert run.returncode == 0, run.stderr
     urdf = out.read_text()
-    ours = target_kinematics(nominal, q, nominal.tool, jacobian=False).p
+    ours = target_kinematics(nominal, q, nominal.target_offset, jacobian=False).p
     assert np.abs(_pinocchio(urdf, q, "target") - ours).max() < 1e-6
     # A perturbed one (β on the parallel rows, every angle off its round value).
     model = perturbed_model(nominal, rng)
@@ -129,14 +129,17 @@ def test_a_urdf_read_back_is_the_same_robot(name, tmp_path):
     assert len(said) == 1 and "target_offset_mm" in said[0]
     q = random_joints(model, rng, 50)
     flange = target_kinematics(model, q, np.zeros(3), jacobian=False).p
-    assert np.abs(target_kinematics(back, q, back.tool, jacobian=False).p - flange).max() < 1e-6
+    assert (
+        np.abs(target_kinematics(back, q, back.target_offset, jacobian=False).p - flange).max()
+        < 1e-6
+    )
 
 
 def test_a_public_ur5_urdf(tmp_path):
     """The UR5 of ros-industrial's ur_description (via Gepetto's example-robot-data)."""
     model = load_model(str(UR5)).model
     q = random_joints(model, np.random.default_rng(7), 50)
-    ours = target_kinematics(model, q, model.tool, jacobian=False).p
+    ours = target_kinematics(model, q, model.target_offset, jacobian=False).p
     theirs = _pinocchio(UR5.read_text(), q, "tool0")
     assert np.abs(ours - theirs).max() < 1e-6
     # Its derived table carries UR5's published DH lengths (mm), signs aside.

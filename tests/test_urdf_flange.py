@@ -201,7 +201,7 @@ def test_a_public_urdfs_tool0_is_the_models_flange_frame(origin, scale, tmp_path
     ours = flange_transforms(model, q)
     assert np.abs(ours[:, :3, 3] - theirs[:, :3, 3]).max() < 1e-9
     assert np.abs(ours[:, :3, :3] - theirs[:, :3, :3]).max() < 1e-9
-    assert np.abs(np.asarray(model.tool_xyz)).max() < 1e-9
+    assert np.abs(np.asarray(model.target_offset_xyz)).max() < 1e-9
 
 
 def test_a_tool0_a_dh_model_cannot_end_on_is_said_in_one_line(tmp_path):
@@ -218,7 +218,7 @@ def test_a_tool0_a_dh_model_cannot_end_on_is_said_in_one_line(tmp_path):
     theirs = _by_pinocchio(path.read_text(), q, "tool0")
     ours = flange_transforms(model, q)
     # tool0's origin is the model's [tool] offset; its axes a fixed turn of the flange's.
-    p = target_kinematics(model, q, model.tool, jacobian=False).p
+    p = target_kinematics(model, q, model.target_offset, jacobian=False).p
     assert np.abs(p - theirs[:, :3, 3]).max() < 1e-9
     turn = np.swapaxes(ours[:, :3, :3], 1, 2) @ theirs[:, :3, :3]
     assert np.abs(turn - turn[0]).max() < 1e-9
@@ -229,7 +229,7 @@ def test_a_tool0_a_dh_model_cannot_end_on_is_said_in_one_line(tmp_path):
     numbers = re.search(r"at \(([^)]*)\) mm", line)
     assert numbers is not None, line
     np.testing.assert_allclose(
-        [float(v) for v in numbers.group(1).split(",")], model.tool_xyz, atol=1e-6
+        [float(v) for v in numbers.group(1).split(",")], model.target_offset_xyz, atol=1e-6
     )
     # On the command line: one warning line on stderr, and the command goes on.
     joints = tmp_path / "joints.csv"

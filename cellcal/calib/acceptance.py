@@ -72,8 +72,8 @@ def reach(model: RobotModel) -> float:
     return float(sum(math.hypot(j.a, j.d) for j in model.joints))
 
 
-def _positions(model: RobotModel, q: Array, tool: Array) -> Array:
-    p: Array = target_kinematics(model, q, tool, jacobian=False).p
+def _positions(model: RobotModel, q: Array, target_offset: Array) -> Array:
+    p: Array = target_kinematics(model, q, target_offset, jacobian=False).p
     return p
 
 
@@ -89,15 +89,15 @@ def looks_like_radians(q: Array) -> bool:
     return bool(np.max(np.abs(np.degrees(q))) <= 2 * math.pi + 1e-6)
 
 
-def check_data(model: RobotModel, q: Array, measured: Array, tool: Array) -> list[Finding]:
+def check_data(model: RobotModel, q: Array, measured: Array, target_offset: Array) -> list[Finding]:
     """Checks of the data against the model, before any fit (``q`` rad, ``measured`` mm)."""
-    predicted = _positions(model, q, tool)
+    predicted = _positions(model, q, target_offset)
     s_model = spread(predicted)
     s_meas = spread(measured)
     found: list[Finding] = []
     if looks_like_radians(q) and len(q) > 3:
         q_rad = np.degrees(q)  # the file's numbers, read as radians
-        s_alt = spread(_positions(model, q_rad, tool))
+        s_alt = spread(_positions(model, q_rad, target_offset))
         if s_alt > 0 and 0.5 < s_meas / s_alt < 2.0 and not 0.5 < s_meas / s_model < 2.0:
             found.append(
                 Finding(
@@ -219,7 +219,7 @@ def diagnose(
 def assess(
     model: RobotModel,
     corrections: Sequence[tuple[str, str, float]],
-    tool: Array,
+    target_offset: Array,
 ) -> list[Finding]:
     """Checks of a finished fit: ``corrections`` (name, unit, value in mm or deg) of the
     identified kinematic parameters, and the target offset (mm)."""
@@ -238,11 +238,11 @@ def assess(
                 "usually the wrong model (--model), joint order or sign, or units",
             )
         )
-    if float(np.linalg.norm(tool)) > reach(model):
+    if float(np.linalg.norm(target_offset)) > reach(model):
         found.append(
             Finding(
                 CHECK_TARGET,
-                f"the target is estimated {float(np.linalg.norm(tool)):.0f} mm from the "
+                f"the target is estimated {float(np.linalg.norm(target_offset)):.0f} mm from the "
                 f"flange, beyond the robot's {reach(model):.0f} mm reach: the target does "
                 "not move with the flange, or the poses do not determine it",
             )

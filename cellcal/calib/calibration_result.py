@@ -42,16 +42,17 @@ class CalibrationResult:
     coordinates into the sensor frame. ``rms_before``/``residuals_before`` are those of
     the nominal model with best-fit sensor frame and target offset.
 
-    ``tool``, ``tool_std``, ``T_sensor_base`` and ``frame_std`` are those of the first
-    target and session; with several (``groups``), ``tools`` (T×3), ``tools_std``,
+    ``target_offset``, ``target_offset_std``, ``T_sensor_base`` and ``frame_std`` are those
+    of the first target and session; with several (``groups``), ``target_offsets`` (T×3),
+    ``target_offsets_std``,
     ``frames`` (S×4×4) and ``frames_std`` hold each one's. A 6-DOF fit adds each target's
     orientation on the flange (``tool_rotations``, T×3×3) and the orientation residuals
     (N×3 rotation vectors, rad)."""
 
     nominal: RobotModel
     calibrated: RobotModel
-    tool: Array
-    tool_std: Array
+    target_offset: Array
+    target_offset_std: Array
     T_sensor_base: Array
     frame_std: Array  # rotation vector (rad, 3) then translation (mm, 3), of T at its origin
     parameters: tuple[ParameterEstimate, ...]
@@ -68,11 +69,11 @@ class CalibrationResult:
     #: the acceptance checks that failed and were overridden (``accept=True``)
     accepted_despite: tuple[str, ...] = ()
     groups: Groups | None = None
-    tools: Array | None = None
-    tools_std: Array | None = None
+    target_offsets: Array | None = None
+    target_offsets_std: Array | None = None
     frames: Array | None = None
     frames_std: Array | None = None
-    tool_rotations: Array | None = None
+    target_rotations: Array | None = None
     orientation_residuals: Array | None = None
     #: the a-posteriori covariance σ₀²(JᵀJ)⁻¹ (internal units: mm, rad) of the parameters
     #: ``covariance_specs`` (the identified ones, sensor frames included), and the points
@@ -122,15 +123,17 @@ class CalibrationResult:
 
     @property
     def state(self) -> State:
-        tools = self.tools if self.tools is not None else self.tool
+        target_offsets = (
+            self.target_offsets if self.target_offsets is not None else self.target_offset
+        )
         frames = self.frames if self.frames is not None else self.T_sensor_base[None]
         return State(
             self.calibrated,
-            tools,
+            target_offsets,
             frames[:, :3, :3],
             frames[:, :3, 3],
             self.pivots if self.pivots is not None else np.zeros((len(frames), 3)),
-            self.tool_rotations,
+            self.target_rotations,
         )
 
     def predict(self, q: Array, groups: Groups | None = None) -> Array:

@@ -72,7 +72,7 @@ class Compensation:
 
 def _position_only(
     model: RobotModel,
-    tool: Array,
+    target_offset: Array,
     p_target: Array,
     q_seed: Array,
     *,
@@ -88,7 +88,7 @@ def _position_only(
     err = np.full(len(q), np.inf)
     done = np.zeros(len(q), dtype=bool)
     for _ in range(max_iter):
-        k = target_kinematics(model, q, tool)
+        k = target_kinematics(model, q, target_offset)
         e = p_target - k.p
         err = np.linalg.norm(e, axis=1)
         done = err < tol_mm
@@ -148,19 +148,19 @@ def inside_base(model: RobotModel, points: Array) -> NDArray[np.bool_]:
 
 
 def _solve(
-    model: RobotModel, tool: Array, p: Array, R: Array | None, seed: Array
+    model: RobotModel, target_offset: Array, p: Array, R: Array | None, seed: Array
 ) -> tuple[Array, NDArray[np.bool_]]:
     if R is None:
-        q, converged, _ = _position_only(model, tool, p, seed)
+        q, converged, _ = _position_only(model, target_offset, p, seed)
         return q, converged
-    sol = solve(model, tool, p, R, seed, tol_mm=1e-8)
+    sol = solve(model, target_offset, p, R, seed, tol_mm=1e-8)
     return sol.q, sol.converged
 
 
 def _verdict(
     calibrated: RobotModel,
     nominal: RobotModel,
-    tool: Array,
+    target_offset: Array,
     q: Array,
     q_nom: Array,
     nominal_ok: NDArray[np.bool_],
@@ -170,7 +170,7 @@ def _verdict(
     lo, hi = calibrated.limits
     T = flange_transforms(calibrated, q)
     flange = T[:, :3, 3]
-    target = flange + T[:, :3, :3] @ tool
+    target = flange + T[:, :3, :3] @ target_offset
     in_base = inside_base(nominal, flange) | inside_base(nominal, target)
     change = np.degrees(np.abs(q - q_nom))
     out: list[tuple[str, str]] = []
@@ -213,13 +213,13 @@ def _verdict(
 
 def compensate(
     calibrated: RobotModel,
-    tool: Array,
+    target_offset: Array,
     nominal: RobotModel,
     p_base: Array,
     R_base: Array | None,
     q_seed: Array,
 ) -> Compensation:
-    """Joints that put the calibrated model's target (offset ``tool``, mm) at ``p_base``
+    """Joints that put the calibrated model's target (offset ``target_offset``, mm) at ``p_base``
     (N×3, mm, base frame) with the flange at ``R_base`` (N×3×3) when given, starting
     from ``q_seed`` (N×n, rad); ``nominal``: the controller's model, for the Cartesian
     form, the correction (with the same target offset, so that the correction is the
@@ -228,17 +228,17 @@ def compensate(
     nominal solution (``kind``, ``why_not`` say otherwise)."""
     p_base = np.atleast_2d(np.asarray(p_base, dtype=np.float64))
     seed = np.array(np.broadcast_to(q_seed, (len(p_base), calibrated.dof)), dtype=np.float64)
-    q, converged = _solve(calibrated, tool, p_base, R_base, seed)
+    q, converged = _solve(calibrated, target_offset, p_base, R_base, seed)
     q, _ = within_limits(calibrated, q)  # each joint within a turn of its range
-    reached = target_kinematics(calibrated, q, tool, jacobian=False).p
+    reached = target_kinematics(calibrated, q, target_offset, jacobian=False).p
     residual = np.linalg.norm(reached - p_base, axis=1)
     got = converged & (residual <= REACHED_MM)
     # The nominal model's own solution from the same seed: the answer must stay near it.
-    q_nom, nominal_ok = _solve(nominal, tool, p_base, R_base, seed)
+    q_nom, nominal_ok = _solve(nominal, target_offset, p_base, R_base, seed)
     q_nom = q_nom + np.round((q - q_nom) / (2 * np.pi)) * 2 * np.pi  # the same turn
-    at_nominal = target_kinematics(nominal, q, tool, jacobian=False).p
+    at_nominal = target_kinematics(nominal, q, target_offset, jacobian=False).p
     correction = np.linalg.norm(at_nominal - p_base, axis=1)
-    verdict = _verdict(calibrated, nominal, tool, q, q_nom, nominal_ok, correction)
+    verdict = _verdict(calibrated, nominal, target_offset, q, q_nom, nominal_ok, correction)
     kind = tuple(v[0] if got[k] else UNREACHED for k, v in enumerate(verdict))
     why = tuple(
         verdict[k][1]

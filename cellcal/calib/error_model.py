@@ -2,7 +2,7 @@
 
 A measurement is the target position in the sensor's frame,
 
-    m = T_sensor_base[s] · FK(q; geometry) · tool[t],
+    m = T_sensor_base[s] · FK(q; geometry) · target_offset[t],
 
 for the measurement's session s (a sensor set-up) and target t (e.g. one of three
 SMRs); with a 6-DOF sensor also the target's orientation
@@ -144,10 +144,15 @@ def parameter_specs(
             unit = "mm" if kind in ("d", "a") else "deg"
             specs.append(ParameterSpec(f"{kind}{i}", kind, i, unit))
     for g in range(len(targets)):
-        specs += [ParameterSpec(_label(f"tool_{c}", targets, g), "tool", 0, "mm", g) for c in "xyz"]
+        specs += [
+            ParameterSpec(_label(f"target_offset_{c}", targets, g), "target_offset", 0, "mm", g)
+            for c in "xyz"
+        ]
         if orientation:
             specs += [
-                ParameterSpec(_label(f"tool_r{c}", targets, g), "tool_rot", 0, "deg", g)
+                ParameterSpec(
+                    _label(f"target_rotation_{c}", targets, g), "target_rotation", 0, "deg", g
+                )
                 for c in "xyz"
             ]
     if frame:
@@ -175,26 +180,26 @@ class State:
     ``tools`` (T×3) and, for 6-DOF fits, ``tool_rotations`` (T×3×3, R_flange_target); per session:
     ``Rs`` (S×3×3), ``ts`` (S×3) and ``pivots`` (S×3), the point (sensor frame) that
     frame rotations turn about. A single target's or session's arrays may be given
-    unstacked; ``tool``, ``R``, ``t``, ``pivot`` are those of the first."""
+    unstacked; ``target_offset``, ``R``, ``t``, ``pivot`` are those of the first."""
 
     model: RobotModel
-    tools: Array
+    target_offsets: Array
     Rs: Array
     ts: Array
     pivots: Array
-    tool_rotations: Array | None = None
+    target_rotations: Array | None = None
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "tools", _stack(self.tools, (3,)))
+        object.__setattr__(self, "target_offsets", _stack(self.target_offsets, (3,)))
         object.__setattr__(self, "Rs", _stack(self.Rs, (3, 3)))
         object.__setattr__(self, "ts", _stack(self.ts, (3,)))
         object.__setattr__(self, "pivots", _stack(self.pivots, (3,)))
-        if self.tool_rotations is not None:
-            object.__setattr__(self, "tool_rotations", _stack(self.tool_rotations, (3, 3)))
+        if self.target_rotations is not None:
+            object.__setattr__(self, "target_rotations", _stack(self.target_rotations, (3, 3)))
 
     @property
-    def tool(self) -> Array:
-        out: Array = self.tools[0]
+    def target_offset(self) -> Array:
+        out: Array = self.target_offsets[0]
         return out
 
     @property
@@ -227,14 +232,14 @@ class State:
 def _per_point(state: State, groups: Groups | None, n: int) -> tuple[Array, Array, Array]:
     """Per measurement: its session's R (N×3×3) and t (N×3), its target's offset (N×3)."""
     g = groups if groups is not None else Groups.single(n)
-    return state.Rs[g.session], state.ts[g.session], state.tools[g.target]
+    return state.Rs[g.session], state.ts[g.session], state.target_offsets[g.target]
 
 
 def predict(state: State, q: Array, groups: Groups | None = None) -> Array:
     """Target positions in the sensor frame (N×3, mm) for joint readings q (rad)."""
     q = np.atleast_2d(q)
-    Rp, tp, tool = _per_point(state, groups, len(q))
-    k = target_kinematics(state.model, q, tool, jacobian=False)
+    Rp, tp, target_offset = _per_point(state, groups, len(q))
+    k = target_kinematics(state.model, q, target_offset, jacobian=False)
     out: Array = np.einsum("nij,nj->ni", Rp, k.p) + tp
     return out
 
@@ -244,7 +249,7 @@ def predict_orientation(state: State, q: Array, groups: Groups | None = None) ->
     q = np.atleast_2d(q)
     g = groups if groups is not None else Groups.single(len(q))
     k = target_kinematics(state.model, q, np.zeros(3), jacobian=False)
-    tR = state.tool_rotations if state.tool_rotations is not None else np.eye(3)[None]
+    tR = state.target_rotations if state.target_rotations is not None else np.eye(3)[None]
     out: Array = state.Rs[g.session] @ k.R_flange @ tR[g.target]
     return out
 
@@ -265,9 +270,9 @@ def jacobian(
     """Predicted positions (N×3) and ∂m/∂parameters (N×3×P, sensor frame); with
     ``orientation`` N×6×P, rows 3–5 the angular velocity of the target's orientation."""
     g = groups if groups is not None else Groups.single(len(q))
-    Rp, tp, tool = _per_point(state, g, len(q))
+    Rp, tp, target_offset = _per_point(state, g, len(q))
     kin = [col for col, sp in enumerate(specs) if sp.kind in KINEMATIC_KINDS]
-    k = target_kinematics(state.model, q, tool, jacobian=bool(kin), angular=orientation)
+    k = target_kinematics(state.model, q, target_offset, jacobian=bool(kin), angular=orientation)
     one = len(state.Rs) == 1  # one session: one rotation for every row
     R0 = state.Rs[0]
     m = (k.p @ R0.T if one else np.einsum("nij,nj->ni", Rp, k.p)) + tp
@@ -288,10 +293,10 @@ def jacobian(
     for col, sp in enumerate(specs):
         if sp.kind in KINEMATIC_KINDS:
             continue
-        if sp.kind in ("tool", "tool_rot"):
+        if sp.kind in ("target_offset", "target_rotation"):
             rows = g.target == sp.group
             v = flange[:, :, sp.axis]
-            if sp.kind == "tool":
+            if sp.kind == "target_offset":
                 J[rows, :3, col] = v[rows]
             elif orientation:
                 J[rows, 3:, col] = v[rows]
@@ -314,19 +319,19 @@ def jacobian(
 def apply(state: State, specs: tuple[ParameterSpec, ...], delta: Array) -> State:
     """The state moved by ``delta`` (internal units) along ``specs``."""
     joints = list(state.model.joints)
-    tools = state.tools.copy()
-    S, T = len(state.Rs), len(state.tools)
+    target_offsets = state.target_offsets.copy()
+    S, T = len(state.Rs), len(state.target_offsets)
     omega = np.zeros((S, 3))
     dt = np.zeros((S, 3))
-    tool_omega = np.zeros((T, 3))
+    target_omega = np.zeros((T, 3))
     for sp, v in zip(specs, delta, strict=True):
         if sp.kind in KINEMATIC_KINDS:
             j = joints[sp.joint - 1]
             joints[sp.joint - 1] = replace(j, **{sp.kind: getattr(j, sp.kind) + float(v)})
-        elif sp.kind == "tool":
-            tools[sp.group, sp.axis] += v
-        elif sp.kind == "tool_rot":
-            tool_omega[sp.group, sp.axis] += v
+        elif sp.kind == "target_offset":
+            target_offsets[sp.group, sp.axis] += v
+        elif sp.kind == "target_rotation":
+            target_omega[sp.group, sp.axis] += v
         elif sp.kind == "frame_rot":
             omega[sp.group, sp.axis] += v
         else:
@@ -335,11 +340,16 @@ def apply(state: State, specs: tuple[ParameterSpec, ...], delta: Array) -> State
     # m' = E (m − pivot) + pivot + dt for every predicted m of the session.
     Rs = E @ state.Rs
     ts = np.einsum("sij,sj->si", E, state.ts - state.pivots) + state.pivots + dt
-    tool_rotations = state.tool_rotations
-    if tool_rotations is not None:
-        tool_rotations = np.stack([so3_exp(w) for w in tool_omega]) @ tool_rotations
+    target_rotations = state.target_rotations
+    if target_rotations is not None:
+        target_rotations = np.stack([so3_exp(w) for w in target_omega]) @ target_rotations
     return State(
-        state.model.with_joints(tuple(joints)), tools, Rs, ts, state.pivots, tool_rotations
+        state.model.with_joints(tuple(joints)),
+        target_offsets,
+        Rs,
+        ts,
+        state.pivots,
+        target_rotations,
     )
 
 

@@ -77,9 +77,11 @@ class Identifiability:
 
 def _groups(specs: Sequence[ParameterSpec]) -> list[list[int]]:
     frame = [i for i, s in enumerate(specs) if s.kind.startswith("frame")]
-    tool = [i for i, s in enumerate(specs) if s.kind in ("tool", "tool_rot")]
+    target_offset = [
+        i for i, s in enumerate(specs) if s.kind in ("target_offset", "target_rotation")
+    ]
     kin = [i for i, s in enumerate(specs) if s.kind in KINEMATIC_KINDS]
-    return [g for g in (frame, tool, kin) if g]
+    return [g for g in (frame, target_offset, kin) if g]
 
 
 #: A column shorter than this fraction of the longest is rounding noise (a parameter with
@@ -211,7 +213,7 @@ def weakly_determined(
             [
                 std[k] / _limit(specs[i])
                 if not specs[i].kind.startswith("frame")
-                and specs[i].kind != "tool_rot"
+                and specs[i].kind != "target_rotation"
                 and i not in spare
                 else 0.0
                 for k, i in enumerate(keep)

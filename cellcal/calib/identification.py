@@ -120,7 +120,7 @@ def _robust_fit(
     return levenberg.Fit(apply(state, specs, res.x), lin, int(res.nfev))
 
 
-def _frame_tool_specs(specs: tuple[ParameterSpec, ...]) -> tuple[ParameterSpec, ...]:
+def _frame_target_specs(specs: tuple[ParameterSpec, ...]) -> tuple[ParameterSpec, ...]:
     return tuple(s for s in specs if s.kind not in KINEMATIC_KINDS)
 
 
@@ -141,22 +141,22 @@ def fit_frames(
 
 def _fit_frames(model: RobotModel, data: Data, w: Array) -> State:
     state = initial_state(model, data.q, data.measured, data.groups, data.orientations)
-    specs = _frame_tool_specs(
+    specs = _frame_target_specs(
         parameter_specs(model, groups=data.groups, orientation=data.orientations is not None)
     )
     lin = levenberg.linearise(state, specs, data, w)
     ident = analyse(lin.R, specs)
     sel = tuple(specs[i] for i in ident.identified)
-    lost = {s.group for s in specs if s.kind == "tool" and s not in sel}
+    lost = {s.group for s in specs if s.kind == "target_offset" and s not in sel}
     at: levenberg.Linearisation | None = lin.subset(list(ident.identified))
     if lost:
         # The poses do not determine a whole target offset: keep its nominal value (the
         # closed-form start may have given it any value) and register again.
-        tools = state.tools.copy()
-        tools[sorted(lost)] = model.tool
-        k = target_kinematics(model, data.q, tools[data.groups.target], jacobian=False)
+        target_offsets = state.target_offsets.copy()
+        target_offsets[sorted(lost)] = model.target_offset
+        k = target_kinematics(model, data.q, target_offsets[data.groups.target], jacobian=False)
         Rs, ts = register_sessions(k.p, data.measured, data.groups)
-        state = State(model, tools, Rs, ts, state.pivots, state.tool_rotations)
+        state = State(model, target_offsets, Rs, ts, state.pivots, state.target_rotations)
         at = None
     return levenberg.fit(state, sel, data, w, at).state
 
@@ -170,15 +170,15 @@ def _nominal_offsets(
     starts there and does not free it would keep that estimate, not the nominal value it
     reports."""
     model = state.model
-    tools = state.tools.copy()
+    target_offsets = state.target_offsets.copy()
     for s in specs:
-        if s.kind == "tool" and s not in sel:
-            tools[s.group, s.axis] = model.tool[s.axis]
-    if np.array_equal(tools, state.tools):
+        if s.kind == "target_offset" and s not in sel:
+            target_offsets[s.group, s.axis] = model.target_offset[s.axis]
+    if np.array_equal(target_offsets, state.target_offsets):
         return state
-    k = target_kinematics(model, data.q, tools[data.groups.target], jacobian=False)
+    k = target_kinematics(model, data.q, target_offsets[data.groups.target], jacobian=False)
     Rs, ts = register_sessions(k.p, data.measured, data.groups)
-    return State(model, tools, Rs, ts, state.pivots, state.tool_rotations)
+    return State(model, target_offsets, Rs, ts, state.pivots, state.target_rotations)
 
 
 @levenberg.one_blas_thread
@@ -190,20 +190,36 @@ def frames_rms(model: RobotModel, q: Array, measured: Array, groups: Groups | No
     return rms(measured - predict(st, q, data.groups))
 
 
+#: Earlier spellings ``--fix`` still takes: the group ``tool`` and the names ``tool_x`` …
+#: ``tool_rz`` (``:A`` for a target's group kept), now ``target_offset``, ``target_offset_x``,
+#: ``target_rotation_x``.
+_OLD_PREFIXES = (("tool_r", "target_rotation_"), ("tool_", "target_offset_"))
+
+
+def _current_name(item: str) -> str:
+    if item == "tool":
+        return "target_offset"
+    for old, new in _OLD_PREFIXES:
+        if item.startswith(old) and item[len(old) : len(old) + 1] in ("x", "y", "z"):
+            return new + item[len(old) :]
+    return item
+
+
 def _expand_fix(specs: tuple[ParameterSpec, ...], fix: Collection[str]) -> frozenset[str]:
-    """Parameter names to pin: names, or the groups ``kinematics``, ``tool``, ``frame``."""
+    """Parameter names to pin: names, or the groups ``kinematics``, ``target_offset``
+    (earlier spellings read: :data:`_OLD_PREFIXES`)."""
     names = {s.name for s in specs}
     out: set[str] = set()
-    for item in fix:
+    for item in map(_current_name, fix):
         if item == "kinematics":
             out |= {s.name for s in specs if s.kind in KINEMATIC_KINDS}
-        elif item in ("tool", "target_offset"):
-            out |= {s.name for s in specs if s.kind in ("tool", "tool_rot")}
+        elif item == "target_offset":
+            out |= {s.name for s in specs if s.kind in ("target_offset", "target_rotation")}
         elif item in names:
             out.add(item)
         else:
             raise InputError(
-                f"--fix {item}: no such parameter; choose from kinematics, tool, or "
+                f"--fix {item}: no such parameter; choose from kinematics, target_offset, or "
                 f"{', '.join(s.name for s in specs if not s.kind.startswith('frame'))}"
             )
     return frozenset(out)
@@ -268,7 +284,7 @@ def calibrate(
     frame (N×3, mm); ``sigma``: their 1σ per axis (N×3, mm) to weight the fit;
     ``robust``: a robust loss (huber, soft_l1, cauchy) after the least-squares fit;
     ``paper_parameters``: the paper's θ, d, a, α on every row (no β); ``fix``: parameter
-    names (or ``kinematics``, ``tool``) pinned at nominal; ``groups``: the target and the
+    names (or ``kinematics``, ``target_offset``) pinned at nominal; ``groups``: the target and the
     session (sensor set-up) of each row, each with its own offset or frame;
     ``orientations``: measured target orientations (N×3×3) of a 6-DOF sensor. A
     result that fails an acceptance check raises :class:`AcceptanceError` unless
@@ -298,7 +314,7 @@ def calibrate(
     still = False  # a session whose target did not move at all
     for s in range(len(g.sessions)):
         rows = g.session == s
-        findings += check_data(nominal, q[rows], measured[rows], nominal.tool)
+        findings += check_data(nominal, q[rows], measured[rows], nominal.target_offset)
         still |= bool(np.ptp(measured[rows], axis=0).max() <= STILL_MM)
     if not still:  # points on a line are degenerate geometry (exit 2) ...
         check_sessions(measured, g)
@@ -379,7 +395,7 @@ def calibrate(
     if ident.weak and first is not None and robust is None:
 
         def plausible(st: State, chosen: tuple[ParameterSpec, ...]) -> bool:
-            far = st.tools[int(np.argmax(np.linalg.norm(st.tools, axis=1)))]
+            far = st.target_offsets[int(np.argmax(np.linalg.norm(st.target_offsets, axis=1)))]
             return not assess(nominal, estimates_preview(st, nominal, chosen), far)
 
         if plausible(final.state, sel):
@@ -408,7 +424,7 @@ def calibrate(
             raise diagnosis(f"the robust ({robust}) identification did not converge") from None
         nfev += final.passes
     state = final.state
-    lost = [i for i, s in enumerate(specs) if s.kind == "tool" and s not in sel]
+    lost = [i for i, s in enumerate(specs) if s.kind == "target_offset" and s not in sel]
     rank = [specs[i].name for i in lost if ident.reason(i) == "rank"]
     hidden = [specs[i].name for i in lost if ident.reason(i) == "weak"]
     if rank:
@@ -423,10 +439,12 @@ def calibrate(
             "(its uncertainty exceeds 1 mm: the flange orientation varies too little); it "
             "stays at its nominal value — vary the wrist orientation more"
         )
-    flat = on_a_surface(target_kinematics(nominal, q, baseline.tools[g.target], jacobian=False).p)
+    flat = on_a_surface(
+        target_kinematics(nominal, q, baseline.target_offsets[g.target], jacobian=False).p
+    )
     if flat is not None:
         warnings.append(flat)
-    farthest = state.tools[int(np.argmax(np.linalg.norm(state.tools, axis=1)))]
+    farthest = state.target_offsets[int(np.argmax(np.linalg.norm(state.target_offsets, axis=1)))]
     _refuse_or_note(
         assess(nominal, estimates_preview(state, nominal, sel), farthest),
         accept,
@@ -465,11 +483,11 @@ def calibrate(
         if sp.kind.startswith("frame"):
             continue
         k = sel_index.get(sp.name)
-        if sp.kind == "tool":
-            value = float(state.tools[sp.group, sp.axis])
-        elif sp.kind == "tool_rot":
-            assert state.tool_rotations is not None
-            value = math.degrees(float(so3_log(state.tool_rotations[sp.group])[sp.axis]))
+        if sp.kind == "target_offset":
+            value = float(state.target_offsets[sp.group, sp.axis])
+        elif sp.kind == "target_rotation":
+            assert state.target_rotations is not None
+            value = math.degrees(float(so3_log(state.target_rotations[sp.group])[sp.axis]))
         else:
             value = sp.to_display(
                 getattr(state.model.joints[sp.joint - 1], sp.kind)
@@ -489,13 +507,15 @@ def calibrate(
                 "" if k is not None else ident.reason(i),
             )
         )
-    tool_std = np.array([e.std for e in estimates if e.kind == "tool"]).reshape(-1, 3)
+    target_offset_std = np.array([e.std for e in estimates if e.kind == "target_offset"]).reshape(
+        -1, 3
+    )
     frame_std = np.stack([_frame_std(state, sel, cov, s) for s in range(len(g.sessions))])
     return CalibrationResult(
         nominal=nominal,
         calibrated=state.model,
-        tool=state.tool,
-        tool_std=tool_std[0],
+        target_offset=state.target_offset,
+        target_offset_std=target_offset_std[0],
         T_sensor_base=state.T_sensor_base,
         frame_std=frame_std[0],
         parameters=tuple(estimates),
@@ -511,11 +531,11 @@ def calibrate(
         warnings=tuple(warnings),
         accepted_despite=tuple(accepted),
         groups=g,
-        tools=state.tools,
-        tools_std=tool_std,
+        target_offsets=state.target_offsets,
+        target_offsets_std=target_offset_std,
         frames=np.stack([state.frame(s) for s in range(len(g.sessions))]),
         frames_std=frame_std,
-        tool_rotations=state.tool_rotations,
+        target_rotations=state.target_rotations,
         orientation_residuals=None if not six else full[:, 3:],
         covariance=cov,
         covariance_specs=sel,

@@ -43,7 +43,7 @@ def _rotvec(R: Array) -> Array:
 
 def solve(
     model: RobotModel,
-    tool: Array,
+    target_offset: Array,
     p_target: Array,
     R_target: Array,
     q_seed: Array,
@@ -63,7 +63,7 @@ def solve(
     ep = np.full(N, np.inf)
     er = np.full(N, np.inf)
     for _ in range(max_iter):
-        k = target_kinematics(model, q, tool)
+        k = target_kinematics(model, q, target_offset)
         e_pos = p_target - k.p
         e_rot = _rotvec(R_target @ np.swapaxes(k.R_flange, 1, 2))
         ep = np.linalg.norm(e_pos, axis=1)

@@ -41,9 +41,14 @@ class TargetKinematics:
 
 
 def target_kinematics(
-    model: RobotModel, q: Array, tool: Array, *, jacobian: bool = True, angular: bool = False
+    model: RobotModel,
+    q: Array,
+    target_offset: Array,
+    *,
+    jacobian: bool = True,
+    angular: bool = False,
 ) -> TargetKinematics:
-    """Target positions for joint readings ``q`` (N×n, rad) and target offset ``tool`` (mm;
+    """Target positions for joint readings ``q`` (N×n, rad) and target offset ``target_offset`` (mm;
     one offset, or one per pose: N×3); with ``jacobian`` their derivatives, and with
     ``angular`` also those of the flange orientation (``W_rows``)."""
     q = np.atleast_2d(np.asarray(q, dtype=np.float64))
@@ -96,8 +101,10 @@ def target_kinematics(
         if jacobian:
             rec.append((z_th, o_th, d_dir, a_dir, al_axis, al_org, be_axis, be_org))
     R = np.stack([x, y, z], axis=2)
-    tool = np.asarray(tool, dtype=np.float64)
-    p = o + (R @ tool if tool.ndim == 1 else np.einsum("nij,nj->ni", R, tool))
+    target_offset = np.asarray(target_offset, dtype=np.float64)
+    p = o + (
+        R @ target_offset if target_offset.ndim == 1 else np.einsum("nij,nj->ni", R, target_offset)
+    )
     if not jacobian:
         return TargetKinematics(
             p=p, R_flange=R, J_rows=np.zeros((N, 3, 0)), axes=np.zeros((N, 3, 0))

@@ -150,7 +150,7 @@ def initial_state(
     g = groups if groups is not None else Groups.single(len(q))
     S, T = len(g.sessions), len(g.targets)
     check_sessions(measured, g)
-    k = target_kinematics(model, q, model.tool, jacobian=False)
+    k = target_kinematics(model, q, model.target_offset, jacobian=False)
     Rs, _ = register_sessions(k.p, measured, g)
     # measured − R_s·o_flange = R_s·R_flange·tool_t + t_s: linear in (tools, ts).
     N = len(q)
@@ -161,20 +161,22 @@ def initial_state(
     for c in range(3):
         A[rows, :, 3 * g.target + c] = RR[:, :, c]
         A[rows, c, 3 * T + 3 * g.session + c] = 1.0
-    b = measured - np.einsum("nij,nj->ni", Rp, k.p - k.R_flange @ model.tool)
+    b = measured - np.einsum("nij,nj->ni", Rp, k.p - k.R_flange @ model.target_offset)
     sol, _, rank, _ = np.linalg.lstsq(A.reshape(-1, A.shape[2]), b.reshape(-1), rcond=1e-9)
-    tools = sol[: 3 * T].reshape(T, 3) if rank == A.shape[2] else np.tile(model.tool, (T, 1))
-    k = target_kinematics(model, q, tools[g.target], jacobian=False)
+    target_offsets = (
+        sol[: 3 * T].reshape(T, 3) if rank == A.shape[2] else np.tile(model.target_offset, (T, 1))
+    )
+    k = target_kinematics(model, q, target_offsets[g.target], jacobian=False)
     Rs, ts = register_sessions(k.p, measured, g)
     pivots = np.stack([measured[g.session == s].mean(axis=0) for s in range(S)])
-    tool_rotations = None
+    target_rotations = None
     if orientations is not None:
-        tool_rotations = np.empty((T, 3, 3))
+        target_rotations = np.empty((T, 3, 3))
         implied = np.swapaxes(Rs[g.session] @ k.R_flange, 1, 2) @ orientations
         for t in range(T):
             U, _, Vt = np.linalg.svd(implied[g.target == t].sum(axis=0))
-            tool_rotations[t] = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
-    return State(model, tools, Rs, ts, pivots, tool_rotations)
+            target_rotations[t] = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+    return State(model, target_offsets, Rs, ts, pivots, target_rotations)
 
 
 def weights(sigma: Array | None, n: int, orientation: bool = False) -> Array:

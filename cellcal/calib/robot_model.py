@@ -81,7 +81,7 @@ class RobotModel:
     name: str
     convention: Convention
     joints: tuple[Joint, ...]
-    tool_xyz: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    target_offset_xyz: tuple[float, float, float] = (0.0, 0.0, 0.0)
     parallel: tuple[bool, ...] = ()
 
     def __post_init__(self) -> None:
@@ -89,9 +89,9 @@ class RobotModel:
             object.__setattr__(self, "parallel", detect_parallel(self.convention, self.joints))
 
     @property
-    def tool(self) -> Array:
+    def target_offset(self) -> Array:
         """The nominal target offset as an array (mm)."""
-        return np.array(self.tool_xyz, dtype=np.float64)
+        return np.array(self.target_offset_xyz, dtype=np.float64)
 
     @property
     def dof(self) -> int:
@@ -137,7 +137,7 @@ class RobotModel:
 
     def with_joints(self, joints: tuple[Joint, ...]) -> RobotModel:
         """The same model with other geometry (same β rows)."""
-        return RobotModel(self.name, self.convention, joints, self.tool_xyz, self.parallel)
+        return RobotModel(self.name, self.convention, joints, self.target_offset_xyz, self.parallel)
 
 
 def detect_parallel(convention: str, joints: tuple[Joint, ...]) -> tuple[bool, ...]:
@@ -211,7 +211,7 @@ def model_from_dict(data: Mapping[str, object], source: str = "model") -> RobotM
                 couple_factor=couple_factor,
             )
         )
-    tool = (0.0, 0.0, 0.0)
+    target_offset = (0.0, 0.0, 0.0)
     if "tool" in data:
         t = data["tool"]
         if not isinstance(t, dict) or set(t) - {"xyz"}:
@@ -220,9 +220,11 @@ def model_from_dict(data: Mapping[str, object], source: str = "model") -> RobotM
         if not isinstance(xyz, list) or len(xyz) != 3:
             raise ModelError(f"{source}: tool.xyz must be [x, y, z] in mm")
         x, y, z = (_number(v, f"{source}: tool.xyz") for v in xyz)
-        tool = (x, y, z)
+        target_offset = (x, y, z)
     conv: Convention = "dh" if convention == "dh" else "mdh"
-    model = RobotModel(name=name, convention=conv, joints=tuple(joints), tool_xyz=tool)
+    model = RobotModel(
+        name=name, convention=conv, joints=tuple(joints), target_offset_xyz=target_offset
+    )
     if model.maps_readings and abs(np.linalg.det(model.reading_matrix)) < 1e-9:
         raise ModelError(
             f"{source}: the joints' scale and couple make two joint angles depend on the "
@@ -309,6 +311,6 @@ def model_to_dict(model: RobotModel) -> dict[str, object]:
             row["couple"] = {"joint": j.couple_joint, "factor": j.couple_factor}
         rows.append(row)
     out: dict[str, object] = {"name": model.name, "convention": model.convention, "joint": rows}
-    if any(model.tool_xyz):
-        out["tool"] = {"xyz": list(model.tool_xyz)}
+    if any(model.target_offset_xyz):
+        out["tool"] = {"xyz": list(model.target_offset_xyz)}
     return out

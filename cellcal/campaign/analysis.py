@@ -367,7 +367,7 @@ def _register(
 ) -> tuple[SensorRegistration, list[RegistrationRow]]:
     """One sensor registered with the nominal and with the calibrated geometry; refused
     when its samples do not follow the robot. Returns the registration and its rows."""
-    check = check_data(nominal, q, m, nominal.tool)
+    check = check_data(nominal, q, m, nominal.target_offset)
     if check and not accept:
         raise AcceptanceError(check[0].check, f"sensor {sensor}: {check[0].message}")
     base = fit_frames(nominal, q, m, s)
@@ -387,19 +387,31 @@ def _register(
         sensor=sensor,
         n=len(q),
         T_sensor_base=base.T_sensor_base,
-        target_offset_mm=base.tool,
+        target_offset_mm=base.target_offset,
         rms_nominal_mm=_rms(e_nom),
         max_nominal_mm=e_max_nom,
         rms_calibrated_mm=_rms(e_cal),
         T_sensor_base_calibrated=after.T_sensor_base,
-        target_offset_calibrated_mm=after.tool,
+        target_offset_calibrated_mm=after.target_offset,
     )
     rows = [
         RegistrationRow(
-            sensor, "nominal", len(q), _rms(e_nom), e_max_nom, base.T_sensor_base, base.tool
+            sensor,
+            "nominal",
+            len(q),
+            _rms(e_nom),
+            e_max_nom,
+            base.T_sensor_base,
+            base.target_offset,
         ),
         RegistrationRow(
-            sensor, "calibrated", len(q), _rms(e_cal), e_max_cal, after.T_sensor_base, after.tool
+            sensor,
+            "calibrated",
+            len(q),
+            _rms(e_cal),
+            e_max_cal,
+            after.T_sensor_base,
+            after.target_offset,
         ),
     ]
     return reg, rows

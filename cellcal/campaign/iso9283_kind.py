@@ -102,13 +102,13 @@ def iso_plan(config: CellConfig, calibrated: LoadedModel, cycles: int) -> Plan:
             f"the calibrated model has {calibrated.model.dof} joints, the cell's robot "
             f"{config.robot.model} {nominal.dof}"
         )
-    tool = calibrated.tool
+    target_offset = calibrated.target_offset
     home = np.radians(np.asarray(config.robot.home_deg, dtype=np.float64))
-    R0 = target_kinematics(nominal, home[None], tool, jacobian=False).R_flange[0]
+    R0 = target_kinematics(nominal, home[None], target_offset, jacobian=False).R_flange[0]
     points = iso_points(np.asarray(config.campaign.cube_centre_mm), config.campaign.cube_edge_mm)
-    before = solve(nominal, tool, points, R0, home)
+    before = solve(nominal, target_offset, points, R0, home)
     after = compensate(
-        calibrated.model, tool, nominal, points, np.broadcast_to(R0, (5, 3, 3)), before.q
+        calibrated.model, target_offset, nominal, points, np.broadcast_to(R0, (5, 3, 3)), before.q
     )
     if not (before.ok.all() and after.ok.all()):
         raise InputError(

@@ -227,7 +227,7 @@ def _sessions_off_a_line(data: Measurements) -> Measurements:
     "fix",
     help="Parameters to keep at nominal, comma-separated (e.g. alpha5,a5); 'kinematics' "
     "holds the whole geometry (re-registers a new set-up with a calibrated --model), "
-    "'tool' the target offset.",
+    "'target_offset' the target offset.",
 )
 @click.option(
     "--accept",
@@ -267,8 +267,8 @@ def calibrate(
     if out_path is not None:
         check_output_file(out_path)  # before the fit: a device or FIFO is refused at once
     loaded = load_model(model_spec)
-    x, y, z = (float(v) for v in loaded.tool)
-    nominal = replace(loaded.model, tool_xyz=(x, y, z))
+    x, y, z = (float(v) for v in loaded.target_offset)
+    nominal = replace(loaded.model, target_offset_xyz=(x, y, z))
     pinned = tuple(n.strip() for n in (fix or "").split(",") if n.strip())
     data = _sessions_off_a_line(read_measurements(data_path, nominal.dof))
     alternatives = builtin_models()
@@ -322,12 +322,14 @@ def calibrate(
                 }
                 for p in res.parameters
             ],
-            "target_offset_mm": res.tool,
+            "target_offset_mm": res.target_offset,
             "T_sensor_base": res.T_sensor_base,
             "targets": {
                 name: xyz
                 for name, xyz in zip(
-                    res.targets, res.tools if res.tools is not None else [res.tool], strict=True
+                    res.targets,
+                    res.target_offsets if res.target_offsets is not None else [res.target_offset],
+                    strict=True,
                 )
             },
             "sessions": {

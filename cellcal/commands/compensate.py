@@ -53,7 +53,7 @@ def _nominal(loaded: LoadedModel) -> LoadedModel:
         model = model_from_dict(data["nominal"], f"{loaded.source} [nominal]")
     except KeyError:
         raise FileFormatError(f"{loaded.source}: the calibrated model has no [nominal]") from None
-    return LoadedModel(loaded.source, model, model.tool, None, False)
+    return LoadedModel(loaded.source, model, model.target_offset, None, False)
 
 
 def _seed(targets: Targets, seed_deg: str | None, dof: int) -> Array:
@@ -163,12 +163,12 @@ def compensate_command(
             "(cellcal calibrate --out, or model.toml of a campaign's report)"
         )
     require_limits(loaded.model, f"--model {model_spec}")
-    tool = loaded.tool
+    target_offset = loaded.target_offset
     if target_name is not None:
         if not loaded.targets or target_name not in loaded.targets:
             names = ", ".join(loaded.targets or {}) or "none named"
             raise InputError(f"--target {target_name}: not in the model ({names})")
-        tool = loaded.targets[target_name]
+        target_offset = loaded.targets[target_name]
     dof = loaded.model.dof
     targets = read_targets(targets_path, dof)
     p, R = targets.xyz, targets.orientations
@@ -182,7 +182,7 @@ def compensate_command(
     if R is None and targets.q is not None:
         # Keep the orientation the program has today at its joints (nominal model).
         R = flange_transforms(nominal, seed)[:, :3, :3]
-    comp = compensate(loaded.model, tool, nominal, p, R, seed)
+    comp = compensate(loaded.model, target_offset, nominal, p, R, seed)
     _refuse(targets, comp)
     write_atomically(out_path, _csv(targets, comp))
     summary = {

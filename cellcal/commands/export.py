@@ -27,7 +27,7 @@ def export_urdf(model_spec: str, out_path: str, as_json: bool) -> None:
     on the flange) and, for a calibrated model, the sensor frame fixed to the base."""
     check_output_file(out_path)
     loaded = load_model(model_spec)
-    text = to_urdf(loaded.model, loaded.tool, loaded.T_sensor_base)
+    text = to_urdf(loaded.model, loaded.target_offset, loaded.T_sensor_base)
     write_atomically(out_path, text)
     frames = ["base_link", *(f"link_{i + 1}" for i in range(loaded.model.dof)), "flange", "target"]
     if loaded.T_sensor_base is not None:

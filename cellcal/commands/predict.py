@@ -62,10 +62,10 @@ def predict(model_spec: str, joints_path: str, out_path: str | None) -> None:
     q, targets, sessions = read_joints_labelled(joints_path, loaded.model.dof)
     check_measurements(loaded.model, q, np.zeros((len(q), 3)), None)
     T0 = np.eye(4) if loaded.T_sensor_base is None else loaded.T_sensor_base
-    tools, t_idx = _pick(len(q), targets, loaded.targets, loaded.tool, "target")
+    target_offsets, t_idx = _pick(len(q), targets, loaded.targets, loaded.target_offset, "target")
     frames, s_idx = _pick(len(q), sessions, loaded.sessions, T0, "session")
     groups = Groups(t_idx, s_idx)
-    state = State(loaded.model, tools, frames[:, :3, :3], frames[:, :3, 3], np.zeros(3))
+    state = State(loaded.model, target_offsets, frames[:, :3, :3], frames[:, :3, 3], np.zeros(3))
     text = format_positions(q, predict_positions(state, q, groups))
     if out_path is None:
         click.echo(text, nl=False)

@@ -121,7 +121,9 @@ def _corrections(c: CalibrationResult) -> str:
     """The largest identified kinematic correction of each unit, with its uncertainty."""
     parts = []
     for unit, digits in (("mm", 3), ("deg", 4)):
-        found = [p for p in c.parameters if p.identified and p.kind != "tool" and p.unit == unit]
+        found = [
+            p for p in c.parameters if p.identified and p.kind != "target_offset" and p.unit == unit
+        ]
         if found:
             top = max(found, key=lambda p: abs(p.value))
             sign = "°" if unit == "deg" else " mm"
@@ -186,7 +188,7 @@ def _print_summary(out: CampaignOutcome, folder: str | None, residuals: bool) ->
         f"({c.condition_number_equal_weights:.4g} with equal weights, as `plan` computes it)"
     )
     click.echo(f"  corrections: {_corrections(c)}")
-    click.echo(f"  target offset {_xyz(c.tool, 3)} ± {_xyz(c.tool_std, 3)} mm")
+    click.echo(f"  target offset {_xyz(c.target_offset, 3)} ± {_xyz(c.target_offset_std, 3)} mm")
     click.echo(f"  left at nominal: {at_nominal_text(c)}")
     outside = ", ".join(r.region for r in s.regions if r.region != "cube") or "none"
     click.echo(

@@ -94,17 +94,17 @@ def path_excursion(
     outside the box, the flange origin's or the target's; None when it stays inside."""
     q0 = np.asarray(q0, dtype=np.float64)
     q1 = np.asarray(q1, dtype=np.float64)
-    tool = np.asarray(target_offset, dtype=np.float64)
+    target_offset = np.asarray(target_offset, dtype=np.float64)
     lo = np.asarray(box_min_mm, dtype=np.float64)
     hi = np.asarray(box_max_mm, dtype=np.float64)
-    n = path_samples(model, q0, q1, tool)
+    n = path_samples(model, q0, q1, target_offset)
     s_all = np.linspace(0.0, 1.0, n + 1)
     worst: PathExcursion | None = None
     for start in range(0, n + 1, PATH_CHUNK):
         s = s_all[start : start + PATH_CHUNK]
         T = flange_transforms(model, q0 + s[:, None] * (q1 - q0))
         flange = T[:, :3, 3]
-        target = flange + T[:, :3, :3] @ tool
+        target = flange + T[:, :3, :3] @ target_offset
         for name, p in (("flange", flange), ("target", target)):
             out = _outside(p, lo, hi)
             k = int(np.argmax(out))

@@ -34,17 +34,22 @@ from cellcal.plainvalues import plain
 CALIBRATED_FORMAT = "cellcal-calibrated-model"
 FORMAT_VERSION = 1
 
+#: The target offset's parameter kinds in a calibrated model's ``[[parameter]]`` rows:
+#: ``target_offset`` and, in files and databases written before the name was settled,
+#: ``tool`` (still read).
+TARGET_OFFSET_KINDS = frozenset({"target_offset", "tool"})
+
 
 @dataclass(frozen=True)
 class LoadedModel:
     """A model as read from ``--model``: the geometry, the target offset, and for a
     calibrated file the sensor frame (``T_sensor_base``, else None). A calibrated
     file of several targets or sessions also gives each one's offset (``targets``) and
-    frame (``sessions``), by name; the first of each is ``tool`` and ``T_sensor_base``."""
+    frame (``sessions``), by name; the first of each is ``target_offset`` and ``T_sensor_base``."""
 
     source: str
     model: RobotModel
-    tool: Array
+    target_offset: Array
     T_sensor_base: Array | None
     calibrated: bool
     targets: dict[str, Array] | None = None
@@ -77,13 +82,13 @@ def load_model(spec: str) -> LoadedModel:
         with resources.as_file(ref) as p:
             data = _read_toml(p, spec)
         model = model_from_dict(data, spec)
-        return LoadedModel(spec, model, model.tool, None, False)
+        return LoadedModel(spec, model, model.target_offset, None, False)
     if spec.lower().endswith(".urdf"):
         from cellcal.files.urdf import model_from_urdf  # Pinocchio, only when asked
 
         require(f"reading URDF ({spec})", "pinocchio")
         urdf = model_from_urdf(spec)
-        return LoadedModel(spec, urdf, urdf.tool, None, False)
+        return LoadedModel(spec, urdf, urdf.target_offset, None, False)
     return _from_data(_read_toml(Path(spec), spec), spec)
 
 
@@ -109,17 +114,17 @@ def _from_data(data: dict[str, Any], spec: str) -> LoadedModel:
             # [instrument]: what earlier versions called the sensor frame's table.
             frame = data["sensor"] if "sensor" in data else data["instrument"]
             matrix = np.array(frame["matrix"], dtype=np.float64)
-            tool = np.array(data["tool"]["xyz"], dtype=np.float64)
+            target_offset = np.array(data["tool"]["xyz"], dtype=np.float64)
         except (KeyError, TypeError, ValueError) as exc:
             raise FileFormatError(f"{spec}: incomplete calibrated model ({exc})") from None
-        if matrix.shape != (4, 4) or tool.shape != (3,) or not np.isfinite(matrix).all():
+        if matrix.shape != (4, 4) or target_offset.shape != (3,) or not np.isfinite(matrix).all():
             raise FileFormatError(f"{spec}: sensor.matrix must be 4×4, tool.xyz 3 numbers")
         model = model_from_dict(geometry, spec)
         targets = _named(data, "target", spec, "xyz", (3,))
         sessions = _named(data, "session", spec, "matrix", (4, 4))
-        return LoadedModel(spec, model, tool, matrix, True, targets, sessions)
+        return LoadedModel(spec, model, target_offset, matrix, True, targets, sessions)
     model = model_from_dict(data, spec)
-    return LoadedModel(spec, model, model.tool, None, False)
+    return LoadedModel(spec, model, model.target_offset, None, False)
 
 
 def _named(
@@ -144,14 +149,16 @@ def _groups_document(result: CalibrationResult) -> dict[str, Any]:
     """``[[target]]`` and ``[[session]]`` tables of a fit with several targets or sessions,
     or with orientations (each target's orientation on the flange)."""
     out: dict[str, Any] = {}
-    if result.tools is not None and (len(result.targets) > 1 or result.tool_rotations is not None):
+    if result.target_offsets is not None and (
+        len(result.targets) > 1 or result.target_rotations is not None
+    ):
         rows = []
         for k, name in enumerate(result.targets):
-            row: dict[str, Any] = {"name": name or "target", "xyz": result.tools[k]}
-            if result.tools_std is not None:
-                row["std_mm"] = result.tools_std[k]
-            if result.tool_rotations is not None:
-                row["rotation_vector_deg"] = np.degrees(so3_log(result.tool_rotations[k]))
+            row: dict[str, Any] = {"name": name or "target", "xyz": result.target_offsets[k]}
+            if result.target_offsets_std is not None:
+                row["std_mm"] = result.target_offsets_std[k]
+            if result.target_rotations is not None:
+                row["rotation_vector_deg"] = np.degrees(so3_log(result.target_rotations[k]))
             rows.append(row)
         out["target"] = rows
     if result.frames is not None and len(result.sessions) > 1:
@@ -199,7 +206,7 @@ def calibrated_document(
         "name": geometry["name"],
         "convention": geometry["convention"],
         "joint": geometry["joint"],
-        "tool": {"xyz": result.tool, "std_mm": result.tool_std},
+        "tool": {"xyz": result.target_offset, "std_mm": result.target_offset_std},
         "sensor": {
             "matrix": T,
             "rotation_vector_deg": np.degrees(so3_log(T[:3, :3])),
@@ -216,7 +223,7 @@ def calibrated_document(
                 "kind": p.kind,
                 "unit": p.unit,
                 "identified": p.identified,
-                "error" if p.kind != "tool" else "value": p.value,
+                "error" if p.kind != "target_offset" else "value": p.value,
                 "std": p.std,
                 "at_nominal": p.at_nominal or None,
             }

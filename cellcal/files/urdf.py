@@ -112,7 +112,7 @@ def _fixed(robot: ET.Element, name: str, parent: str, child: str, T: Array) -> N
     ET.SubElement(robot, "link", name=child)
 
 
-def to_urdf(model: RobotModel, tool_mm: Array, T_sensor_base: Array | None = None) -> str:
+def to_urdf(model: RobotModel, target_offset_mm: Array, T_sensor_base: Array | None = None) -> str:
     """The model as URDF text: ``base_link``, ``link_1..n`` turned by ``joint_1..n``,
     ``flange``, ``target`` at ``tool_mm`` on the flange, and for a calibrated model the
     ``sensor`` frame fixed to the base."""
@@ -144,7 +144,9 @@ def to_urdf(model: RobotModel, tool_mm: Array, T_sensor_base: Array | None = Non
         ET.SubElement(robot, "link", name=child)
         before, parent = B, child
     _fixed(robot, "flange_joint", parent, "flange", before)
-    _fixed(robot, "target_joint", "flange", "target", _t(*np.asarray(tool_mm, dtype=float)))
+    _fixed(
+        robot, "target_joint", "flange", "target", _t(*np.asarray(target_offset_mm, dtype=float))
+    )
     if T_sensor_base is not None:
         _fixed(robot, "sensor_joint", "base_link", "sensor", invert(np.asarray(T_sensor_base)))
     ET.indent(robot)
@@ -298,8 +300,13 @@ def mdh_from_axes(
             )
         )
         o, R = o_i, _frame(z[i], x_i)
-    tool = R.T @ (end - o)
-    return RobotModel(name, "mdh", tuple(joints), (float(tool[0]), float(tool[1]), float(tool[2])))
+    target_offset = R.T @ (end - o)
+    return RobotModel(
+        name,
+        "mdh",
+        tuple(joints),
+        (float(target_offset[0]), float(target_offset[1]), float(target_offset[2])),
+    )
 
 
 def _set(pin: Any, pm: Any, q: Array, joint: int, angle: float) -> None:
@@ -423,15 +430,15 @@ def _from_urdf(p: Path, text: str, warn: Warn | None) -> RobotModel:
         np.array(points), np.array(axes), ends[0], limits, pm.name or p.stem, end_axes[0]
     )
     # The end frame in the model's flange frame: a turn (identity but for a frame a DH
-    # table cannot end on) and an origin (model.tool: zero but for one off the last axis).
-    k0 = target_kinematics(model, np.zeros((1, len(chain))), model.tool, jacobian=False)
+    # table cannot end on) and an origin (model.target_offset: zero but for one off the last axis).
+    k0 = target_kinematics(model, np.zeros((1, len(chain))), model.target_offset, jacobian=False)
     turn = k0.R_flange[0].T @ end_axes[0]
     # The model must be the file's robot: compare at random readings within the limits.
     rng = np.random.default_rng(0)
     lo = np.array([max(a, -math.pi) for a, _ in limits])
     hi = np.array([min(b, math.pi) for _, b in limits])
     q = rng.uniform(lo, hi, (50, len(chain)))
-    k = target_kinematics(model, q, model.tool, jacobian=False)
+    k = target_kinematics(model, q, model.target_offset, jacobian=False)
     theirs, their_axes = placements(q)
     worst = float(np.abs(k.p - theirs).max())
     if worst > AGREE_MM:
@@ -463,10 +470,10 @@ def _child_link(root: ET.Element, joint: str) -> str:
 def _flange_warning(p: Path, end: str, model: RobotModel, turn: Array) -> str | None:
     """One line when the file's end frame is not the model's flange frame: turned off it
     (``turn``: the end frame's axes in the flange frame) or its origin off the last
-    joint's axis (``model.tool``); None when it is the flange frame."""
+    joint's axis (``model.target_offset``); None when it is the flange frame."""
     w = so3_log(turn)
     angle = float(np.linalg.norm(w))
-    off = float(np.linalg.norm(model.tool))
+    off = float(np.linalg.norm(model.target_offset))
     if angle <= FLANGE_RAD and off <= ON_AXIS_MM:
         return None
     n = model.dof
@@ -476,7 +483,7 @@ def _flange_warning(p: Path, end: str, model: RobotModel, turn: Array) -> str | 
         what.append(f"is turned {math.degrees(angle):.6g}° about ({axis})")
     if off > ON_AXIS_MM:
         what.append(f"has its origin {off:.6g} mm off joint {n}'s axis")
-    t = ", ".join(f"{round(float(v), 6) + 0.0:g}" for v in model.tool)
+    t = ", ".join(f"{round(float(v), 6) + 0.0:g}" for v in model.target_offset)
     return (
         f"{p}: its end frame {end} {' and '.join(what)}, relative to the flange frame "
         f"a DH model ends on (z along joint {n}'s axis, origin on it); cellcal's model "

@@ -107,8 +107,8 @@ def _state(doc: dict[str, Any]) -> State:
 def _frame_state(model: RobotModel, reg: dict[str, Any], calibrated: bool) -> State:
     key = "_calibrated" if calibrated else ""
     T = np.array(reg[f"T_sensor_base{key}"], dtype=np.float64)
-    tool = np.array(reg[f"target_offset{key}_mm"], dtype=np.float64)
-    return State(model, tool, T[:3, :3], T[:3, 3], np.zeros(3))
+    target_offset = np.array(reg[f"target_offset{key}_mm"], dtype=np.float64)
+    return State(model, target_offset, T[:3, :3], T[:3, 3], np.zeros(3))
 
 
 def _singular_values(
@@ -125,7 +125,7 @@ def _singular_values(
     if not keep or len(q) == 0:
         return np.zeros(0)
     # Frame rotations turn about the measurements' centroid, as in the identification.
-    about = State(state.model, state.tools, state.Rs, state.ts, measured.mean(axis=0))
+    about = State(state.model, state.target_offsets, state.Rs, state.ts, measured.mean(axis=0))
     _, J = jacobian(about, q, specs)
     A = (J / sigma[:, :, None]).reshape(-1, len(specs))[:, keep]
     norms = np.linalg.norm(A, axis=0)
@@ -140,8 +140,8 @@ def _compare_methods(
 ) -> tuple[MethodComparison, ...]:
     """Each registration method's fit of the reference sensor's frame and the validation
     error it leaves, with the calibrated geometry and target offset held."""
-    base_cal = target_kinematics(state.model, q_cal, state.tool, jacobian=False).p
-    base_val = target_kinematics(state.model, q_val, state.tool, jacobian=False).p
+    base_cal = target_kinematics(state.model, q_cal, state.target_offset, jacobian=False).p
+    base_val = target_kinematics(state.model, q_val, state.target_offset, jacobian=False).p
     out = []
     for method in METHODS:
         try:
@@ -196,7 +196,7 @@ def report_data(
     validation = ValidationPoses(
         idx=data.idx[val],
         region=tuple(np.array(data.region)[val]),
-        position=target_kinematics(state.model, data.q[val], state.tool, jacobian=False).p,
+        position=target_kinematics(state.model, data.q[val], state.target_offset, jacobian=False).p,
         before=ref[val] - predict(baseline, data.q[val]),
         after=ref[val] - predict(state, data.q[val]),
     )
@@ -230,7 +230,7 @@ def report_data(
         summary=summary,
         model=json.loads(json.dumps(doc, default=str)),
         calibration_positions=target_kinematics(
-            state.model, data.q[cal], state.tool, jacobian=False
+            state.model, data.q[cal], state.target_offset, jacobian=False
         ).p,
         residuals=_registration_residuals(data, nominal, state.model, regs),
         agreements=tuple(agreements),

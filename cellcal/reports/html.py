@@ -11,6 +11,7 @@ from typing import Any
 
 import numpy as np
 
+from cellcal.files.models import TARGET_OFFSET_KINDS
 from cellcal.reports import figures as figs
 from cellcal.reports.data import ReportData
 from cellcal.store.devices import description_of
@@ -232,7 +233,7 @@ def _parameters(d: ReportData, salt: str) -> str:
             "identified" if p["identified"] else why.get(str(p.get("at_nominal")), "at nominal")
         )
         std = p.get("std") if p["identified"] else None
-        if not p["identified"] and p["kind"] != "tool":
+        if not p["identified"] and p["kind"] not in TARGET_OFFSET_KINDS:
             value = None  # no error estimated: the nominal value is kept
         rows.append(
             [
@@ -251,7 +252,9 @@ def _parameters(d: ReportData, salt: str) -> str:
         f"{_mm(fit['rms_after_mm'])} mm after; σ₀ {fit['sigma0']:.3g}; condition number "
         f"{fit['condition_number']:.4g}{_equal_weights(fit)}.</p>",
         _table(
-            ["parameter", "kind", "error (value for the tool)", "σ", "unit", "status"], rows, left=2
+            ["parameter", "kind", "error (value for the target offset)", "σ", "unit", "status"],
+            rows,
+            left=2,
         ),
     ]
     left = [p["name"] for p in doc["parameter"] if not p["identified"]]

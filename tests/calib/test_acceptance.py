@@ -107,10 +107,10 @@ def test_no_convergence_is_diagnosed(monkeypatch):
 def test_fixed_orientation_keeps_the_target_offset_nominal_and_corrections_plausible():
     d = paper_cube(0.0)
     res = calibrate(KR5, d.q, d.m)
-    assert {"tool_x", "tool_y", "tool_z"} <= set(res.unidentifiable)
-    np.testing.assert_array_equal(res.tool, KR5.tool)
+    assert {"target_offset_x", "target_offset_y", "target_offset_z"} <= set(res.unidentifiable)
+    np.testing.assert_array_equal(res.target_offset, KR5.target_offset)
     for p in res.parameters:
-        if p.kind != "tool":
+        if p.kind != "target_offset":
             assert abs(p.value) < (2.0 if p.unit == "deg" else 10.0), p
     # Weakly determined parameters are named, not fitted to noise.
     weak = [p.name for p in res.parameters if p.at_nominal == "weak"]
@@ -133,7 +133,7 @@ def test_fix_pins_parameters():
     assert by["a2"].at_nominal == "fixed" and by["a2"].value == 0.0
     assert not by["beta2"].identified
     frames_only = calibrate(KR5, d.q, d.m, fix=("kinematics",))
-    assert set(frames_only.identified) == {"tool_x", "tool_y", "tool_z"}
+    assert set(frames_only.identified) == {"target_offset_x", "target_offset_y", "target_offset_z"}
     assert frames_only.rms_after == pytest.approx(frames_only.rms_before, rel=1e-6)
     with pytest.raises(InputError, match="no such parameter"):
         calibrate(KR5, d.q, d.m, fix=("a9",))

@@ -63,8 +63,8 @@ def test_reported_uncertainties_match_the_scatter():
     for _ in range(40):
         res = calibrate(nominal, d.q, truth + rng.normal(0, NOISE_MM, truth.shape))
         pick = {p.name: p for p in res.parameters}
-        values.append([pick[n].value for n in ("a2", "beta3", "alpha4", "tool_z")])
-        stds.append([pick[n].std for n in ("a2", "beta3", "alpha4", "tool_z")])
+        values.append([pick[n].value for n in ("a2", "beta3", "alpha4", "target_offset_z")])
+        stds.append([pick[n].std for n in ("a2", "beta3", "alpha4", "target_offset_z")])
     observed = np.std(values, axis=0, ddof=1)
     predicted = np.mean(stds, axis=0)
     np.testing.assert_allclose(observed, predicted, rtol=0.4)
@@ -98,7 +98,7 @@ def test_paper_fixed_orientation_cube_is_ill_conditioned_but_still_helps():
     assert res.condition_number > 1e3
     assert any("ill-conditioned" in w for w in res.warnings)
     # With one orientation the target offset cannot be told from the sensor's origin.
-    assert {"tool_x", "tool_y", "tool_z"} <= set(res.unidentifiable)
+    assert {"target_offset_x", "target_offset_y", "target_offset_z"} <= set(res.unidentifiable)
     base = fit_frames(nominal, d.q, d.m)
     before = _rms(predict(base, d.q_val) - d.m_val_true)
     after = _rms(res.predict(d.q_val) - d.m_val_true)
@@ -107,7 +107,7 @@ def test_paper_fixed_orientation_cube_is_ill_conditioned_but_still_helps():
     v = paper_cube(30.0)
     res_v = calibrate(nominal, v.q, v.m)
     assert res_v.condition_number < res.condition_number / 5
-    assert "tool_z" in res_v.identified
+    assert "target_offset_z" in res_v.identified
 
 
 def test_weights_from_sigma_discount_poor_points():

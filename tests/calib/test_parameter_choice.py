@@ -85,7 +85,7 @@ def test_the_wam_keeps_its_plausible_model_and_says_what_would_lower_the_error()
     assert not tried["alpha5"][1] and tried["alpha5"][0] < 0.97 * c.rule_mm
     assert any("alpha5" in w and "beyond manufacturing tolerance" in w for w in res.warnings)
     for p in res.parameters:
-        if p.identified and p.kind != "tool":
+        if p.identified and p.kind != "target_offset":
             assert abs(p.value) <= (TOLERANCE_DEG if p.unit == "deg" else TOLERANCE_MM), p
     v = validate_on(res, data.q, data.xyz, val.q, val.xyz)
     assert v.after.rms < v.before.rms

@@ -35,7 +35,7 @@ def _calibrated(robot: str) -> tuple[CalibrationResult, Validation]:
 
 def _plausible(res: CalibrationResult, mm: float, deg: float) -> None:
     for p in res.parameters:
-        if p.identified and p.kind != "tool":
+        if p.identified and p.kind != "target_offset":
             limit = deg if p.unit == "deg" else mm
             assert abs(p.value) < limit, p
 
@@ -51,8 +51,8 @@ def test_ur5_held_out_accuracy_and_plausible_parameters():
     weak = {p.name for p in res.parameters if p.at_nominal == "weak"}
     assert {"theta5", "alpha5"} <= weak
     # The target (an SMR 31 mm off the flange nominally) stays on the flange axis.
-    assert np.hypot(res.tool[0], res.tool[1]) < 1.0
-    assert 25.0 < res.tool[2] < 40.0
+    assert np.hypot(res.target_offset[0], res.target_offset[1]) < 1.0
+    assert 25.0 < res.target_offset[2] < 40.0
 
 
 def test_ur5_without_degree_of_identifiability_fits_absurd_values(monkeypatch):

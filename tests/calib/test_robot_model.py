@@ -38,7 +38,7 @@ def test_round_trip_through_the_toml_structure():
 
 def test_tool_and_beta_keys():
     m = model_from_dict(_table(tool={"xyz": [1, 2, 3]}))
-    assert list(m.tool) == [1.0, 2.0, 3.0]
+    assert list(m.target_offset) == [1.0, 2.0, 3.0]
     rows = _table()["joint"]
     rows[0]["beta"] = 0.5
     assert model_from_dict(_table(joint=rows)).joints[0].beta == pytest.approx(math.radians(0.5))

@@ -36,8 +36,8 @@ def _frame(rng):
     return T
 
 
-def _truth(groups, cell, tools, frames):
-    return State(cell.model, tools, frames[:, :3, :3], frames[:, :3, 3], np.zeros(3))
+def _truth(groups, cell, target_offsets, frames):
+    return State(cell.model, target_offsets, frames[:, :3, :3], frames[:, :3, 3], np.zeros(3))
 
 
 def test_three_targets_each_get_their_own_offset():
@@ -51,18 +51,21 @@ def test_three_targets_each_get_their_own_offset():
     m = predict(truth, q, g) + rng.normal(0, NOISE, (len(q), 3))
     res = calibrate(nominal, q, m, groups=g)
     assert res.targets == ("A", "B", "C")
-    assert res.tools is not None and res.tools_std is not None
+    assert res.target_offsets is not None and res.target_offsets_std is not None
 
     # The targets' distances from each other are found; together they carry the last
     # row's errors (a rigid motion of the flange frame: 0.3 mm, 0.03° at most).
     def distances(t):
         return np.linalg.norm(t[:, None] - t[None], axis=2)
 
-    assert np.abs(distances(res.tools) - distances(SMRS)).max() < 5 * res.tools_std.max()
-    assert np.abs(res.tools - SMRS).max() < 1.0
+    assert (
+        np.abs(distances(res.target_offsets) - distances(SMRS)).max()
+        < 5 * res.target_offsets_std.max()
+    )
+    assert np.abs(res.target_offsets - SMRS).max() < 1.0
     assert res.rms_after < 2 * NOISE
     names = {p.name for p in res.parameters}
-    assert {"tool_x:A", "tool_z:C"} <= names and "tool_x" not in names
+    assert {"target_offset_x:A", "target_offset_z:C"} <= names and "target_offset_x" not in names
     # One kinematic model for all three: held-out points of target B are predicted.
     q_val = random_joints(nominal, rng, 30)
     gb = Groups.of(30, ["B"] * 30)
@@ -119,9 +122,9 @@ def test_orientations_are_fitted_and_recover_the_target_orientation():
     m = cell.positions(q) + rng.normal(0, NOISE, (len(q), 3))
     res6 = calibrate(nominal, q, m, orientations=R_meas)
     res3 = calibrate(nominal, q, m)
-    assert res6.tool_rotations is not None and res6.orientation_residuals is not None
+    assert res6.target_rotations is not None and res6.orientation_residuals is not None
     # The target's orientation on the flange (up to the last row's 0.03° errors)...
-    err = Rotation.from_matrix(res6.tool_rotations[0] @ R_ft.T).magnitude()
+    err = Rotation.from_matrix(res6.target_rotations[0] @ R_ft.T).magnitude()
     assert math.degrees(err) < 0.1
     # ...and the orientation at held-out poses, to the noise.
     q_ho = random_joints(nominal, rng, 30)
@@ -135,7 +138,7 @@ def test_orientations_are_fitted_and_recover_the_target_orientation():
     # Orientations add information: the kinematic parameters are known better.
     std6 = {p.name: p.std for p in res6.parameters if p.identified}
     std3 = {p.name: p.std for p in res3.parameters if p.identified}
-    common = [n for n in std3 if n in std6 and not n.startswith("tool")]
+    common = [n for n in std3 if n in std6 and not n.startswith("target_")]
     assert np.median([std6[n] / std3[n] for n in common]) < 0.9
     q_val = random_joints(nominal, rng, 30)
     assert _rms(res6.predict(q_val) - cell.positions(q_val)) < 3 * NOISE
@@ -168,19 +171,19 @@ def test_scale_and_couple_map_readings_to_joint_angles():
     angles = q.copy()
     angles[:, 1] = -q[:, 1]
     angles[:, 2] = q[:, 2] + q[:, 1]
-    p1 = target_kinematics(coupled, q, plain.tool, jacobian=False).p
-    p2 = target_kinematics(plain, angles, plain.tool, jacobian=False).p
+    p1 = target_kinematics(coupled, q, plain.target_offset, jacobian=False).p
+    p2 = target_kinematics(plain, angles, plain.target_offset, jacobian=False).p
     np.testing.assert_allclose(p1, p2, atol=1e-9)
     # Written and read back unchanged.
     again = model_from_dict(model_to_dict(coupled))
     assert again.joints[1].scale == -1.0
     assert (again.joints[2].couple_joint, again.joints[2].couple_factor) == (2, 1.0)
     # Inverse kinematics answers in readings.
-    k = target_kinematics(coupled, q, plain.tool, jacobian=False)
-    sol = solve(coupled, plain.tool, k.p, k.R_flange, q + 0.05)
+    k = target_kinematics(coupled, q, plain.target_offset, jacobian=False)
+    sol = solve(coupled, plain.target_offset, k.p, k.R_flange, q + 0.05)
     assert sol.ok.all()
     np.testing.assert_allclose(
-        target_kinematics(coupled, sol.q, plain.tool, jacobian=False).p, k.p, atol=1e-6
+        target_kinematics(coupled, sol.q, plain.target_offset, jacobian=False).p, k.p, atol=1e-6
     )
 
 

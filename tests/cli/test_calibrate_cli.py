@@ -193,5 +193,5 @@ def test_validation_from_another_set_up_says_to_re_register(tmp_path, capsys):
     )
     assert code == 0, err
     doc = json.loads(out)
-    assert doc["identified"] == ["tool_x", "tool_y", "tool_z"]
+    assert doc["identified"] == ["target_offset_x", "target_offset_y", "target_offset_z"]
     assert doc["rms_after_mm"] < 0.03

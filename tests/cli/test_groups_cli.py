@@ -52,11 +52,11 @@ def _measure(cell, n, targets, sessions):
     q = random_joints(nominal, rng, n)
     g = Groups.of(n, targets, sessions)
     names_t = sorted(set(targets)) if targets else ["t"]
-    tools = SMRS[[names_t.index(t) for t in g.targets]] if targets else truth.target_offset
+    target_offsets = SMRS[[names_t.index(t) for t in g.targets]] if targets else truth.target_offset
     names_s = sorted(set(sessions)) if sessions else ["s"]
     state = State(
         truth.model,
-        tools,
+        target_offsets,
         frames[[names_s.index(s) for s in g.sessions], :3, :3],
         frames[[names_s.index(s) for s in g.sessions], :3, 3],
         np.zeros(3),
@@ -79,7 +79,7 @@ def test_targets_and_sessions_through_calibrate_and_predict(capsys, tmp_path, ce
     assert set(doc["targets"]) == {"A", "B"} and set(doc["sessions"]) == {"s1", "s2"}
     assert doc["rms_after_mm"] < 0.02
     assert doc["validation"]["after"]["rms_mm"] < 0.03
-    assert "tool_x:A" in {p["name"] for p in doc["parameters"]}
+    assert "target_offset_x:A" in {p["name"] for p in doc["parameters"]}
     text = out.read_text()
     assert "[[target]]" in text and "[[session]]" in text
     # predict picks each row's target and session by name and reproduces the data.
@@ -122,7 +122,9 @@ def test_orientation_columns_through_calibrate(capsys, tmp_path, cell):
     assert code == 0, err
     doc = json.loads(stdout)
     assert doc["orientation_rms_deg"] < 1e-6
-    assert {"tool_rx", "tool_ry", "tool_rz"} <= {p["name"] for p in doc["parameters"]}
+    assert {"target_rotation_x", "target_rotation_y", "target_rotation_z"} <= {
+        p["name"] for p in doc["parameters"]
+    }
     assert "rotation_vector_deg" in out.read_text()
     # A quaternion that is not of unit length is refused with its row.
     quats[3] *= 1.5

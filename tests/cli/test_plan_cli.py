@@ -75,7 +75,11 @@ def test_the_plans_csv_and_json(tmp_path):
     assert (s["n_poses"], s["n_calibration"], s["n_unreachable"]) == (128, 80, 2)
     assert "theta1" in s["unidentifiable"] and "a2" in s["identified"]
     # As the calibration counts them: the robot's and the target offset's; the frame apart.
-    assert len(s["identified"]) == 21 and s["identified"][-3:] == ["tool_x", "tool_y", "tool_z"]
+    assert len(s["identified"]) == 21 and s["identified"][-3:] == [
+        "target_offset_x",
+        "target_offset_y",
+        "target_offset_z",
+    ]
     assert s["identified_frame"] == [
         "frame_rx",
         "frame_ry",

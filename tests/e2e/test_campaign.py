@@ -42,7 +42,7 @@ def test_mock_campaign_recovers_the_injected_errors(tmp_path):
     truth = SimulatedCell(config, nominal).model
     checked = 0
     for p in s.calibration.parameters:
-        if not p.identified or p.kind == "tool":
+        if not p.identified or p.kind == "target_offset":
             continue
         j = p.joint - 1
         true = getattr(truth.joints[j], p.kind) - getattr(nominal.joints[j], p.kind)

@@ -93,9 +93,13 @@ def test_compensated_targets_bring_the_real_robot_to_the_points(campaign):
     # The nominal model's level: its joints for the same points, with the frame and the
     # target offset that fit it best to the campaign's calibration poses.
     cal = np.array([r == CALIBRATION for r in data.role])
-    tool = model.tool
-    fit = fit_rigid(target_kinematics(nominal, data.q[cal], tool).p, data.mean["tracker"][cal])
-    q_nom = compensate(nominal, tool, nominal, apply(invert(fit.T), p_tracker), None, home).q
+    target_offset = model.target_offset
+    fit = fit_rigid(
+        target_kinematics(nominal, data.q[cal], target_offset).p, data.mean["tracker"][cal]
+    )
+    q_nom = compensate(
+        nominal, target_offset, nominal, apply(invert(fit.T), p_tracker), None, home
+    ).q
 
     measured = _measure(config, np.concatenate([q_comp, q_nom]))
     err_comp = np.linalg.norm(measured[:10] - p_tracker, axis=1)
@@ -111,7 +115,7 @@ def test_compensated_targets_bring_the_real_robot_to_the_points(campaign):
     assert rms(err_comp) < 2.0 * validation_rms
     # The reported correction: where the nominal model puts the target at the
     # compensated joints, against the point (base frame of the calibrated model).
-    p_nominal = target_kinematics(nominal, q_comp, tool, jacobian=False).p
+    p_nominal = target_kinematics(nominal, q_comp, target_offset, jacobian=False).p
     correction = np.linalg.norm(p_nominal - apply(invert(model.T_sensor_base), p_tracker), axis=1)
     assert summary["rms_correction_mm"] == pytest.approx(rms(correction), abs=1e-6)
     assert summary["max_residual_mm"] < 1e-6
@@ -142,7 +146,7 @@ def test_the_programs_joints_choose_the_configuration_and_keep_the_orientation(c
     model = load_model(str(folder / "report" / "model.toml"))
     nominal = load_model(config.robot.model).model
     q_today = data.q[:5]
-    p = target_kinematics(nominal, q_today, model.tool, jacobian=False).p
+    p = target_kinematics(nominal, q_today, model.target_offset, jacobian=False).p
     head = "name,x,y,z," + ",".join(f"q{i}" for i in range(1, 7))
     rows = [
         ",".join([f"T{k}", *(f"{v:.9f}" for v in p[k]), *(f"{v:.9f}" for v in np.degrees(q))])
@@ -158,7 +162,7 @@ def test_the_programs_joints_choose_the_configuration_and_keep_the_orientation(c
     q = np.radians([[float(r[f"q{i}"]) for i in range(1, 7)] for r in got])
     # Near today's joints, and the calibrated model's flange turned as the program's is.
     assert np.degrees(np.abs(q - q_today)).max() < 0.5
-    reached = target_kinematics(model.model, q, model.tool, jacobian=False)
+    reached = target_kinematics(model.model, q, model.target_offset, jacobian=False)
     assert np.abs(reached.p - p).max() < 1e-6
     R_today = flange_transforms(nominal, q_today)[:, :3, :3]
     turn = np.einsum("nji,njk->nik", R_today, reached.R_flange)
