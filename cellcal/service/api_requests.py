@@ -66,7 +66,7 @@ class StartRequest:
     mock: bool | None = None
     seed: int | None = None
     when: str = "now"
-    #: the campaign's kind (``runner.KINDS``; absent: a calibration) and its options,
+    #: the campaign's kind (``kinds.all_kinds()``; absent: a calibration) and its options,
     #: a JSON object the kind checks (an ISO 9283 test: cycles, model, model_toml)
     kind: str = "calibration"
     options: dict[str, Any] | None = None
