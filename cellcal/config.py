@@ -161,6 +161,8 @@ class SimulatedFaults(Strict):
     tracker_beam_restore_s: Annotated[float, Field(ge=0, le=60)] = 0.2
     #: the tracker drops its link after N lines on each connection
     tracker_drop_after_lines: Annotated[int, Field(ge=0)] = 0
+    #: an emScon tracker's sensor warms up for this long after its twin starts (s)
+    tracker_warmup_s: Annotated[float, Field(ge=0, le=600)] = 0.0
     #: every N-th move command of the robot ends in a protective stop
     robot_protective_stop_every: Annotated[int, Field(ge=0)] = 0
 

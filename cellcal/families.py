@@ -63,6 +63,7 @@ if TYPE_CHECKING:  # what ``__getattr__`` hands out, for the type checker
     from cellcal.mocks.rig.twin import RigScene as RigScene
     from cellcal.mocks.rig.twin import RigTruth as RigTruth
     from cellcal.mocks.simulated_cell import SimulatedCell as SimulatedCell
+    from cellcal.mocks.tracker.emscon_server import emscon_twin as emscon_twin
     from cellcal.mocks.tracker.server import MockTracker as MockTracker
     from cellcal.mocks.tracker.server import TrackerFaults as TrackerFaults
     from cellcal.mocks.twins import limits_deg as limits_deg
@@ -145,6 +146,7 @@ FAMILIES: tuple[Family, ...] = (
     Family("robot", ROBOT, "modbus", "cellcal.drivers.modbus_options:ModbusRobotOptions", "cellcal.drivers.modbus_robot:ModbusRobot", "cellcal.mocks.modbus.server:serve", "a controller behind Modbus TCP with the handshake map of docs/robots.md", libraries=("pymodbus",), mock="modbus-robot", mock_command="cellcal.commands.mock:mock_modbus_robot"),  # noqa: E501
     Family("robot", ROBOT, "ur", "cellcal.drivers.ur:UROptions", "cellcal.drivers.ur:URRobot", "cellcal.mocks.ur.server:serve", "a Universal Robots e-Series controller through ur_rtde", libraries=("rtde_control", "rtde_receive"), mock_command="cellcal.commands.mock:mock_ur"),  # noqa: E501
     Family("sensor", "laser-tracker", "line-protocol", "cellcal.drivers.tracker:LineTrackerOptions", "cellcal.drivers.tracker:LineTracker", "cellcal.mocks.tracker.server:serve", "a laser tracker speaking cellcal's line protocol over serial or TCP (docs/tracker.md)", mock="tracker", mock_command="cellcal.commands.mock:mock_tracker"),  # noqa: E501
+    Family("sensor", "laser-tracker", "emscon", "cellcal.drivers.emscon:EmsconOptions", "cellcal.drivers.emscon:EmsconTracker", "cellcal.mocks.tracker.emscon_server:serve", "a Leica laser tracker (AT401, AT402, AT403) through its emScon TPI interface on TCP (docs/tracker.md)", mock="tracker", mock_command="cellcal.commands.mock:mock_tracker"),  # noqa: E501
     Family("sensor", "photogrammetry", "cameras", "cellcal.drivers.photogrammetry:CameraRigOptions", "cellcal.drivers.photogrammetry:CameraRigSensor", "cellcal.mocks.rig.twin:serve", "a photogrammetry rig of cameras: marker corners, the target's pose from every camera (docs/photogrammetry.md)", libraries=("cv2",), mock_command="cellcal.commands.rig_capture:mock_cameras", simulated_as="images"),  # noqa: E501
 )  # fmt: skip
 
@@ -378,6 +380,7 @@ TWIN_NAMES = {
     # cellcal mock tracker | modbus-robot | ur
     "MockTracker": "tracker.server",
     "TrackerFaults": "tracker.server",
+    "emscon_twin": "tracker.emscon_server",
     "ModbusRobotSimulator": "modbus.server",
     "ModbusRobotFaults": "modbus.server",
     "xyzabc": "modbus.server",
@@ -414,6 +417,10 @@ def twin_module(name: str) -> ModuleType:
         from cellcal.mocks.tracker import server as tracker_server
 
         return tracker_server
+    if name == "tracker.emscon_server":
+        from cellcal.mocks.tracker import emscon_server
+
+        return emscon_server
     if name == "modbus.server":
         from cellcal.mocks.modbus import server as modbus_robot_server
 

@@ -178,7 +178,11 @@ def test_the_table_is_consistent():
     tags = [f.tag for f in registry.FAMILIES]
     assert len(set(tags)) == len(tags)
     names = [f.mock_name for f in registry.FAMILIES if f.mock_name is not None]
-    assert sorted(names) == ["cameras", "modbus-robot", "tracker", "ur"]
+    assert sorted(set(names)) == ["cameras", "modbus-robot", "tracker", "ur"]
+    # two dialects of one kind share their command (cellcal mock tracker --dialect)
+    for name in set(names):
+        commands = {f.mock_command for f in registry.FAMILIES if f.mock_name == name}
+        assert len(commands) == 1 and None not in commands
     for f in registry.FAMILIES:
         options = f.options_model()
         assert options.model_fields["driver"].default == f.driver
@@ -241,7 +245,7 @@ def test_robot_options_that_do_not_belong_to_the_driver_are_refused(robot, messa
     ("sensor", "message"),
     [
         ({"kind": "laser-tracker", "url": "socket://h:1", "address": "socket://h:1"}, r"sensor\.2\.url is deprecated and sensor\.2\.address replaces it; both are given"),  # noqa: E501
-        ({"kind": "laser-tracker", "driver": "nmea"}, r"sensor\.2\.driver: no laser-tracker driver 'nmea' \(choose line-protocol\)"),  # noqa: E501
+        ({"kind": "laser-tracker", "driver": "nmea"}, r"sensor\.2\.driver: no laser-tracker driver 'nmea' \(choose line-protocol, emscon\)"),  # noqa: E501
         ({"kind": "photogrammetry", "driver": "simulated"}, r"sensor\.2\.driver = \"simulated\" was the noise model of an earlier cellcal"),  # noqa: E501
         ({"kind": "sonar"}, r"sensor\.2\.kind: 'sonar' is not a sensor kind \(laser-tracker, photogrammetry\)"),  # noqa: E501
         ({"driver": "line-protocol"}, r"sensor\.2\.kind: required key missing"),

@@ -378,6 +378,7 @@ def test_the_registry_loads_the_distributions_once(acme, monkeypatch):
         sensors = registry.families("sensor")
         assert [f.tag for f in sensors] == [
             "laser-tracker/line-protocol",
+            "laser-tracker/emscon",
             "photogrammetry/cameras",
             "acme-probe/acme",
         ]

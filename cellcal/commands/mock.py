@@ -79,6 +79,14 @@ def mock() -> None:
 
 
 @click.command("tracker")
+@click.option(
+    "--dialect",
+    type=click.Choice(["line-protocol", "emscon"]),
+    default="line-protocol",
+    show_default=True,
+    help="cellcal's line protocol, or Leica's emScon TPI (binary, TCP only; its faults "
+    "from the configuration's [simulation.faults]).",
+)
 @click.option("--listen", help="TCP address HOST:PORT (a 127.0.0.x address for tests).")
 @click.option("--pty", "use_pty", is_flag=True, help="Serve on a pseudo-terminal instead.")
 @click.option(
@@ -117,6 +125,7 @@ def mock() -> None:
     help="Wall seconds per tracker second (pacing of points).",
 )
 def mock_tracker(
+    dialect: str,
     listen: str | None,
     use_pty: bool,
     config_path: str | None,
@@ -130,12 +139,27 @@ def mock_tracker(
     drop_after: int | None,
     time_scale: float,
 ) -> None:
-    """A laser tracker of the simulated cell, speaking the tracker line protocol."""
+    """A laser tracker of the simulated cell, speaking the tracker line protocol (or
+    Leica's emScon TPI)."""
     from cellcal.commands.run import bundled_mock_cell
-    from cellcal.families import MockTracker, SimulatedCell, TrackerFaults
+    from cellcal.families import MockTracker, SimulatedCell, TrackerFaults, emscon_twin
 
     if (listen is None) == (not use_pty):
         raise InputError("give --listen HOST:PORT or --pty")
+    line_only = {
+        "--pty": use_pty,
+        "--beam-break-after": beam_break_after is not None,
+        "--garbage-every": garbage_every != 0,
+        "--event-every": event_every != 0,
+        "--reply-delay": reply_delay != 0.0,
+        "--drop-after": drop_after is not None,
+    }
+    if dialect == "emscon" and any(line_only.values()):
+        given = ", ".join(k for k, v in line_only.items() if v)
+        raise InputError(
+            f"{given}: for the line protocol; the emScon twin takes its faults from the "
+            "configuration's [simulation.faults]"
+        )
     config = load_config(config_path) if config_path else bundled_mock_cell()[0]
     trackers = [s.name for s in config.sensor if s.kind == "laser-tracker"]
     name = sensor or (trackers[0] if trackers else None)
@@ -144,6 +168,20 @@ def mock_tracker(
             f"no laser-tracker sensor {sensor!r} in the configuration ({', '.join(trackers)})"
         )
     cell = SimulatedCell(config, load_model(config.robot.model).model, seed)
+    if dialect == "emscon":
+        assert listen is not None
+        twin = emscon_twin(cell, name, time_scale)
+        try:
+            host, port = twin.start_tcp(*_host_port(listen))
+        except OSError as exc:
+            raise InputError(f"--listen {listen}: cannot listen ({exc.strerror})") from None
+        with twin:
+            click.echo(
+                f"emScon tracker {name!r} of {config.name!r} serving on {host}:{port}", err=True
+            )
+            click.echo(f"{host}:{port}")
+            wait_for_signal()
+        return
     faults = TrackerFaults(
         beam_break_after=beam_break_after,
         beam_breaks=beam_breaks,

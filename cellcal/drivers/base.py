@@ -99,7 +99,9 @@ class Series:
     A sensor that knows each sample's uncertainty (the photogrammetry rig) adds ``cov``
     (N×3×3, mm²), the target's orientation in its frame (``orientation``, N×4 unit
     quaternions w, x, y, z) and the covariance of the mean (``mean_cov``, 3×3, mm², which
-    may hold a part that does not average over samples). ``note`` says what went wrong on
+    may hold a part that does not average over samples). A sensor that reports the air it
+    compensated each sample with (a laser tracker's meteo) adds ``meteo`` (N×3: °C, hPa,
+    %RH). ``note`` says what went wrong on
     the way (sets or points that failed and were taken again, frames lost) and, for a
     series with fewer samples than asked (its driver's re-takes ran out: at most twice
     as many), why."""
@@ -113,6 +115,7 @@ class Series:
     orientation: Array | None = None
     mean_cov: Array | None = None
     note: str = ""
+    meteo: Array | None = None
 
     def __post_init__(self) -> None:
         n = len(self.xyz)
@@ -124,6 +127,8 @@ class Series:
             raise ValueError("series: one quaternion (w, x, y, z) per sample")
         if self.mean_cov is not None and self.mean_cov.shape != (3, 3):
             raise ValueError("series: the mean's covariance is 3×3")
+        if self.meteo is not None and self.meteo.shape != (n, 3):
+            raise ValueError("series: one temperature, pressure and humidity per sample")
 
     @property
     def n(self) -> int:

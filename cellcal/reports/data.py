@@ -29,6 +29,7 @@ from cellcal.campaign.analysis import mean_sigma, sensor_estimates
 from cellcal.campaign.plan import CALIBRATION, VALIDATION
 from cellcal.errors import CellcalError
 from cellcal.files.models import load_model
+from cellcal.store.air import AirRange
 from cellcal.store.database import PoseData, Store
 
 #: Registration methods the comparison runs (the paper's Table 4, with the line method).
@@ -94,6 +95,8 @@ class ReportData:
     methods: tuple[MethodComparison, ...]
     events: tuple[tuple[str, str, int | None, str], ...]
     retries: dict[str, int]
+    #: the air the sensors that report it measured in (an emScon tracker's meteo)
+    air: tuple[AirRange, ...] = ()
 
 
 def _state(doc: dict[str, Any]) -> State:
@@ -178,10 +181,23 @@ def report_data(
     model_toml = store.latest_model_toml(campaign_id)
     events = store.event_rows(campaign_id)
     retries = store.retries_by_sensor(campaign_id)
+    air = store.air_ranges(campaign_id)
     empty = np.zeros((0, 3))
     if summary is None or model_toml is None:
         return ReportData(
-            campaign_id, facts, summary, None, empty, (), (), None, np.zeros(0), (), events, retries
+            campaign_id,
+            facts,
+            summary,
+            None,
+            empty,
+            (),
+            (),
+            None,
+            np.zeros(0),
+            (),
+            events,
+            retries,
+            air,
         )
     doc = tomllib.loads(model_toml)
     state = _state(doc)
@@ -247,4 +263,5 @@ def report_data(
         else (),
         events=events,
         retries=retries,
+        air=air,
     )

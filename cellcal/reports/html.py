@@ -14,6 +14,7 @@ import numpy as np
 from cellcal.files.models import TARGET_OFFSET_KINDS
 from cellcal.reports import figures as figs
 from cellcal.reports.data import ReportData
+from cellcal.store.air import AirRange
 from cellcal.store.devices import description_of
 
 #: Liu et al. 2018, Table 3: RMS position error after calibration per region (mm).
@@ -350,6 +351,15 @@ def _versions(f: dict[str, Any]) -> str:
     return f"report by {f.get('cellcal_version')}; campaign acquired by {acquired}"
 
 
+def _air(a: AirRange) -> str:
+    """The air a tracker compensated its samples with, lowest to highest."""
+    (t0, p0, h0), (t1, p1, h1) = a.low, a.high
+    return (
+        f"{t0:.2f}–{t1:.2f} °C, {p0:.2f}–{p1:.2f} hPa, {h0:.1f}–{h1:.1f} % RH "
+        f"(as the tracker compensated its {a.n} samples)"
+    )
+
+
 def _campaign(d: ReportData, timeline: dict[str, Any]) -> str:
     f = d.facts
     kinds = Counter(k for _, k, _, _ in d.events)
@@ -367,6 +377,7 @@ def _campaign(d: ReportData, timeline: dict[str, Any]) -> str:
         ["dwell", f"{f['dwell_s']:g} s"],
         *[[k, v] for k, v in timeline.items()],
         ["sensor retries", ", ".join(f"{s}: {n}" for s, n in sorted(d.retries.items())) or "none"],
+        *[[f"air, {a.sensor}", _air(a)] for a in d.air],
         ["events", ", ".join(f"{k}: {n}" for k, n in sorted(kinds.items())) or "none"],
     ]
     parts = ["<h2>What the campaign did</h2>", _table(["", ""], rows, ident="campaign")]

@@ -49,6 +49,7 @@ from cellcal import __version__
 from cellcal.calib.geometry import Array
 from cellcal.drivers.base import Series
 from cellcal.errors import CampaignError
+from cellcal.store.air import AirReads
 from cellcal.store.connection import (
     StoreError,
     Transaction,
@@ -63,6 +64,7 @@ from cellcal.store.queries import CampaignQueries
 from cellcal.store.results import AnalysisTables, StatusReads
 from cellcal.store.schema import (
     COV_COLUMNS,
+    METEO_COLUMNS,
     MIGRATIONS,
     SAMPLE_COLUMNS,
     SCHEMA_VERSION,
@@ -127,10 +129,10 @@ class PoseData:
         return np.asarray(np.isfinite(self.mean[sensor]).all(axis=1))
 
 
-class Store(AnalysisTables, StatusReads, CampaignQueries):
+class Store(AnalysisTables, StatusReads, CampaignQueries, AirReads):
     """One campaign database file (the analysis's tables: :class:`AnalysisTables`; the
     status's reads: :class:`StatusReads`; the campaign list's, the report's and the
-    queue's reads: :class:`CampaignQueries`)."""
+    queue's reads: :class:`CampaignQueries`; the samples' air: :class:`AirReads`)."""
 
     def __init__(self, path: str | Path, *, readonly: bool = False) -> None:
         self.path = database_path(path)
@@ -355,9 +357,10 @@ class Store(AnalysisTables, StatusReads, CampaignQueries):
         n = s.n
         cov = s.cov[:, UPPER[0], UPPER[1]] if s.cov is not None else np.full((n, 6), np.nan)
         ori = s.orientation if s.orientation is not None else np.full((n, 4), np.nan)
-        table = np.column_stack([s.host_time, s.device_time, s.xyz, cov, ori]).tolist()
-        columns = ", ".join(SAMPLE_COLUMNS)
-        marks = ", ".join("?" * (len(SAMPLE_COLUMNS) + 1))
+        air = s.meteo if s.meteo is not None else np.full((n, 3), np.nan)
+        table = np.column_stack([s.host_time, s.device_time, s.xyz, cov, ori, air]).tolist()
+        columns = ", ".join((*SAMPLE_COLUMNS, *METEO_COLUMNS))
+        marks = ", ".join("?" * (len(SAMPLE_COLUMNS) + len(METEO_COLUMNS) + 1))
         self.conn.executemany(
             f"INSERT INTO samples (pose_id, sensor, {columns}) VALUES (?, {marks})",
             [(pose_id, s.sensor, *map(sql_value, row)) for row in table],

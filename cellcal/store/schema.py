@@ -23,7 +23,7 @@ import sqlite_utils
 
 from cellcal.calib.geometry import Array
 
-SCHEMA_VERSION = 4
+SCHEMA_VERSION = 5
 
 #: A symmetric 3×3 covariance (mm²) as six columns.
 COV_COLUMNS = ("cov_xx", "cov_xy", "cov_xz", "cov_yy", "cov_yz", "cov_zz")
@@ -32,6 +32,9 @@ ORI_COLUMNS = ("ori_w", "ori_x", "ori_y", "ori_z")
 
 #: the sample columns after (pose_id, sensor), in the order the store writes them
 SAMPLE_COLUMNS = ("host_time", "device_time", "x", "y", "z", *COV_COLUMNS, *ORI_COLUMNS)
+#: The air a tracker compensated a sample with (°C, hPa, %RH); NULL where the sensor does
+#: not report it (schema 5).
+METEO_COLUMNS = ("temperature_c", "pressure_hpa", "humidity_pct")
 #: the upper triangle of a 3×3 matrix in COV_COLUMNS' order
 UPPER = (np.array([0, 0, 0, 1, 1, 2]), np.array([0, 1, 2, 1, 2, 2]))
 
@@ -196,11 +199,18 @@ def _schema_4(db: sqlite_utils.Database) -> None:
     db.execute("ALTER TABLE calibrations ADD COLUMN cellcal_version TEXT")
 
 
+def _schema_5(db: sqlite_utils.Database) -> None:
+    # each sample's air, as the tracker that measured it compensated with it (emScon)
+    for column in METEO_COLUMNS:
+        db.execute(f"ALTER TABLE samples ADD COLUMN {column} REAL")
+
+
 MIGRATIONS: tuple[Callable[[sqlite_utils.Database], None], ...] = (
     _schema_1,
     _schema_2,
     _schema_3,
     _schema_4,
+    _schema_5,
 )
 
 

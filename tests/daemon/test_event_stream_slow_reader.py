@@ -11,7 +11,6 @@ and reads nothing more."""
 from __future__ import annotations
 
 import asyncio
-import os
 import socket
 from collections.abc import Callable
 from pathlib import Path
@@ -20,10 +19,10 @@ import aiohttp
 import pytest
 from aiohttp import web
 
-from cellcal.service.api import WATCHER_BACKLOG, EventHub, Service, make_app
+from cellcal.service.api import WATCHER_BACKLOG, EventHub, make_app
 from cellcal.service.control import Control
 from cellcal.store.database import Store
-from tests.conftest import tracker_cell
+from tests.daemon.in_process import service_of
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -80,18 +79,7 @@ async def _scenario(folder: Path) -> None:
     store = Store(str(folder / "events.db"))
     hub = EventHub()
     control = Control(["robot", "tracker"], lambda kind, data: None)
-    svc = Service(
-        control=control,
-        store=store,
-        hub=hub,
-        config=tracker_cell(),
-        config_path=None,
-        mock=True,
-        time_scale=0.0,
-        socket_path=sock,
-        http=None,
-        group_id=os.getgid(),
-    )
+    svc = service_of(store, control, hub, sock)
     runner = web.AppRunner(make_app(svc))
     await runner.setup()
     try:

@@ -226,3 +226,29 @@ def test_refuses_newer_and_foreign_files(tmp_path):
         Store(text)
     with pytest.raises(CampaignError, match="no campaign 9"):
         Store(tmp_path / "fresh.db").campaign(9)
+
+
+def test_the_air_of_each_sample_round_trip_and_an_older_file(tmp_path):
+    """Schema 5: a tracker's air per sample (emScon meteo) is stored and read as ranges;
+    a sensor that does not report it leaves NULL; a file older than schema 5 read-only
+    has none."""
+    store = Store(tmp_path / "c.db")
+    cid = _campaign(store)
+    air = np.array([[20.1, 1013.0, 44.0], [20.4, 1012.5, 46.5], [19.9, 1013.4, 45.0]])
+    tracker = Series("tracker", np.zeros(3), np.zeros(3), np.ones((3, 3)), meteo=air)
+    _pose(store, cid, 0, [tracker, _series("rig")])
+    (got,) = store.air_ranges(cid)
+    assert (got.sensor, got.n) == ("tracker", 3)
+    assert got.low == (19.9, 1012.5, 44.0) and got.high == (20.4, 1013.4, 46.5)
+    rows = store.conn.execute(
+        "SELECT sensor, COUNT(temperature_c), COUNT(*) FROM samples GROUP BY sensor"
+    ).fetchall()
+    assert sorted(rows) == [("rig", 0, 4), ("tracker", 3, 3)]
+    with pytest.raises(ValueError, match="one temperature, pressure and humidity per sample"):
+        Series("tracker", np.zeros(3), np.zeros(3), np.ones((3, 3)), meteo=air[:2])
+    store.close()
+    path = tmp_path / "v2.db"
+    _schema_2_file(path)
+    old = Store(path, readonly=True)
+    assert old.air_ranges(1) == ()
+    old.close()
