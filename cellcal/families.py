@@ -54,7 +54,7 @@ from cellcal.extras import PROVIDERS, needs, require
 
 if TYPE_CHECKING:  # what ``__getattr__`` hands out, for the type checker
     from cellcal.mocks.modbus.server import ModbusRobotFaults as ModbusRobotFaults
-    from cellcal.mocks.modbus.server import ModbusRobotSimulator as ModbusRobotSimulator
+    from cellcal.mocks.modbus.server import ModbusRobotTwin as ModbusRobotTwin
     from cellcal.mocks.modbus.server import xyzabc as xyzabc
     from cellcal.mocks.rig.board_views import BoardScene as BoardScene
     from cellcal.mocks.rig.capture_twin import mock_rig as mock_rig
@@ -67,7 +67,7 @@ if TYPE_CHECKING:  # what ``__getattr__`` hands out, for the type checker
     from cellcal.mocks.tracker.server import MockTracker as MockTracker
     from cellcal.mocks.tracker.server import TrackerFaults as TrackerFaults
     from cellcal.mocks.twins import limits_deg as limits_deg
-    from cellcal.mocks.ur.server import simulator_for_cell as simulator_for_cell
+    from cellcal.mocks.ur.server import twin_for_cell as twin_for_cell
 
 Role = Literal["robot", "sensor"]
 
@@ -381,11 +381,11 @@ TWIN_NAMES = {
     "MockTracker": "tracker.server",
     "TrackerFaults": "tracker.server",
     "emscon_twin": "tracker.emscon_server",
-    "ModbusRobotSimulator": "modbus.server",
+    "ModbusRobotTwin": "modbus.server",
     "ModbusRobotFaults": "modbus.server",
     "xyzabc": "modbus.server",
     "limits_deg": "twins",
-    "simulator_for_cell": "ur.server",
+    "twin_for_cell": "ur.server",
     # cellcal rig capture --mock, cellcal mock cameras
     "mock_rig": "rig.capture_twin",
     "GigECameraTwin": "rig.gige_cameras",

@@ -255,7 +255,7 @@ def mock_modbus_robot(
     import math
 
     from cellcal.drivers.modbus_options import ModbusRobotOptions
-    from cellcal.families import ModbusRobotFaults, ModbusRobotSimulator, limits_deg, xyzabc
+    from cellcal.families import ModbusRobotFaults, ModbusRobotTwin, limits_deg, xyzabc
 
     config, cell = simulated_cell_of(config_path, seed)
     robot = config.robot
@@ -266,7 +266,7 @@ def mock_modbus_robot(
     modbus_map = robot.map
     if word_order is not None:
         modbus_map = modbus_map.model_copy(update={"word_order": word_order})
-    sim = ModbusRobotSimulator(
+    sim = ModbusRobotTwin(
         q0_deg=list(robot.home_deg),
         limits_deg=limits_deg(cell),
         joint_speed_deg_s=math.degrees(cell.joint_speed),
@@ -311,12 +311,12 @@ def mock_ur(host: str, config_path: str | None, seed: int | None, time_scale: fl
     """A Universal Robots controller that the unmodified ur_rtde library can drive."""
     from importlib import resources
 
-    from cellcal.families import simulator_for_cell
+    from cellcal.families import twin_for_cell
 
     ref = resources.files("cellcal") / "data" / "mock-cell-ur10e.toml"
     with resources.as_file(ref) as bundled:
         config, cell = simulated_cell_of(config_path or str(bundled), seed)
-    sim = simulator_for_cell(cell, config.robot.home_deg, time_scale)
+    sim = twin_for_cell(cell, config.robot.home_deg, time_scale)
     try:
         sim.start(host)
     except OSError as exc:

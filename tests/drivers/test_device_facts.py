@@ -36,7 +36,7 @@ from cellcal.errors import (
 from cellcal.files.images import write_image
 from cellcal.files.models import load_model
 from cellcal.files.photogrammetry import read_rig, read_target
-from cellcal.mocks.modbus.server import ModbusRobotSimulator
+from cellcal.mocks.modbus.server import ModbusRobotTwin
 from cellcal.mocks.modbus.state import ModbusRobotFaults
 from cellcal.mocks.simulated_devices import SimulatedRobot
 from cellcal.mocks.tracker.server import FIRMWARE, MAKER, MODEL, MockTracker
@@ -88,8 +88,8 @@ def test_device_errors_names_only_what_names_nothing_and_device_of_finds_the_cau
 
 
 @pytest.fixture
-def modbus_twin() -> Iterator[ModbusRobotSimulator]:
-    sim = ModbusRobotSimulator(q0_deg=HOME_DEG)
+def modbus_twin() -> Iterator[ModbusRobotTwin]:
+    sim = ModbusRobotTwin(q0_deg=HOME_DEG)
     sim.start("127.0.0.181", 0)  # returns once listening
     try:
         yield sim
@@ -120,12 +120,12 @@ def test_ur_errors_name_the_robot_and_its_dashboard_describes_it() -> None:
     pytest.importorskip("rtde_control")
     from cellcal.mocks.simulated_cell import SimulatedCell
     from cellcal.mocks.ur.dashboard import ROBOT_MODEL, SOFTWARE_VERSION
-    from cellcal.mocks.ur.server import CellInURUnits, URSimulator
+    from cellcal.mocks.ur.server import CellInURUnits, URTwin
 
     config = _ur10e_config()
     cell = SimulatedCell(config, load_model(config.robot.model).model, seed=1)
     q0 = np.radians(config.robot.home_deg)
-    sim = URSimulator(CellInURUnits(cell), q0=q0, serial_number="20235500123")
+    sim = URTwin(CellInURUnits(cell), q0=q0, serial_number="20235500123")
     sim.start("127.0.0.183")  # returns once its three ports listen
     robot = URRobot("127.0.0.183", timeout_s=20.0)
     try:

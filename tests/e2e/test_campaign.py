@@ -386,7 +386,7 @@ def test_device_fault_is_one_line_with_a_resume_hint_and_resumes(tmp_path, monke
 
 
 def test_ur10e_cell_through_ur_rtde(tmp_path):
-    """The bundled UR variant: the robot through ur_rtde and the UR simulator, the tracker
+    """The bundled UR variant: the robot through ur_rtde and the UR twin, the tracker
     through the line protocol, end to end in a real process."""
     config = Path(__file__).resolve().parents[2] / "config" / "mock-cell-ur10e.toml"
     res = _process(

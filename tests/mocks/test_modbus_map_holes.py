@@ -18,7 +18,7 @@ from pymodbus.client import ModbusTcpClient
 
 from cellcal.drivers.modbus_map import ModbusMap
 from cellcal.drivers.modbus_robot import ModbusRobot
-from cellcal.mocks.modbus.server import ModbusRobotSimulator
+from cellcal.mocks.modbus.server import ModbusRobotTwin
 
 pytestmark = [pytest.mark.twin, pytest.mark.timeout(30)]
 
@@ -74,8 +74,8 @@ def wait_listening(host: str, port: int, timeout: float = 5.0) -> None:
 
 
 @pytest.fixture
-def twin(request: pytest.FixtureRequest) -> Iterator[ModbusRobotSimulator]:
-    sim = ModbusRobotSimulator(q0_deg=Q0_DEG, map=request.param, time_scale=0.002)
+def twin(request: pytest.FixtureRequest) -> Iterator[ModbusRobotTwin]:
+    sim = ModbusRobotTwin(q0_deg=Q0_DEG, map=request.param, time_scale=0.002)
     host, port = sim.start(f"127.0.0.{next(_hosts)}", 0)
     try:
         wait_listening(host, port)

@@ -24,7 +24,7 @@ from cellcal.errors import DeviceError, InputError
 from cellcal.mocks.modbus.server import (
     ModbusRequest,
     ModbusRobotFaults,
-    ModbusRobotSimulator,
+    ModbusRobotTwin,
 )
 
 pytestmark = [pytest.mark.twin, pytest.mark.timeout(30)]
@@ -62,23 +62,23 @@ def wait_until(predicate: Callable[[], bool], timeout: float = 5.0) -> None:
 
 
 class Bench:
-    """Simulators and drivers of one test, each simulator on its own 127.0.0.x."""
+    """Twins and drivers of one test, each twin on its own 127.0.0.x."""
 
     def __init__(self) -> None:
-        self.sims: list[ModbusRobotSimulator] = []
+        self.sims: list[ModbusRobotTwin] = []
         self.robots: list[ModbusRobot] = []
         self.clients: list[ModbusTcpClient] = []
 
-    def sim(self, **kw: object) -> ModbusRobotSimulator:
+    def sim(self, **kw: object) -> ModbusRobotTwin:
         kw.setdefault("q0_deg", Q0_DEG)
-        sim = ModbusRobotSimulator(**kw)  # type: ignore[arg-type]
+        sim = ModbusRobotTwin(**kw)  # type: ignore[arg-type]
         self.sims.append(sim)
         host, port = sim.start(f"127.0.0.{next(_hosts)}", 0)
         assert port != 0
         wait_listening(host, port)
         return sim
 
-    def robot(self, sim: ModbusRobotSimulator, **kw: object) -> ModbusRobot:
+    def robot(self, sim: ModbusRobotTwin, **kw: object) -> ModbusRobot:
         kw.setdefault("timeout_s", 5.0)
         kw.setdefault("heartbeat_timeout_s", 1.0)
         kw.setdefault("poll_s", 0.002)
@@ -87,7 +87,7 @@ class Bench:
         self.robots.append(robot)
         return robot
 
-    def client(self, sim: ModbusRobotSimulator) -> ModbusTcpClient:
+    def client(self, sim: ModbusRobotTwin) -> ModbusTcpClient:
         host, port = sim.address
         client = ModbusTcpClient(host, port=port, timeout=2.0, retries=0)
         assert client.connect()

@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from cellcal.drivers.modbus_map import BUSY, IN_POSITION, READY, REMOTE, ModbusMap
-from cellcal.mocks.modbus.server import ModbusRobotSimulator
+from cellcal.mocks.modbus.server import ModbusRobotTwin
 
 modbus_tcp = pytest.importorskip("pyModbusTCP.client")
 
@@ -60,7 +60,7 @@ def floats(regs, order):
 
 @pytest.fixture
 def twin():
-    sim = ModbusRobotSimulator(q0_deg=Q0, map=MAP, time_scale=0.02)
+    sim = ModbusRobotTwin(q0_deg=Q0, map=MAP, time_scale=0.02)
     host, port = sim.start("127.0.0.93", 0)
     yield sim, host, port
     sim.stop()
@@ -118,7 +118,7 @@ def test_pymodbustcp_reads_the_registers_of_a_map_with_holes():
     """What a controller answers: every mapped register reads, every other address, a
     hole between two blocks included, is exception 2, and so is any range across one
     (the single read 2..7 of the status registers that earlier drivers sent)."""
-    sim = ModbusRobotSimulator(q0_deg=Q0, map=HOLED)
+    sim = ModbusRobotTwin(q0_deg=Q0, map=HOLED)
     host, port = sim.start("127.0.0.96", 0)
     c = modbus_tcp.ModbusClient(host=host, port=port, unit_id=1, timeout=2.0, auto_open=True)
     try:
@@ -226,7 +226,7 @@ def test_a_failing_simulated_cell_answers_device_failure():
     def broken(q):
         raise RuntimeError("the simulated cell failed")
 
-    sim = ModbusRobotSimulator(q0_deg=Q0, map=MAP, pose_fn=broken)
+    sim = ModbusRobotTwin(q0_deg=Q0, map=MAP, pose_fn=broken)
     host, port = sim.start("127.0.0.95", 0)
     try:
         with socket.create_connection((host, port), timeout=2.0) as s:
@@ -328,7 +328,7 @@ def test_a_bad_length_field_closes_the_connection(twin, length):
 
 
 def test_stop_closes_the_open_connections():
-    sim = ModbusRobotSimulator(q0_deg=Q0, map=MAP)
+    sim = ModbusRobotTwin(q0_deg=Q0, map=MAP)
     host, port = sim.start("127.0.0.94", 0)
     try:
         with socket.create_connection((host, port), timeout=2.0) as s:

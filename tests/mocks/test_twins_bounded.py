@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from cellcal.mocks import link_server
-from cellcal.mocks.modbus.server import ModbusRobotSimulator
+from cellcal.mocks.modbus.server import ModbusRobotTwin
 from cellcal.mocks.tracker.server import MockTracker
 from cellcal.mocks.ur import rtde_codec as rtde
 from cellcal.mocks.ur import script_port as ur_script_port
@@ -119,8 +119,8 @@ def test_the_tracker_twin_keeps_the_last_requests_only(monkeypatch: pytest.Monke
         assert requests[0] == "STAT? 151"
 
 
-def _modbus(**kw: object) -> ModbusRobotSimulator:
-    sim = ModbusRobotSimulator(q0_deg=[0.0, -90.0, 90.0, 0.0, 45.0, 0.0], **kw)  # type: ignore[arg-type]
+def _modbus(**kw: object) -> ModbusRobotTwin:
+    sim = ModbusRobotTwin(q0_deg=[0.0, -90.0, 90.0, 0.0, 45.0, 0.0], **kw)  # type: ignore[arg-type]
     sim.start(MODBUS_HOST, 0)  # listening once it returns
     return sim
 
@@ -150,7 +150,7 @@ def test_the_modbus_twin_closes_a_client_that_never_reads(
 
 
 def test_the_modbus_twin_keeps_the_last_requests_only(monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr(ModbusRobotSimulator, "REQUEST_LOG", 50, raising=False)
+    monkeypatch.setattr(ModbusRobotTwin, "REQUEST_LOG", 50, raising=False)
     sim = _modbus()
     try:
         client = socket.create_connection(sim.address, timeout=5.0)
@@ -239,11 +239,11 @@ def test_an_rtde_client_asking_for_endless_recipes_is_refused_not_fatal(
 def test_the_ur_twin_closes_a_dashboard_client_that_never_reads() -> None:
     """Requests sent and no reply read: past a MiB of replies waiting the UR twin closes
     the connection (a reset on the client's next send) and keeps serving others."""
-    from tests.mocks.test_ur_server import simulator
+    from tests.mocks.test_ur_server import ur_twin
     from tests.mocks.test_ur_twin_wire import dashboard
 
     host = "127.0.0.146"
-    with simulator(host):
+    with ur_twin(host):
         client = socket.create_connection((host, 29999), timeout=5.0)
         with client:
             client.recv(4096)  # the greeting

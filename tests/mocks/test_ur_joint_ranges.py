@@ -9,7 +9,7 @@ import pytest
 
 from cellcal.drivers.ur import URRobot
 from cellcal.errors import DeviceError
-from tests.mocks.test_ur_server import Q0, Q1, clients, simulator, wait_for
+from tests.mocks.test_ur_server import Q0, Q1, clients, ur_twin, wait_for
 from tests.mocks.test_ur_twin_wire import dashboard
 
 pytestmark = pytest.mark.twin
@@ -19,7 +19,7 @@ pytestmark = pytest.mark.twin
 @pytest.mark.parametrize(("joint", "deg"), [(5, 720.0), (0, -361.0)])
 def test_movej_beyond_a_joint_range_is_a_protective_stop(joint, deg):
     host = "127.0.0.150" if joint == 5 else "127.0.0.151"
-    with simulator(host) as sim, clients(host) as ur:
+    with ur_twin(host) as sim, clients(host) as ur:
         target = Q0.copy()
         target[joint] = np.radians(deg)
         assert not ur.c.moveJ(target.tolist(), 1.0, 1.4)
@@ -36,7 +36,7 @@ def test_movej_beyond_a_joint_range_is_a_protective_stop(joint, deg):
 @pytest.mark.timeout(60, method="thread")
 def test_the_driver_reports_the_refusal_in_one_line():
     host = "127.0.0.152"
-    with simulator(host) as sim:
+    with ur_twin(host) as sim:
         robot = URRobot(host, name="arm", timeout_s=20)
         robot.connect()
         try:

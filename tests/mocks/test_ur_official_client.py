@@ -32,7 +32,7 @@ from cellcal.config import load_config
 from cellcal.files.models import load_model
 from cellcal.mocks.simulated_cell import SimulatedCell
 from cellcal.mocks.ur.fields import LATER_OUTPUTS, OUTPUT_TYPES
-from cellcal.mocks.ur.server import URSimulator, simulator_for_cell
+from cellcal.mocks.ur.server import URTwin, twin_for_cell
 from tests.mocks.ur_official_client import client_dir
 
 CLIENT = client_dir()
@@ -103,12 +103,12 @@ CYCLE = 0.002
 
 
 @contextlib.contextmanager
-def twin(host: str) -> Iterator[URSimulator]:
+def twin(host: str) -> Iterator[URTwin]:
     ref = resources.files("cellcal") / "data" / "mock-cell-ur10e.toml"
     with resources.as_file(ref) as path:
         config = load_config(path, relative_paths=False)
     cell = SimulatedCell(config, load_model(config.robot.model).model, seed=1)
-    sim = simulator_for_cell(cell, config.robot.home_deg, time_scale=0.0)
+    sim = twin_for_cell(cell, config.robot.home_deg, time_scale=0.0)
     sim.start(host)
     try:
         yield sim

@@ -1,5 +1,5 @@
-"""The UR simulator driven by the unmodified ur_rtde (rtde_control, rtde_receive), raw RTDE
-and dashboard clients on the wire, and the URRobot driver against the simulator.
+"""The UR twin driven by the unmodified ur_rtde (rtde_control, rtde_receive), raw RTDE
+and dashboard clients on the wire, and the URRobot driver against the twin.
 
 Every test binds its own loopback address (ur_rtde fixes the ports) and has a timeout
 with the thread method: ur_rtde blocks in C++, where a SIGALRM handler cannot run."""
@@ -23,7 +23,7 @@ from cellcal.drivers.ur import URRobot
 from cellcal.errors import DeviceError
 from cellcal.files.models import load_model
 from cellcal.mocks.simulated_cell import SimulatedCell
-from cellcal.mocks.ur.server import POLYSCOPE_VERSION, CellInURUnits, URSimulator
+from cellcal.mocks.ur.server import POLYSCOPE_VERSION, CellInURUnits, URTwin
 from tests.mocks.test_ur_twin_wire import Rtde as RawRTDE
 from tests.mocks.test_ur_twin_wire import dashboard
 
@@ -49,8 +49,8 @@ Q1 = Q0 + np.array([0.3, -0.2, 0.25, 0.1, -0.15, 0.4])
 
 
 @contextlib.contextmanager
-def simulator(host: str, **kw: object) -> Iterator[URSimulator]:
-    sim = URSimulator(KIN, q0=Q0, **kw)  # type: ignore[arg-type]
+def ur_twin(host: str, **kw: object) -> Iterator[URTwin]:
+    sim = URTwin(KIN, q0=Q0, **kw)  # type: ignore[arg-type]
     sim.start(host)
     try:
         yield sim
@@ -128,13 +128,13 @@ def test_the_cells_kinematics_in_ur_units_round_trip() -> None:
     assert KIN.ik(np.array([np.nan, 0, 0, 0, 0, 0]), Q0) is None
 
 
-# -- ur_rtde against the simulator ------------------------------------------------------
+# -- ur_rtde against the twin ------------------------------------------------------------
 
 
 @pytest.mark.timeout(60, method="thread")
 def test_receive_interface_reads_the_state() -> None:
     host = "127.0.0.20"
-    with simulator(host):
+    with ur_twin(host):
         r = rtde_receive.RTDEReceiveInterface(host)
         try:
             np.testing.assert_allclose(r.getActualQ(), Q0, atol=1e-12)
@@ -155,7 +155,7 @@ def test_receive_interface_reads_the_state() -> None:
 @pytest.mark.timeout(60, method="thread")
 def test_receive_interface_unknown_variable_is_not_found() -> None:
     host = "127.0.0.21"
-    with simulator(host), pytest.raises(RuntimeError, match="no_such_variable"):
+    with ur_twin(host), pytest.raises(RuntimeError, match="no_such_variable"):
         rtde_receive.RTDEReceiveInterface(host, variables=["actual_q", "no_such_variable"])
 
 
@@ -163,7 +163,7 @@ def test_receive_interface_unknown_variable_is_not_found() -> None:
 def test_control_movej_movel_ik_and_stop_script() -> None:
     host = "127.0.0.22"
     seen: list[np.ndarray] = []
-    with simulator(host, on_move=seen.append) as sim, clients(host) as ur:
+    with ur_twin(host, on_move=seen.append) as sim, clients(host) as ur:
         assert ur.c.isProgramRunning()
         wait_for(lambda: ur.r.getRuntimeState() == 2, "runtime_state PLAYING")  # other link
         t0 = time.monotonic()
@@ -198,7 +198,7 @@ def test_control_movej_movel_ik_and_stop_script() -> None:
 @pytest.mark.timeout(60, method="thread")
 def test_async_movej_reports_progress_and_stopj_ends_it() -> None:
     host = "127.0.0.23"
-    with simulator(host, time_scale=0.25) as sim, clients(host) as ur:
+    with ur_twin(host, time_scale=0.25) as sim, clients(host) as ur:
         assert ur.c.getAsyncOperationProgress() < 0
         target = Q0 + 1.0  # 1 rad at 1 rad/s, 4 rad/s²: 1.25 s simulated, ~0.3 s wall
         t0 = time.monotonic()
@@ -226,7 +226,7 @@ def test_async_movej_reports_progress_and_stopj_ends_it() -> None:
 @pytest.mark.timeout(60, method="thread")
 def test_protective_stop_fails_the_move_and_is_reported() -> None:
     host = "127.0.0.24"
-    with simulator(host, time_scale=0.5) as sim, clients(host) as ur:
+    with ur_twin(host, time_scale=0.5) as sim, clients(host) as ur:
         result: list[bool] = []
         mover = threading.Thread(
             target=lambda: result.append(ur.c.moveJ((Q0 + 1.0).tolist(), 0.5, 1.4))
@@ -256,7 +256,7 @@ def test_protective_stop_fails_the_move_and_is_reported() -> None:
 @pytest.mark.timeout(60, method="thread")
 def test_reconnect_after_disconnect() -> None:
     host = "127.0.0.25"
-    with simulator(host), clients(host) as ur:
+    with ur_twin(host), clients(host) as ur:
         assert ur.c.moveJ(Q1.tolist(), 1.0, 1.4)
         ur.c.disconnect()
         ur.r.disconnect()
@@ -277,7 +277,7 @@ def test_reconnect_after_disconnect() -> None:
 @pytest.mark.timeout(60, method="thread")
 def test_dashboard_request_reply_pairs() -> None:
     host = "127.0.0.26"
-    with simulator(host):
+    with ur_twin(host):
         lines = [
             "PolyscopeVersion",
             "get serial number",
@@ -321,7 +321,7 @@ def test_dashboard_request_reply_pairs() -> None:
 @pytest.mark.timeout(60, method="thread")
 def test_rtde_wire_recipes_types_and_data() -> None:
     host = "127.0.0.27"
-    with simulator(host):
+    with ur_twin(host):
         a = RawRTDE(host)
         b = RawRTDE(host)
         try:
@@ -383,7 +383,7 @@ def test_rtde_wire_recipes_types_and_data() -> None:
 def test_urrobot_moves_reads_and_closes() -> None:
     host = "127.0.0.30"
     seen: list[np.ndarray] = []
-    with simulator(host, on_move=seen.append) as sim:
+    with ur_twin(host, on_move=seen.append) as sim:
         robot = URRobot(host, name="arm", timeout_s=20)
         robot.connect()
         try:
@@ -410,7 +410,7 @@ def test_urrobot_moves_reads_and_closes() -> None:
 @pytest.mark.timeout(60, method="thread")
 def test_urrobot_protective_and_emergency_stop_are_device_errors() -> None:
     host = "127.0.0.31"
-    with simulator(host, time_scale=0.5) as sim:
+    with ur_twin(host, time_scale=0.5) as sim:
         robot = URRobot(host, timeout_s=20)
         robot.connect()
         try:
@@ -456,7 +456,7 @@ def test_urrobot_protective_and_emergency_stop_are_device_errors() -> None:
 @pytest.mark.timeout(60, method="thread")
 def test_urrobot_timeout_and_busy() -> None:
     host = "127.0.0.32"
-    with simulator(host, time_scale=1.0) as sim:
+    with ur_twin(host, time_scale=1.0) as sim:
         robot = URRobot(host, timeout_s=1.0)
         robot.connect()
         try:

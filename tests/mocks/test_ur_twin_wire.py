@@ -25,7 +25,7 @@ from cellcal.files.models import load_model
 from cellcal.mocks.simulated_cell import SimulatedCell
 from cellcal.mocks.ur.fields import OUTPUT_TYPES
 from cellcal.mocks.ur.rtde_codec import TYPE_CODES
-from cellcal.mocks.ur.server import URSimulator, simulator_for_cell
+from cellcal.mocks.ur.server import URTwin, twin_for_cell
 
 pytestmark = [pytest.mark.twin, pytest.mark.timeout(60, method="thread")]
 
@@ -44,8 +44,8 @@ HOME_DEG, CELL = _cell()
 
 
 @contextlib.contextmanager
-def twin(host: str) -> Iterator[URSimulator]:
-    sim = simulator_for_cell(CELL, HOME_DEG, time_scale=0.0)
+def twin(host: str) -> Iterator[URTwin]:
+    sim = twin_for_cell(CELL, HOME_DEG, time_scale=0.0)
     sim.start(host)
     try:
         yield sim

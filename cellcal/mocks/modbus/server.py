@@ -65,7 +65,7 @@ if TYPE_CHECKING:
 __all__ = [
     "ModbusRequest",
     "ModbusRobotFaults",
-    "ModbusRobotSimulator",
+    "ModbusRobotTwin",
     "floats_to_registers",
     "registers_to_floats",
     "serve",
@@ -97,7 +97,7 @@ class _LastRequests(list[ModbusRequest]):
             del self[: len(self) - self.keep]
 
 
-class ModbusRobotSimulator(ModbusRobotController):
+class ModbusRobotTwin(ModbusRobotController):
     """A robot controller behind Modbus TCP; see the module docstring. The constructor,
     inspection and fault injection are the controller's
     (:class:`~cellcal.mocks.modbus.state.ModbusRobotController`); ``requests``
@@ -116,24 +116,24 @@ class ModbusRobotSimulator(ModbusRobotController):
     @property
     def address(self) -> tuple[str, int]:
         if self._address is None:
-            raise RuntimeError("the simulator is not running")
+            raise RuntimeError("the twin is not running")
         return self._address
 
     def start(self, host: str = MODBUS_HOST, port: int = 0) -> tuple[str, int]:
         """Serve on ``host:port`` from background threads; returns once listening, with
         the bound address (port 0 picks a free port)."""
         if self._server is not None:
-            raise RuntimeError("the simulator is already running")
+            raise RuntimeError("the twin is already running")
         server = TcpLinkServer(self._serve_link, name=f"modbus-robot-{host}", log=log)
         try:
             self._address = server.start(host, port)
         except OSError as exc:
             server.stop()
             raise RuntimeError(
-                f"modbus robot simulator could not listen on {host}:{port}: {exc}"
+                f"Modbus robot twin could not listen on {host}:{port}: {exc}"
             ) from exc
         self._server = server
-        log.debug("modbus robot simulator listening on %s:%d", *self._address)
+        log.debug("Modbus robot twin listening on %s:%d", *self._address)
         return self._address
 
     def stop(self) -> None:
@@ -159,13 +159,13 @@ class ModbusRobotSimulator(ModbusRobotController):
             if answers:
                 link.write(answers)
             if split.error is not None:
-                log.warning("modbus robot simulator: %s; closing the connection", split.error)
+                log.warning("Modbus robot twin: %s; closing the connection", split.error)
                 return
 
     def _answer(self, frame: Frame) -> bytes | None:
         """The reply frame to ``frame``; None for a frame of another protocol."""
         if frame.protocol != 0:
-            log.info("modbus robot simulator: frame of protocol id %d dropped", frame.protocol)
+            log.info("Modbus robot twin: frame of protocol id %d dropped", frame.protocol)
             return None
         function = frame.pdu[0]
         try:
@@ -174,7 +174,7 @@ class ModbusRobotSimulator(ModbusRobotController):
             request = decode_request(frame.pdu)
             pdu = reply_pdu(request, self.serve(request))
         except ModbusError as exc:
-            log.debug("modbus robot simulator: %s (function %d)", exc, function)
+            log.debug("Modbus robot twin: %s (function %d)", exc, function)
             pdu = exception_pdu(function, exc.code)
         return encode_frame(frame.transaction, frame.unit, pdu)
 
@@ -182,7 +182,7 @@ class ModbusRobotSimulator(ModbusRobotController):
 def serve(options: ModbusRobotOptions, cell: SimulatedCell, time_scale: float) -> RunningTwin:
     """The twin of the configured Modbus robot: its map, word order and device id, on
     an ephemeral port of a loopback address, following the simulated cell."""
-    sim = ModbusRobotSimulator(
+    sim = ModbusRobotTwin(
         q0_deg=list(options.home_deg),
         limits_deg=limits_deg(cell),
         joint_speed_deg_s=math.degrees(cell.joint_speed),

@@ -274,12 +274,12 @@ class ModbusRobotController:
             if pose_stale and pose_fn is not None:
                 pose = np.asarray(pose_fn(np.radians(q)), dtype=np.float64)
         except Exception as exc:
-            log.exception("modbus robot simulator: on_move or pose_fn failed")
+            log.exception("Modbus robot twin: on_move or pose_fn failed")
             raise ModbusError(DEVICE_FAILURE, "on_move or pose_fn failed") from exc
         with self._lock:
             if pose is not None:
                 if pose.shape != (6,):
-                    log.error("modbus robot simulator: pose_fn returned shape %s", pose.shape)
+                    log.error("Modbus robot twin: pose_fn returned shape %s", pose.shape)
                     raise ModbusError(DEVICE_FAILURE, f"pose_fn returned shape {pose.shape}")
                 self._pose = pose
                 self._pose_stale = False

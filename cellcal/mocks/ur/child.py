@@ -208,7 +208,7 @@ class ChildLoop:
             conn.script = ScriptReader(self.ctl)
         self.conns[conn.cid] = conn
         self.sel.register(sock, selectors.EVENT_READ, ("conn", conn))
-        log.debug("UR simulator %s: %s connection %d", self.host, kind, conn.cid)
+        log.debug("UR twin %s: %s connection %d", self.host, kind, conn.cid)
         if kind == "dash":
             self._queue(conn, (WELCOME + "\n").encode())
 
@@ -228,7 +228,7 @@ class ChildLoop:
             return
         if len(conn.outbuf) + len(data) > MAX_UNREAD:
             log.warning(
-                "UR simulator %s: %s connection %d does not read its replies; closing",
+                "UR twin %s: %s connection %d does not read its replies; closing",
                 self.host, conn.kind, conn.cid,
             )  # fmt: skip
             self._close(conn)
@@ -258,7 +258,7 @@ class ChildLoop:
         except OSError:
             data = b""
         if not data:
-            log.debug("UR simulator %s: %s connection %d closed", self.host, conn.kind, conn.cid)
+            log.debug("UR twin %s: %s connection %d closed", self.host, conn.kind, conn.cid)
             self._close(conn)
             return
         if conn.rtde is not None:
@@ -269,7 +269,7 @@ class ChildLoop:
                     if replies:
                         self._queue(conn, b"".join(replies))
             except ValueError as e:
-                log.warning("UR simulator %s: %s; closing", self.host, e)
+                log.warning("UR twin %s: %s; closing", self.host, e)
                 self._close(conn)
         elif conn.script is not None:
             conn.script.feed(data)
@@ -289,7 +289,7 @@ class ChildLoop:
                 self._close(conn)
         if len(conn.inbuf) > 4096:
             log.warning(
-                "UR simulator %s: dashboard connection %d sent a line over 4096 bytes; closing",
+                "UR twin %s: dashboard connection %d sent a line over 4096 bytes; closing",
                 self.host, conn.cid,
             )  # fmt: skip
             self._close(conn)

@@ -230,13 +230,13 @@ class Controller:
 
     def set_protective(self, on: bool) -> None:
         if on and not self.protective:
-            log.info("UR simulator %s: protective stop", self.host)
+            log.info("UR twin %s: protective stop", self.host)
             self._safety_halt()
         self.protective = on
 
     def set_emergency(self, on: bool) -> None:
         if on and not self.emergency:
-            log.info("UR simulator %s: emergency stop", self.host)
+            log.info("UR twin %s: emergency stop", self.host)
             self._safety_halt()
         self.emergency = on
 
@@ -259,8 +259,7 @@ class Controller:
         if len(beyond):
             j = int(beyond[0])
             log.warning(
-                "UR simulator %s: joint %d target %.6g° is outside its range ±360°: "
-                "protective stop",
+                "UR twin %s: joint %d target %.6g° is outside its range ±360°: protective stop",
                 self.host,
                 j + 1,
                 math.degrees(float(q1_[j])),
@@ -320,7 +319,7 @@ class Controller:
         """A program received on the script port (``def name(): ... end``)."""
         if not self.can_run():
             log.warning(
-                "UR simulator %s: program %r not started (robot mode %s, safety %s)",
+                "UR twin %s: program %r not started (robot mode %s, safety %s)",
                 self.host,
                 name,
                 ROBOT_MODE_NAMES.get(self.robot_mode, self.robot_mode),
@@ -332,7 +331,7 @@ class Controller:
         if name == CONTROL_SCRIPT:
             self.start_control_loop()
         else:
-            log.info("UR simulator %s: program %r run (no effect simulated)", self.host, name)
+            log.info("UR twin %s: program %r run (no effect simulated)", self.host, name)
             self.end_program()
 
     def play_loaded(self) -> None:
@@ -410,10 +409,10 @@ class Controller:
         elif cmd == CMD_PROTECTIVE_STOP:
             self.set_protective(True)
         elif cmd == CMD_STOP_SCRIPT:
-            log.info("UR simulator %s: control script stopped by the client", self.host)
+            log.info("UR twin %s: control script stopped by the client", self.host)
             self.end_program()
         else:
-            log.info("UR simulator %s: command %d acknowledged, not simulated", self.host, cmd)
+            log.info("UR twin %s: command %d acknowledged, not simulated", self.host, cmd)
             self.out_int[0] = DONE
 
     def _after_start(self, is_async: bool) -> None:
@@ -433,7 +432,7 @@ class Controller:
         self.pending = None
         if q is None:
             log.warning(
-                "UR simulator %s: no inverse kinematics for pose %s; the control script ends",
+                "UR twin %s: no inverse kinematics for pose %s; the control script ends",
                 self.host,
                 [round(x, 6) for x in p.pose],
             )

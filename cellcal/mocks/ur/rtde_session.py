@@ -105,7 +105,7 @@ class RtdeSession:
         if mtype == rtde.DATA_PACKAGE:
             self._data_from_client(payload)
         elif mtype != rtde.TEXT_MESSAGE:
-            log.warning("UR simulator %s: unknown RTDE message type %d", self.host, mtype)
+            log.warning("UR twin %s: unknown RTDE message type %d", self.host, mtype)
         return []
 
     def cycle(self) -> list[bytes]:
@@ -125,7 +125,7 @@ class RtdeSession:
     def _setup_outputs(self, payload: bytes) -> list[bytes]:
         frequency, names = rtde.parse_output_setup(self.protocol, payload)
         if frequency is not None and not rtde.valid_frequency(frequency):
-            log.info("UR simulator %s: output frequency %r refused", self.host, frequency)
+            log.info("UR twin %s: output frequency %r refused", self.host, frequency)
             text = f"Invalid output frequency {frequency:g} Hz: must be within (0, 500]"
             reply = rtde.setup_outputs_reply(self.protocol, 0, [])
             return [
@@ -138,7 +138,7 @@ class RtdeSession:
             getter = self.fields.getter(name)
             if getter is None:
                 types.append("NOT_FOUND")
-                log.info("UR simulator %s: output %r NOT_FOUND", self.host, name)
+                log.info("UR twin %s: output %r NOT_FOUND", self.host, name)
             else:
                 types.append(OUTPUT_TYPES[name])
                 getters.append(getter)
@@ -146,7 +146,7 @@ class RtdeSession:
         fits = names and "NOT_FOUND" not in types
         if fits and self.protocol >= 2 and len(self.outputs) >= MAX_RECIPES:
             log.warning(
-                "UR simulator %s: connection %d asks for a %dth output recipe: refused",
+                "UR twin %s: connection %d asks for a %dth output recipe: refused",
                 self.host,
                 self.cid,
                 MAX_RECIPES + 1,
@@ -158,16 +158,14 @@ class RtdeSession:
             rid = len(self.outputs) + 1
             rate = rtde.Decimation(rtde.MAX_FREQUENCY if frequency is None else frequency)
             self.outputs.append(OutputRecipe(rid, rtde.data_struct(types), getters, rate))
-        log.debug(
-            "UR simulator %s: output recipe %d at %s Hz: %s", self.host, rid, frequency, names
-        )
+        log.debug("UR twin %s: output recipe %d at %s Hz: %s", self.host, rid, frequency, names)
         return [rtde.frame(rtde.SETUP_OUTPUTS, rtde.setup_outputs_reply(self.protocol, rid, types))]
 
     def _setup_inputs(self, payload: bytes) -> bytes:
         names = rtde.parse_names(payload)
         if len(self.inputs) >= MAX_RECIPES:
             log.warning(
-                "UR simulator %s: connection %d asks for a %dth input recipe: refused",
+                "UR twin %s: connection %d asks for a %dth input recipe: refused",
                 self.host,
                 self.cid,
                 MAX_RECIPES + 1,
@@ -178,7 +176,7 @@ class RtdeSession:
             owner = self.owners.get(name)
             if name not in INPUT_TYPES:
                 types.append("NOT_FOUND")
-                log.info("UR simulator %s: input %r NOT_FOUND", self.host, name)
+                log.info("UR twin %s: input %r NOT_FOUND", self.host, name)
             elif owner is not None and owner != self.cid:
                 types.append("IN_USE")
             else:
@@ -192,7 +190,7 @@ class RtdeSession:
             )
         else:
             self.inputs[rid] = InputRecipe(struct.Struct(">"), [])
-        log.debug("UR simulator %s: input recipe %d: %s -> %s", self.host, rid, names, types)
+        log.debug("UR twin %s: input recipe %d: %s -> %s", self.host, rid, names, types)
         return rtde.setup_inputs_reply(rid, types)
 
     def _data_from_client(self, payload: bytes) -> None:
@@ -201,11 +199,11 @@ class RtdeSession:
         rid = payload[0]
         recipe = self.inputs.get(rid)
         if recipe is None or not recipe.fields:
-            log.warning("UR simulator %s: data for unknown input recipe %d", self.host, rid)
+            log.warning("UR twin %s: data for unknown input recipe %d", self.host, rid)
             return
         if len(payload) - 1 != recipe.st.size:
             log.warning(
-                "UR simulator %s: input recipe %d: %d bytes, expected %d",
+                "UR twin %s: input recipe %d: %d bytes, expected %d",
                 self.host,
                 rid,
                 len(payload) - 1,

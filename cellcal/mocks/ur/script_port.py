@@ -129,7 +129,7 @@ class ScriptReader:
         if len(self.buf) > MAX_LINE:
             if not self.dropping:
                 log.warning(
-                    "UR simulator %s: a script line longer than %d bytes: dropped",
+                    "UR twin %s: a script line longer than %d bytes: dropped",
                     self.ctl.host,
                     MAX_LINE,
                 )
@@ -141,7 +141,7 @@ class ScriptReader:
             self.size += len(line) + 1
             if self.size > MAX_PROGRAM:
                 log.warning(
-                    "UR simulator %s: program %r longer than %d bytes and no end: an endless "
+                    "UR twin %s: program %r longer than %d bytes and no end: an endless "
                     "program, dropped",
                     self.ctl.host,
                     self.name,
@@ -155,7 +155,7 @@ class ScriptReader:
                 self.size = len(line) + 1
                 self.name = m.group(2) if m.group(1) == "def" else ""
             elif line.strip():
-                log.info("UR simulator %s: script line ignored: %.80s", self.ctl.host, line)
+                log.info("UR twin %s: script line ignored: %.80s", self.ctl.host, line)
             return
         self.program.append(line)
         if line == "end":
@@ -163,5 +163,5 @@ class ScriptReader:
             name = self.name
             self.program = None
             if name:
-                log.debug("UR simulator %s: program %r (%d bytes)", self.ctl.host, name, len(text))
+                log.debug("UR twin %s: program %r (%d bytes)", self.ctl.host, name, len(text))
                 self.ctl.run_script(name, text)

@@ -1,7 +1,7 @@
-"""The UR twin, parent side: :class:`URSimulator` starts the simulated Universal Robots
+"""The UR twin, parent side: :class:`URTwin` starts the simulated Universal Robots
 controller (PolyScope 5.11, e-Series) in a child process and keeps its kinematics and the
 ``on_move`` hook here; :func:`serve` is the twin of mock mode (``cellcal/families.py``),
-:func:`simulator_for_cell` builds it for a simulated cell (``serve`` and ``cellcal mock
+:func:`twin_for_cell` builds it for a simulated cell (``serve`` and ``cellcal mock
 ur``). The unmodified ur_rtde (``rtde_control``, ``rtde_receive``) and UR's own RTDE client
 drive it; what it serves is in docs/ur-twin.md.
 
@@ -48,7 +48,7 @@ if TYPE_CHECKING:
     from cellcal.drivers.ur import UROptions
     from cellcal.mocks.simulated_cell import SimulatedCell
 
-__all__ = ["POLYSCOPE_VERSION", "CellInURUnits", "URKinematics", "URSimulator", "serve"]
+__all__ = ["POLYSCOPE_VERSION", "CellInURUnits", "URKinematics", "URTwin", "serve"]
 
 log = logging.getLogger("cellcal.mocks.ur")
 
@@ -90,10 +90,10 @@ class CellInURUnits:
         return self.cell.joints_for(T, q_seed)
 
 
-class URSimulator:
+class URTwin:
     """A simulated UR controller on ``host``:30004/29999/30003 (see docs/ur-twin.md).
 
-    ``on_move(q)`` is called from the simulator's reader thread each time the joints
+    ``on_move(q)`` is called from the twin's reader thread each time the joints
     change (at most once per RTDE cycle; always with the final position of a move)."""
 
     def __init__(
@@ -148,7 +148,7 @@ class URSimulator:
     def start(self, host: str) -> None:
         """Bind host:30004, :29999 and :30003; return once all three listen."""
         if self._proc is not None:
-            raise RuntimeError("simulator already started")
+            raise RuntimeError("twin already started")
         pose0 = np.asarray(self.kinematics.fk(self._q), dtype=np.float64)
         self._pose = pose0
         cfg = {
@@ -180,7 +180,7 @@ class URSimulator:
         if not self._is_listening:
             err = self._start_error or f"not listening within {self.start_timeout_s:g} s"
             self.stop()
-            raise OSError(f"UR simulator on {host}: {err}")
+            raise OSError(f"UR twin on {host}: {err}")
 
     def stop(self) -> None:
         """Close every port and end the child process (idempotent)."""
@@ -221,7 +221,7 @@ class URSimulator:
     def clear_emergency_stop(self) -> None:
         self._request({"t": "safety", "what": "emergency", "on": False})
 
-    def __enter__(self) -> URSimulator:
+    def __enter__(self) -> URTwin:
         return self
 
     def __exit__(self, *exc: object) -> None:
@@ -243,11 +243,11 @@ class URSimulator:
         try:
             self._send_raw(proc, msg)
         except (OSError, ValueError) as e:
-            log.warning("UR simulator %s: cannot reach the child process: %s", self.host, e)
+            log.warning("UR twin %s: cannot reach the child process: %s", self.host, e)
 
     def _request(self, msg: dict[str, Any], timeout: float = 5.0) -> None:
         if self._proc is None:
-            raise RuntimeError("simulator not started")
+            raise RuntimeError("twin not started")
         with self._lock:
             rid = self._next_id
             self._next_id += 1
@@ -258,7 +258,7 @@ class URSimulator:
         with self._lock:
             self._replies.pop(rid, None)
         if not ok:
-            raise RuntimeError(f"UR simulator {self.host}: no answer to {msg['t']}")
+            raise RuntimeError(f"UR twin {self.host}: no answer to {msg['t']}")
 
     def _read_child(self) -> None:
         proc = self._proc
@@ -267,7 +267,7 @@ class URSimulator:
             try:
                 msg = json.loads(raw)
             except ValueError:
-                log.warning("UR simulator %s: bad line from child: %r", self.host, raw[:200])
+                log.warning("UR twin %s: bad line from child: %r", self.host, raw[:200])
                 continue
             t = msg.get("t")
             if t == "q":
@@ -287,7 +287,7 @@ class URSimulator:
                 self._start_error = str(msg.get("msg"))
                 self._listening.set()
         if not self._is_listening and self._start_error is None:
-            self._start_error = "the simulator process ended before listening"
+            self._start_error = "the twin's process ended before listening"
         self._listening.set()
 
     def _on_q(self, seq: int, q: Vec, qd: Vec) -> None:
@@ -297,7 +297,7 @@ class URSimulator:
                 raise ValueError(f"fk returned {pose!r}")
             speed = self._tcp_speed(q, qd, pose)
         except Exception:
-            log.exception("UR simulator %s: fk failed; the TCP pose is stale", self.host)
+            log.exception("UR twin %s: fk failed; the TCP pose is stale", self.host)
             pose, speed = self.tcp_pose, np.zeros(6)
         with self._lock:
             self._q = q.copy()
@@ -306,7 +306,7 @@ class URSimulator:
             try:
                 self.on_move(q.copy())
             except Exception:
-                log.exception("UR simulator %s: on_move failed", self.host)
+                log.exception("UR twin %s: on_move failed", self.host)
         self._send({"t": "pose", "seq": seq, "pose": pose.tolist(), "speed": speed.tolist()})
 
     def _tcp_speed(self, q: Vec, qd: Vec, pose: Vec) -> Vec:
@@ -327,17 +327,17 @@ class URSimulator:
                 if q.shape != (6,) or not np.all(np.isfinite(q)):
                     q = None
         except Exception:
-            log.exception("UR simulator %s: ik failed", self.host)
+            log.exception("UR twin %s: ik failed", self.host)
             q = None
         self._send({"t": "ikr", "id": rid, "q": None if q is None else q.tolist()})
 
 
-def simulator_for_cell(
+def twin_for_cell(
     cell: SimulatedCell, home_deg: list[float] | tuple[float, ...], time_scale: float
-) -> URSimulator:
+) -> URTwin:
     """The twin of a cell's UR controller: the cell's nominal kinematics in UR's units,
     starting at ``home_deg``, reporting every move to the cell (not started yet)."""
-    return URSimulator(
+    return URTwin(
         CellInURUnits(cell),
         q0=np.radians(np.asarray(home_deg, dtype=np.float64)),
         time_scale=time_scale,
@@ -352,7 +352,7 @@ def serve(options: UROptions, cell: SimulatedCell, time_scale: float) -> Running
 
     last: Exception | None = None
     for host in UR_HOSTS:
-        sim = simulator_for_cell(cell, options.home_deg, time_scale)
+        sim = twin_for_cell(cell, options.home_deg, time_scale)
         try:
             sim.start(host)
         except OSError as exc:  # another simulated UR holds this address's fixed ports
