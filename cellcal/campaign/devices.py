@@ -14,6 +14,7 @@ building and connecting names its device (``device``: "robot", a sensor's name).
 from __future__ import annotations
 
 import contextlib
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, Protocol
 
@@ -115,18 +116,20 @@ def build_devices(
     seed: int | None,
     noise_stream: int = 0,
     robot_address: str | None = None,
+    report: Callable[[str, str], None] | None = None,
 ) -> Devices:
     """Connect the configured devices, or in mock mode their twins'. ``robot_address``
     (real mode): where the robot's driver connects instead of ``robot.address`` as
     written — the address the robot's claim resolved it to
     (:func:`cellcal.campaign.locks.claimed_address`), so that a name is not resolved a
-    second time, perhaps to another machine."""
+    second time, perhaps to another machine. ``report(device, message)``: where a device
+    that takes long to get ready says what it is doing (``DeviceContext.report``)."""
     cell = None
     if mock:
         from cellcal.families import SimulatedCell
 
         cell = SimulatedCell(config, nominal, seed, noise_stream)
-    context = DeviceContext(clock, cell)
+    context = DeviceContext(clock, cell, report)
     time_scale = float(getattr(clock, "time_scale", 0.0))
     servers: list[Closeable] = []
     opened: list[PositionSensor] = []

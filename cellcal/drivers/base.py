@@ -48,11 +48,14 @@ class DeviceDescription:
 @dataclass(frozen=True)
 class DeviceContext:
     """What a driver may need beyond its options when it is built: the clock it takes
-    time on, and in mock mode the simulated cell (which only the in-process simulated
-    devices read; a real driver never looks at it)."""
+    time on, in mock mode the simulated cell (which only the in-process simulated
+    devices read; a real driver never looks at it), and ``report(device, message)``,
+    where a device that takes long to get ready (a tracker warming up, initialising)
+    says what it is doing — the service shows it in its status."""
 
     clock: Clock = field(default_factory=WallClock)
     cell: Any = None
+    report: Callable[[str, str], None] | None = None
 
 
 class _Named(Protocol):

@@ -23,6 +23,7 @@ from __future__ import annotations
 import logging
 import math
 import time
+from collections.abc import Callable
 from typing import Annotated, Any, Literal
 
 import numpy as np
@@ -42,6 +43,15 @@ Relock = Literal["wait", "find-reflector", "bird-bath"]
 UNITS = (p.MILLIMETRE, p.DEGREE, p.CELSIUS, p.HECTOPASCAL, p.RELATIVE_HUMIDITY)
 #: how often the warm-up and a lost beam are polled (s)
 POLL_S = 1.0
+#: ES_LaserProcessorStatus, in words
+LASER_STATES = {
+    0: "laser processor not reachable",
+    1: "no laser processor",
+    2: "heating up",
+    3: "ready",
+    4: "unable to stabilise",
+    5: "laser off",
+}
 
 
 class EmsconOptions(SensorOptions):
@@ -78,7 +88,12 @@ class EmsconOptions(SensorOptions):
 class EmsconTracker:
     """A tracker at ``host[:port]``; implements the engine's PositionSensor Protocol."""
 
-    def __init__(self, options: EmsconOptions, clock: Clock | None = None) -> None:
+    def __init__(
+        self,
+        options: EmsconOptions,
+        clock: Clock | None = None,
+        report: Callable[[str, str], None] | None = None,
+    ) -> None:
         self.options = options
         self.name = options.name
         self.address = options.address
@@ -93,10 +108,18 @@ class EmsconTracker:
         self.statistic = p.STATISTIC_EXTENDED
         self.reflector_id: int | None = None
         self.last_range_mm = 0.0
+        self._report = report
+
+    def _say(self, message: str) -> None:
+        """What the tracker is doing while it gets ready: logged, and reported to the
+        service's status when it asked (``DeviceContext.report``)."""
+        log.warning("%s: %s", self.where, message)
+        if self._report is not None:
+            self._report(self.name, message)
 
     @classmethod
     def from_options(cls, options: EmsconOptions, context: DeviceContext) -> EmsconTracker:
-        return cls(options, context.clock)
+        return cls(options, context.clock, context.report)
 
     # ------------------------------------------------------------------ connection
 
@@ -157,7 +180,8 @@ class EmsconTracker:
 
     def _warm_up(self, status: tuple[Any, ...]) -> None:
         """Wait while the laser heats up (the tracker's own state logged)."""
-        deadline = time.monotonic() + self.options.warmup_timeout_s
+        start = time.monotonic()
+        deadline = start + self.options.warmup_timeout_s
         while int(status[2]) != p.LASER_READY:
             if time.monotonic() >= deadline:
                 raise DeviceError(
@@ -165,7 +189,11 @@ class EmsconTracker:
                     f"{self.options.warmup_timeout_s:g} s (laser state {status[2]}); raise "
                     "warmup_timeout_s or wait for the tracker's warm-up to end"
                 )
-            log.warning("%s: laser warming up (state %s); waiting", self.where, status[2])
+            waited = time.monotonic() - start
+            self._say(
+                f"laser warming up ({LASER_STATES.get(int(status[2]), status[2])}); waited "
+                f"{waited:.0f} of {self.options.warmup_timeout_s:g} s"
+            )
             time.sleep(min(POLL_S, max(0.0, deadline - time.monotonic())))
             status = self._status()
 
@@ -194,7 +222,7 @@ class EmsconTracker:
     def _initialise(self) -> None:
         """Initialize: the reply comes when it is done (minutes on a real tracker); a
         tracker still warming up is waited for first."""
-        log.warning("%s: initialising (up to %g s)", self.where, self.options.initialize_timeout_s)
+        self._say(f"initialising (up to {self.options.initialize_timeout_s:g} s)")
         try:
             self.link.request(p.INITIALIZE, timeout_s=self.options.initialize_timeout_s)
         except EmsconStatusError as exc:

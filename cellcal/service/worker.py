@@ -134,6 +134,7 @@ class Worker(threading.Thread):
                 seed=self.config.simulation.seed,
                 noise_stream=self.connections,
                 robot_address=self.robot_address,
+                report=lambda name, message: c.set_device(name, CONNECTING, message),
             )
         except CellcalError as exc:
             if c.shutting_down:  # stopping: a device that did not connect is no news
