@@ -6,7 +6,6 @@ the service's status through ``DeviceContext.report`` while the engine thread co
 from __future__ import annotations
 
 import threading
-import time
 import tomllib
 from pathlib import Path
 
@@ -33,17 +32,20 @@ def test_the_status_shows_the_tracker_warming_up(tmp_path: Path):
     worker = Worker(
         control, config, nominal, str(tmp_path / "c.db"), SimulatedClock(0.0), mock=True
     )
+    set_device = control.set_device
+
+    def recorded(name: str, state: str, message: str = "") -> None:
+        if name == "tracker" and state == CONNECTING and message:
+            seen.append(message)
+        set_device(name, state, message)
+
+    control.set_device = recorded  # type: ignore[method-assign]
     connected: list[bool] = []
     thread = threading.Thread(target=lambda: connected.append(worker._connect()))
     thread.start()
     try:
-        while thread.is_alive():
-            tracker = control.devices["tracker"]
-            if tracker["state"] == CONNECTING and tracker["message"]:
-                seen.append(tracker["message"])
-            time.sleep(0.02)
+        thread.join(45)
     finally:
-        thread.join(30)
         worker._disconnect()
     assert connected == [True]
     assert any("laser warming up (heating up); waited" in m for m in seen), seen
