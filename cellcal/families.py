@@ -188,6 +188,11 @@ CAMERA_BACKENDS: tuple[CameraBackend, ...] = (
 )  # fmt: skip
 
 
+def camera_backends(*, configurable: bool = False) -> tuple[CameraBackend, ...]:
+    """The table's rows (``configurable``: those a configuration may name)."""
+    return tuple(b for b in CAMERA_BACKENDS if not (configurable and b.mock_only))
+
+
 def camera_backend(name: str) -> CameraBackend | None:
     return next((b for b in CAMERA_BACKENDS if b.name == name), None)
 

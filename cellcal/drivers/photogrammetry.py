@@ -25,10 +25,11 @@ from __future__ import annotations
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor, wait
 from pathlib import Path
-from typing import Annotated, Literal
+from typing import Annotated, Any, Literal
 
 import numpy as np
-from pydantic import Field, PrivateAttr
+from pydantic import Field, PlainValidator, PrivateAttr, SerializeAsAny
+from pydantic_core import PydanticCustomError
 
 from cellcal.calib.photogrammetry.camera_rig import Rig, Target
 from cellcal.calib.photogrammetry.rig_measurement import TargetMeter, mean_of
@@ -36,11 +37,9 @@ from cellcal.calib.photogrammetry.target_pose import TargetPose
 from cellcal.clock import Clock
 from cellcal.device_options import SensorOptions
 from cellcal.drivers.base import DeviceContext, DeviceDescription, Series, naming_errors
-from cellcal.drivers.cameras.aravis import AravisRigOptions
-from cellcal.drivers.cameras.backends import CameraRig, FrameSet, rig_class
-from cellcal.drivers.cameras.files import FilesRigOptions
-from cellcal.drivers.cameras.opencv import OpenCVRigOptions
+from cellcal.drivers.cameras.backends import CameraRig, FrameSet, RigOptions, rig_class
 from cellcal.errors import DeviceError, MeasurementError, NoTargetError, UserError
+from cellcal.families import camera_backend, camera_backends, load
 from cellcal.files.images import write_image
 from cellcal.files.photogrammetry import read_rig, read_target
 
@@ -51,10 +50,38 @@ GIVE_UP_SETS = 3
 #: a series measured again at the same pose starts at 0 again) and the clock's time.
 SetListener = Callable[[int, float], None]
 
-#: What ``[sensor.capture]`` may be: a backend's rig options, told apart by ``backend``.
-CaptureOptions = Annotated[
-    AravisRigOptions | OpenCVRigOptions | FilesRigOptions, Field(discriminator="backend")
-]
+
+def _capture(value: Any) -> RigOptions:
+    """``[sensor.capture]``: the rig options of the backend it names, a row of the
+    registry's camera backends (``cellcal/families.py``) that a configuration may name
+    (not a mock-only one); its model imported when a file names it."""
+    if isinstance(value, RigOptions):
+        return value
+    if not isinstance(value, dict):
+        raise PydanticCustomError("capture", "expected a table")
+    choices = ", ".join(b.name for b in camera_backends(configurable=True))
+    backend = value.get("backend")
+    row = camera_backend(backend) if isinstance(backend, str) else None
+    if backend is None:
+        raise PydanticCustomError("capture", f"backend: required key missing (choose {choices})")
+    if row is None or row.mock_only:
+        raise PydanticCustomError(
+            "capture", f"backend: {backend!r} is not a camera backend (choose {choices})"
+        )
+    out: RigOptions = load(row.options, libraries=False).model_validate(value)
+    return out
+
+
+#: What ``[sensor.capture]`` may be: a backend's rig options, told apart by ``backend``
+#: (the backends are the registry's rows: :func:`_capture`).
+CaptureOptions = Annotated[SerializeAsAny[RigOptions], PlainValidator(_capture)]
+
+
+def _mock_only(backend: str) -> bool:
+    """A backend no configuration names (mock mode's in-process cameras): its cameras
+    are nowhere."""
+    row = camera_backend(backend)
+    return row is not None and row.mock_only
 
 
 class CameraRigOptions(SensorOptions):
@@ -85,9 +112,7 @@ class CameraRigOptions(SensorOptions):
 
     def endpoint(self) -> str:
         """The cameras' addresses (a recording's folder for ``files``)."""
-        if isinstance(self.capture, FilesRigOptions):
-            return self.capture.directory
-        return ", ".join(c.address for c in self.capture.cameras if c.address)
+        return self.capture.endpoint()
 
     def relative_to(self, folder: Path) -> CameraRigOptions:
         """Relative file paths taken relative to the configuration's folder."""
@@ -95,9 +120,7 @@ class CameraRigOptions(SensorOptions):
         def at(path: str) -> str:
             return path if not path or Path(path).is_absolute() else str(folder / path)
 
-        capture = self.capture
-        if isinstance(capture, FilesRigOptions):
-            capture = capture.model_copy(update={"directory": at(capture.directory)})
+        capture = self.capture.relative_to(folder)
         return self.model_copy(
             update={
                 "rig_file": at(self.rig_file),
@@ -180,7 +203,7 @@ class CameraRigSensor:
             min_cameras=options.min_cameras,
             keep_images=options.keep_images,
             set_listener=options.set_listener,
-            address="" if backend == "rendered" else options.endpoint(),
+            address="" if _mock_only(backend) else options.endpoint(),
         )
 
     @naming_errors

@@ -17,6 +17,7 @@ in each).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Annotated, Any, Protocol
 
 from numpy.typing import NDArray
@@ -102,6 +103,20 @@ class RigOptions(Strict):
 
     name: Name = "rig"
     backend: str
+
+    def camera_names(self) -> tuple[str, ...]:
+        """The cameras' names, in the rig file's order."""
+        return tuple(c.name for c in getattr(self, "cameras", []))
+
+    def endpoint(self) -> str:
+        """Where the cameras are, for the campaign's record: their addresses."""
+        cameras = getattr(self, "cameras", [])
+        return ", ".join(c.address for c in cameras if getattr(c, "address", ""))
+
+    def relative_to(self, folder: Path) -> RigOptions:
+        """These options with the paths they hold taken relative to the configuration's
+        folder (a backend that holds none: the same options)."""
+        return self
 
     @model_validator(mode="after")
     def _distinct_names(self) -> RigOptions:

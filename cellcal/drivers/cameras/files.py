@@ -36,6 +36,18 @@ class FilesRigOptions(RigOptions):
     directory: Annotated[str, Field(min_length=1)]
     cameras: Annotated[list[CameraOptions], Field(min_length=1)]
 
+    def endpoint(self) -> str:
+        """A recording's folder."""
+        return self.directory
+
+    def relative_to(self, folder: Path) -> FilesRigOptions:
+        path = Path(self.directory)
+        return (
+            self
+            if path.is_absolute()
+            else self.model_copy(update={"directory": str(folder / path)})
+        )
+
 
 def read_image(path: Path) -> tuple[Image | None, str]:
     """(the grey 8/16-bit image, "") or (None, why it cannot be used): a missing,

@@ -21,7 +21,7 @@ from cellcal.clock import WallClock
 from cellcal.config import CellConfig
 from cellcal.drivers.cameras.backends import Frame, FrameSet, rig_class
 from cellcal.drivers.photogrammetry import CameraRigOptions, rig_and_target
-from cellcal.families import CameraBackend, camera_backend, load
+from cellcal.families import camera_backend, load
 from cellcal.mocks.rig.board_views import BoardScene
 
 log = logging.getLogger(__name__)
@@ -76,7 +76,7 @@ def mock_rig(
     """The configured rig's driver pointed at the simulated cell's cameras."""
     from cellcal.files.models import load_model
     from cellcal.files.photogrammetry import read_board
-    from cellcal.mocks.rig.twin import RigTruth
+    from cellcal.mocks.rig.twin import RigTruth, why_no_twin
     from cellcal.mocks.rig.twin import serve as serve_target
     from cellcal.mocks.simulated_cell import SimulatedCell
 
@@ -89,9 +89,9 @@ def mock_rig(
     rig, _ = rig_and_target(options)
     truth = RigTruth.of(cell, options.name)
     scene = BoardScene(rig, board, n_sets, truth.seed, truth.blur_px, truth.noise_grey)
-    names = tuple(c.name for c in options.capture.cameras)
+    names = options.capture.camera_names()
     backend = camera_backend(options.capture.backend)
-    why = _why_no_twin(options.capture.backend, backend)
+    why = why_no_twin(options.capture.backend)
     if why is None:
         from cellcal.mocks.netns import NamespaceUnavailableError
 
@@ -106,10 +106,3 @@ def mock_rig(
             return MockRig(cameras, running.stop, scene.announce)
     log.warning("sensor %s: cameras simulated in-process (%s)", options.name, why)
     return MockRig(SceneRig(scene, names), _nothing, scene.announce)
-
-
-def _why_no_twin(name: str, backend: CameraBackend | None) -> str | None:
-    """Why the backend's cameras cannot be served by a twin here, or None."""
-    if backend is None or backend.twin is None:
-        return f'backend "{name}" has no protocol twin'
-    return load(backend.unavailable)() if backend.unavailable is not None else None

@@ -226,14 +226,17 @@ def _serve(
     options: CameraRigOptions, truth: RigTruth, shared: Any, marked: Any, pipe: Connection
 ) -> None:
     """Open the cameras, say so (or why not) on the pipe, serve until told to stop."""
+    from cellcal.families import camera_backend, load
     from cellcal.mocks.rig.gige_cameras import GigECameraTwin
-    from cellcal.mocks.rig.twin import RigScene, serve_gige
+    from cellcal.mocks.rig.twin import RigScene
 
     joints, marks = _Joints(shared), _Marks(marked)
     try:
         rig, target = rig_and_target(options)
         scene = RigScene(truth, rig, target, joints.read, mark=marks.read)
-        running = serve_gige(options, scene)
+        row = camera_backend(options.capture.backend)
+        assert row is not None and row.twin is not None  # serve() chose it for its twin
+        running = load(row.twin)(options, scene)
     except NamespaceUnavailableError as exc:
         pipe.send(("unavailable", str(exc)))
         return

@@ -43,10 +43,11 @@ from cellcal.calib.robot_model import RobotModel
 from cellcal.clock import Clock, WallClock
 from cellcal.device_options import Strict
 from cellcal.drivers.base import DeviceDescription
-from cellcal.drivers.cameras.aravis import AravisRigOptions, aravis_missing
-from cellcal.drivers.cameras.backends import Frame, FrameSet, RigOptions
+from cellcal.drivers.cameras.aravis import AravisRigOptions
+from cellcal.drivers.cameras.backends import Frame, FrameSet
 from cellcal.drivers.photogrammetry import CameraRigOptions, rig_and_target
 from cellcal.errors import DeviceError
+from cellcal.families import camera_backend, load
 from cellcal.mocks.rig.camera_render import (
     Image,
     Optics,
@@ -387,8 +388,8 @@ def serve(options: CameraRigOptions, cell: SimulatedCell, time_scale: float) -> 
     rig, target = rig_and_target(options)
     truth = RigTruth.of(cell, options.name)
     capture = options.capture
-    why = _why_in_process(capture)
-    if why is None and isinstance(capture, AravisRigOptions):
+    why = why_no_twin(capture.backend)
+    if why is None:
         from cellcal.mocks.netns import NamespaceUnavailableError
         from cellcal.mocks.rig.process import CameraProcess, serve_in_process
 
@@ -404,7 +405,7 @@ def serve(options: CameraRigOptions, cell: SimulatedCell, time_scale: float) -> 
     sid = next(_ids)
     marks = SetMarks()
     _SCENES[sid] = RigScene(truth, rig, target, lambda: cell.q, mark=marks.read)
-    names = tuple(c.name for c in capture.cameras)
+    names = capture.camera_names()
     rendered = RenderedRigOptions(name=capture.name, cameras=names, scene=sid)
     pointed = options.model_copy(update={"capture": rendered})
     return RigTwin(pointed.listened(marks.listener(cell)), None, sid)
@@ -448,7 +449,10 @@ def serve_gige(options: CameraRigOptions, scene: CameraScene) -> RunningTwin:
     )
 
 
-def _why_in_process(capture: RigOptions) -> str | None:
-    if not isinstance(capture, AravisRigOptions):
-        return f'backend "{capture.backend}" has no protocol twin'
-    return aravis_missing()
+def why_no_twin(backend: str) -> str | None:
+    """Why the cameras of the capture's backend cannot be served by its twin here (the
+    registry's row: no twin, or its ``unavailable`` says why), or None."""
+    row = camera_backend(backend)
+    if row is None or row.twin is None:
+        return f'backend "{backend}" has no protocol twin'
+    return load(row.unavailable)() if row.unavailable is not None else None
