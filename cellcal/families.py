@@ -64,8 +64,8 @@ if TYPE_CHECKING:  # what ``__getattr__`` hands out, for the type checker
     from cellcal.mocks.rig.twin import RigTruth as RigTruth
     from cellcal.mocks.simulated_cell import SimulatedCell as SimulatedCell
     from cellcal.mocks.tracker.emscon_server import emscon_twin as emscon_twin
-    from cellcal.mocks.tracker.server import MockTracker as MockTracker
     from cellcal.mocks.tracker.server import TrackerFaults as TrackerFaults
+    from cellcal.mocks.tracker.server import TrackerTwin as TrackerTwin
     from cellcal.mocks.twins import limits_deg as limits_deg
     from cellcal.mocks.ur.server import twin_for_cell as twin_for_cell
 
@@ -383,7 +383,7 @@ TWIN_NAMES = {
     # the simulated cell, the truth every twin serves (the device factory in mock mode)
     "SimulatedCell": "simulated_cell",
     # cellcal mock tracker | modbus-robot | ur
-    "MockTracker": "tracker.server",
+    "TrackerTwin": "tracker.server",
     "TrackerFaults": "tracker.server",
     "emscon_twin": "tracker.emscon_server",
     "ModbusRobotTwin": "modbus.server",

@@ -142,7 +142,7 @@ def mock_tracker(
     """A laser tracker of the simulated cell, speaking the tracker line protocol (or
     Leica's emScon TPI)."""
     from cellcal.commands.run import bundled_mock_cell
-    from cellcal.families import MockTracker, SimulatedCell, TrackerFaults, emscon_twin
+    from cellcal.families import SimulatedCell, TrackerFaults, TrackerTwin, emscon_twin
 
     if (listen is None) == (not use_pty):
         raise InputError("give --listen HOST:PORT or --pty")
@@ -190,7 +190,7 @@ def mock_tracker(
         reply_delay_s=reply_delay,
         drop_after_lines=drop_after,
     )
-    server = MockTracker(cell.target(name), faults=faults, time_scale=time_scale)
+    server = TrackerTwin(cell.target(name), faults=faults, time_scale=time_scale)
     with server:
         if use_pty:
             where = server.start_pty()
@@ -201,7 +201,7 @@ def mock_tracker(
             except OSError as exc:
                 raise InputError(f"--listen {listen}: cannot listen ({exc.strerror})") from None
             where = f"socket://{host}:{port}"
-        click.echo(f"mock tracker {name!r} of {config.name!r} serving on {where}", err=True)
+        click.echo(f"tracker twin {name!r} of {config.name!r} serving on {where}", err=True)
         click.echo(where)
         wait_for_signal()
 

@@ -28,7 +28,7 @@ from cellcal.families import find
 from cellcal.files.models import load_model
 from cellcal.mocks.modbus import server as modbus_robot_server
 from cellcal.mocks.tracker import server as tracker_server
-from cellcal.mocks.tracker.server import FIRMWARE, MAKER, MODEL, MockTracker
+from cellcal.mocks.tracker.server import FIRMWARE, MAKER, MODEL, TrackerTwin
 from cellcal.store.database import Store
 from cellcal.store.devices import (
     DEVICE_EVENT,
@@ -76,7 +76,7 @@ def test_every_device_error_leaving_the_engine_names_its_device() -> None:
 
 @pytest.fixture
 def tracker_twin() -> Iterator[tuple[str, int]]:
-    server = MockTracker(_Still())
+    server = TrackerTwin(_Still())
     try:
         yield server.start_tcp("127.0.0.191", 0)  # returns once listening
     finally:

@@ -39,7 +39,7 @@ from cellcal.files.photogrammetry import read_rig, read_target
 from cellcal.mocks.modbus.server import ModbusRobotTwin
 from cellcal.mocks.modbus.state import ModbusRobotFaults
 from cellcal.mocks.simulated_devices import SimulatedRobot
-from cellcal.mocks.tracker.server import FIRMWARE, MAKER, MODEL, MockTracker
+from cellcal.mocks.tracker.server import FIRMWARE, MAKER, MODEL, TrackerTwin
 from tests.drivers.scripted import ScriptedTransport
 
 pytestmark = [pytest.mark.twin, pytest.mark.timeout(60)]
@@ -228,7 +228,7 @@ class StillTarget:
 
 @pytest.fixture
 def tracker_twin() -> Iterator[tuple[str, int]]:
-    server = MockTracker(StillTarget(), serial="SN-4711")
+    server = TrackerTwin(StillTarget(), serial="SN-4711")
     try:
         yield server.start_tcp("127.0.0.186", 0)  # returns once listening
     finally:

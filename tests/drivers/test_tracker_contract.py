@@ -15,7 +15,7 @@ from cellcal.drivers.tracker_protocol import (
 )
 from cellcal.drivers.transport import TransportError
 from cellcal.errors import DeviceError
-from cellcal.mocks.tracker.server import MockTracker, TrackerFaults
+from cellcal.mocks.tracker.server import TrackerFaults, TrackerTwin
 
 pytestmark = pytest.mark.twin
 
@@ -34,7 +34,7 @@ class Target:
 
 
 def _backend(kind: str, faults: TrackerFaults | None = None, **kw):
-    server = MockTracker(Target(), faults=faults or TrackerFaults())
+    server = TrackerTwin(Target(), faults=faults or TrackerFaults())
     if kind == "tcp":
         host, port = server.start_tcp("127.0.0.5", 0)
         url = f"socket://{host}:{port}"
@@ -166,7 +166,7 @@ def test_the_twin_gives_each_sample_its_own_noise_whatever_the_faults():
     def series(faults: TrackerFaults) -> list[np.ndarray]:
         config, cell = simulated_cell_of(None, 5)
         name = next(s.name for s in config.sensor if s.kind == "laser-tracker")
-        server = MockTracker(cell.target(name), faults=faults)
+        server = TrackerTwin(cell.target(name), faults=faults)
         host, port = server.start_tcp("127.0.0.5", 0)
         t = LineTracker("t", f"socket://{host}:{port}", timeout=2.0, backoff_s=0.01)
         home, out = cell.q, []

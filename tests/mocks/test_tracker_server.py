@@ -21,7 +21,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from cellcal.mocks import link_server
-from cellcal.mocks.tracker.server import MockTracker, TrackerFaults
+from cellcal.mocks.tracker.server import TrackerFaults, TrackerTwin
 
 pytestmark = [pytest.mark.twin, pytest.mark.timeout(30)]
 
@@ -241,10 +241,10 @@ def _close_clients() -> Iterator[None]:
 @pytest.fixture
 def serve() -> Iterator:
     """``serve(source=None, **kwargs)`` → (tracker, TCP address); stopped at teardown."""
-    started: list[MockTracker] = []
+    started: list[TrackerTwin] = []
 
     def start(source=None, **kwargs):
-        tracker = MockTracker(source or RampSource(), **kwargs)
+        tracker = TrackerTwin(source or RampSource(), **kwargs)
         started.append(tracker)
         return tracker, tracker.start_tcp(HOST, 0)
 
@@ -757,7 +757,7 @@ def test_pty_transport_serves_the_same_exchange(monkeypatch, watch: str) -> None
     if watch == "hang-up":  # where there is no inotify, a client's close is a hang-up
         monkeypatch.setattr(link_server, "_inotify_watch", lambda path: None)
     source = TableSource([[1048.62012, 29.94401, 875.07699], [1048.6199, 29.9442, 875.0768]])
-    with MockTracker(source) as tracker:
+    with TrackerTwin(source) as tracker:
         path = tracker.start_pty()
         assert path.startswith("/dev/")
         client = PtyClient(path)
@@ -790,7 +790,7 @@ def test_pty_transport_serves_the_same_exchange(monkeypatch, watch: str) -> None
 
 
 def test_pty_large_series_flows_through() -> None:
-    with MockTracker(RampSource()) as tracker:
+    with TrackerTwin(RampSource()) as tracker:
         client = PtyClient(tracker.start_pty())
         assert client.ask("INIT") == ["OK"]
         assert client.ask("MEAS 5000 1000") == ["OK 5000"]
@@ -800,7 +800,7 @@ def test_pty_large_series_flows_through() -> None:
 
 
 def test_pty_drop_stops_answering_until_reopened() -> None:
-    with MockTracker(RampSource(), faults=TrackerFaults(drop_after_lines=2)) as tracker:
+    with TrackerTwin(RampSource(), faults=TrackerFaults(drop_after_lines=2)) as tracker:
         path = tracker.start_pty()
         client = PtyClient(path)
         assert client.ask("*IDN?") == [IDN]
@@ -824,7 +824,7 @@ def test_pty_drop_stops_answering_until_reopened() -> None:
 
 
 def test_stop_closes_everything_and_is_idempotent() -> None:
-    tracker = MockTracker(RampSource(), time_scale=1.0)
+    tracker = TrackerTwin(RampSource(), time_scale=1.0)
     with tracker:
         addr = tracker.start_tcp("127.0.0.6", 0)
         assert addr[0] == "127.0.0.6"
@@ -845,9 +845,9 @@ def test_stop_closes_everything_and_is_idempotent() -> None:
 def test_bad_construction_is_refused() -> None:
     for serial_number in ("A B", "A,B", "", "Sé"):
         with pytest.raises(ValueError):
-            MockTracker(RampSource(), serial=serial_number)
+            TrackerTwin(RampSource(), serial=serial_number)
     with pytest.raises(ValueError):
-        MockTracker(RampSource(), time_scale=-1.0)
+        TrackerTwin(RampSource(), time_scale=-1.0)
     for bad in (
         {"garbage_every": -1},
         {"beam_break_after": -1},
@@ -894,7 +894,7 @@ HOSTILE_LINE = st.one_of(
 
 
 def test_hostile_lines_get_one_well_formed_reply_each_and_the_server_keeps_serving() -> None:
-    with MockTracker(RampSource()) as tracker:
+    with TrackerTwin(RampSource()) as tracker:
         client = TcpClient(tracker.start_tcp("127.0.0.7", 0))
         tried: list[bytes] = []
         assert client.ask("INIT") == ["OK"]  # so that a MEAS may stream a series

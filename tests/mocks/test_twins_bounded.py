@@ -18,7 +18,7 @@ import pytest
 
 from cellcal.mocks import link_server
 from cellcal.mocks.modbus.server import ModbusRobotTwin
-from cellcal.mocks.tracker.server import MockTracker
+from cellcal.mocks.tracker.server import TrackerTwin
 from cellcal.mocks.ur import rtde_codec as rtde
 from cellcal.mocks.ur import script_port as ur_script_port
 from cellcal.mocks.ur.rtde_session import RtdeSession
@@ -43,8 +43,8 @@ def wait_until(predicate: Callable[[], bool], timeout: float = 20.0) -> None:
 
 
 @contextlib.contextmanager
-def _tracker() -> Iterator[tuple[MockTracker, socket.socket, tuple[str, int]]]:
-    server = MockTracker(Target())
+def _tracker() -> Iterator[tuple[TrackerTwin, socket.socket, tuple[str, int]]]:
+    server = TrackerTwin(Target())
     address = server.start_tcp(TRACKER_HOST, 0)  # listening once it returns
     client = socket.create_connection(address, timeout=5.0)
     try:
@@ -108,7 +108,7 @@ def test_the_tracker_twin_drops_an_endless_line_and_says_so(
 
 
 def test_the_tracker_twin_keeps_the_last_requests_only(monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr(MockTracker, "REQUEST_LOG", 100, raising=False)
+    monkeypatch.setattr(TrackerTwin, "REQUEST_LOG", 100, raising=False)
     with _tracker() as (server, client, _):
         client.sendall(b"".join(b"STAT? %d\n" % i for i in range(250)) + b"*IDN?\n")
         f = client.makefile("rb")

@@ -69,9 +69,9 @@ __all__ = [
     "REFLECTORS",
     "RH_RANGE",
     "T_RANGE",
-    "MockTracker",
     "TargetSource",
     "TrackerFaults",
+    "TrackerTwin",
     "serve",
 ]
 
@@ -118,7 +118,7 @@ class TrackerFaults:
                 raise ValueError(f"TrackerFaults.{name} must be finite and >= 0, got {value}")
 
 
-class MockTracker:
+class TrackerTwin:
     """A simulated laser tracker serving the tracker line protocol v1.
 
     ``time_scale`` 0 streams points as fast as possible; > 0 waits
@@ -162,8 +162,8 @@ class MockTracker:
         self._sessions: set[TrackerSession] = set()
         self._requests: deque[str] = deque(maxlen=self.REQUEST_LOG)
         self._events_sent = 0
-        self._tcp = TcpLinkServer(self._serve, name="mock-tracker", stop=self._stop, log=log)
-        self._pty = PtyLinkServer(self._serve, name="mock-tracker", stop=self._stop, log=log)
+        self._tcp = TcpLinkServer(self._serve, name="tracker-twin", stop=self._stop, log=log)
+        self._pty = PtyLinkServer(self._serve, name="tracker-twin", stop=self._stop, log=log)
 
     # -- public
 
@@ -206,7 +206,7 @@ class MockTracker:
         for server in (self._tcp, self._pty):
             server.stop(max(0.0, deadline - time.monotonic()))
 
-    def __enter__(self) -> MockTracker:
+    def __enter__(self) -> TrackerTwin:
         return self
 
     def __exit__(self, *exc: object) -> None:
@@ -370,7 +370,7 @@ class MockTracker:
 
 
 def serve(options: LineTrackerOptions, cell: SimulatedCell, time_scale: float) -> RunningTwin:
-    """The twin of a configured line-protocol tracker: a MockTracker serving the
+    """The twin of a configured line-protocol tracker: a TrackerTwin serving the
     simulated cell's target of this sensor, over TCP on a loopback address."""
     f = cell.faults
     faults = TrackerFaults(
@@ -378,7 +378,7 @@ def serve(options: LineTrackerOptions, cell: SimulatedCell, time_scale: float) -
         beam_restore_s=f.tracker_beam_restore_s,
         drop_after_lines=f.tracker_drop_after_lines or None,
     )
-    server = MockTracker(cell.target(options.name), faults=faults, time_scale=time_scale)
+    server = TrackerTwin(cell.target(options.name), faults=faults, time_scale=time_scale)
     host, port = server.start_tcp(TRACKER_HOST, 0)
     twin_options = options.model_copy(
         update={"address": f"socket://{host}:{port}", "timeout_s": max(options.timeout_s, 10.0)}

@@ -1,7 +1,7 @@
-"""The mock tracker's side of one connection: the codec of tracker line protocol v1
+"""The tracker twin's side of one connection: the codec of tracker line protocol v1
 (``docs/tracker.md``: framing, request parsing, replies) and ``TrackerSession``, which
 reads the request lines of one link, answers them, streams a series and keeps the fault
-cadences of that connection. The tracker state the sessions share is ``MockTracker``
+cadences of that connection. The tracker state the sessions share is ``TrackerTwin``
 (``tracker_server``); the link and its thread come from ``link_server``.
 
 A session is one select loop (its link's ``wait``) that reads requests and streams points,
@@ -49,7 +49,7 @@ import numpy as np
 from cellcal.mocks.link_server import POLL_S, DropLinkError, Link, LinkClosedError
 
 if TYPE_CHECKING:
-    from cellcal.mocks.tracker.server import MockTracker
+    from cellcal.mocks.tracker.server import TrackerTwin
 
 log = logging.getLogger("cellcal.mocks.tracker")
 
@@ -125,7 +125,7 @@ class _Series:
 class TrackerSession:
     """One connection: reads request lines, answers them, streams a series."""
 
-    def __init__(self, tracker: MockTracker, link: Link) -> None:
+    def __init__(self, tracker: TrackerTwin, link: Link) -> None:
         self.tracker = tracker
         self.faults = tracker.faults
         self.link = link
@@ -241,7 +241,7 @@ class TrackerSession:
 
     def _overlong(self) -> None:
         log.warning(
-            "mock tracker: a request line longer than %d bytes: dropped (ERR 3 when it ends)",
+            "tracker twin: a request line longer than %d bytes: dropped (ERR 3 when it ends)",
             MAX_LINE,
         )
 
@@ -262,7 +262,7 @@ class TrackerSession:
         except (LinkClosedError, DropLinkError):
             raise
         except Exception:
-            log.exception("mock tracker: request %r failed", raw)
+            log.exception("tracker twin: request %r failed", raw)
             answer = f"{NO_TRACKER} internal error"
         self._reply(answer)
         if cmd == b"MEAS" and answer.startswith("OK"):
