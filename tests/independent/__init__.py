@@ -1,0 +1,2 @@
+"""Devices written from their published protocols alone, not from cellcal's twins: the
+second opinion a twin cannot give."""
