@@ -382,9 +382,10 @@ class RigTwin:
 
 
 def serve(options: CameraRigOptions, cell: SimulatedCell, time_scale: float) -> RigTwin:
-    """The simulated cell's cameras for the configured rig: GigE Vision cameras in a
-    process of their own when the capture is ``aravis`` and a network namespace can be
-    made, else in-process."""
+    """The simulated cell's cameras for the configured rig: served by the twin of the
+    capture backend's row in a process of their own (for ``aravis``: GigE Vision cameras
+    in a network namespace) when the row has a twin that can run here, else rendered
+    in-process."""
     rig, target = rig_and_target(options)
     truth = RigTruth.of(cell, options.name)
     capture = options.capture
