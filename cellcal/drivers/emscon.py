@@ -266,7 +266,8 @@ class EmsconTracker:
         try:
             self.link.request(p.START_MEASUREMENT)
         except EmsconStatusError as exc:
-            if exc.status in (p.MEAS_STATUS_NOT_READY_ERROR, p.SYSTEM_NOT_READY):
+            lost = (p.MEAS_STATUS_NOT_READY_ERROR, p.SYSTEM_NOT_READY, p.NO_STATIONARY_RESULT)
+            if exc.status in lost:
                 raise NoTargetError(f"{self.where}: {p.status_text(exc.status)}") from None
             raise
         wait = self.options.measure_time_ms / 1000.0 + self.options.timeout_s

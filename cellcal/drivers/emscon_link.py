@@ -164,8 +164,11 @@ class EmsconLink:
                 if packet.status != p.OK:
                     raise self.refused(command, packet.status)
                 return packet
+            # an error for no command (0) is the tracker's unsolicited news — a beam lost
+            # while idle — not this command's answer, which still comes; one client too many
+            # is the exception
             if isinstance(packet, p.ErrorPacket) and (
-                packet.command in (command, 0) or packet.status == p.MULTI_CONNECTIONS_NOT_ALLOWED
+                packet.command == command or packet.status == p.MULTI_CONNECTIONS_NOT_ALLOWED
             ):
                 raise self.refused(command, packet.status)
             self.note(packet, waiting)
