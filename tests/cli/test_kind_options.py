@@ -39,13 +39,13 @@ class DriftKind:
         return {k: v for k, v in given.items() if v is not None}
 
     def plan(self, config: Any, options: Mapping[str, Any]) -> Any:
-        raise NotImplementedError
+        raise AssertionError("this test reads the kind's options only; it plans nothing")
 
     def created(self, options: Mapping[str, Any]) -> Sequence[tuple[str, str]]:
         return ()
 
     def analyse(self, done: Acquired) -> Analysis:
-        raise NotImplementedError
+        raise AssertionError("this test reads the kind's options only; it analyses nothing")
 
 
 def _command(kinds: Mapping[str, CampaignKind], sent: bool = False) -> click.Command:

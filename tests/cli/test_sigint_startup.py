@@ -163,7 +163,7 @@ def test_an_interrupt_python_drops_is_still_an_interrupt(
         pytest.skip("main installs its handlers only on the main thread")
 
     class Module:
-        pass
+        """Something a weak reference can point at (a plain object cannot)."""
 
     def run_dropping(error: BaseException, interrupted: bool) -> Callable[[list[str], bool], int]:
         """A command whose ``error`` is raised where Python drops it: a weakref callback."""
