@@ -39,8 +39,8 @@ from cellcal.calib.registration import (
     METHODS,
     RigidFit,
     fit_rigid,
-    fit_rigid_batch,
 )
+from cellcal.calib.registration_batch import fit_rigid_batch
 from cellcal.errors import CellcalError
 
 Array = NDArray[np.float64]

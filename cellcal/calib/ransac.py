@@ -29,8 +29,8 @@ from cellcal.calib.registration import (
     _diagnose_geometry,
     _Solution,
     _solve_ls,
-    fit_rigid_batch,
 )
+from cellcal.calib.registration_batch import fit_rigid_batch
 from cellcal.errors import DegenerateGeometryError, InputError
 
 #: Default inlier threshold, in robust σ of the best sample.

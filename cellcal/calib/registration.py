@@ -5,12 +5,8 @@ the paper's Sec. 3.1/4.3 is here, plus weighted, robust and batched forms. Compu
 is in float64 on centred coordinates, so float32 input and coordinates far from the
 origin (a tracker 10 km from its datum) lose nothing.
 
-Size (about 860 lines): this module predates the 500-line rule and has not been split
-yet; the natural cut is by job — the public ``fit_rigid`` and its input checks here,
-weights and robust loops, statistics (covariance, leave-one-out), and the batched form
-in modules of their own, as ``rigid_solvers.py``, ``characteristic_line.py`` and
-``ransac.py`` already are. It is left whole until a change works on registration, so
-that its tests (which pin Table 4 and the accuracy bounds) guard one move at a time.
+The robust and covariance-weighted loops are in ``registration_weights.py``; the batched
+fit and leave-one-out in ``registration_batch.py``.
 """
 
 from __future__ import annotations
@@ -26,7 +22,7 @@ from numpy.typing import NDArray
 
 from cellcal.calib import rigid_solvers as rs
 from cellcal.calib.characteristic_line import CoincidenceStep, auto_lines, characteristic_line
-from cellcal.calib.geometry import Array, skew, so3_exp
+from cellcal.calib.geometry import Array, skew
 from cellcal.errors import (
     ConvergenceError,
     DegenerateGeometryError,
@@ -57,8 +53,6 @@ COLLINEAR_TOL = 1e-7
 NEAR_COLLINEAR_WARN = 1e-3
 #: Median of the norm of a 3-D standard normal vector (χ with 3 degrees of freedom).
 CHI3_MEDIAN = 1.5381722
-HUBER_K = 2.8  # ≈ 95 % quantile of χ₃: points beyond it are down-weighted
-TUKEY_C = 4.7  # points beyond it get weight zero
 
 
 @dataclass(frozen=True)
@@ -158,6 +152,8 @@ class RigidFit:
     @cached_property
     def _normal(self) -> Array:
         """Normal matrix of (ω, centroid shift[, scale]) at the solution (centred)."""
+        from cellcal.calib.registration_weights import _pose_jacobian  # builds on this module
+
         inl = self.inliers
         Rp = self.scale * (self._Pc[inl] @ self.R.T)
         J = _pose_jacobian(Rp, self.scale_estimated, self.scale)
@@ -207,45 +203,6 @@ class RigidFit:
         S = N[:3, :3] - N[:3, 3:] @ np.linalg.solve(N[3:, 3:], N[3:, :3])
         ev = np.linalg.eigvalsh(0.5 * (S + S.T))
         return float("inf") if ev[0] <= ev[2] * 1e-15 else float(ev[2] / ev[0])
-
-
-@dataclass(frozen=True)
-class LeaveOneOut:
-    """Prediction error of each point by a fit to all the others (mm).
-
-    ``errors`` is n×3 (NaN where the method could not fit without that point, e.g. a
-    point that defines a characteristic line); ``rms`` is over the finite ones.
-    """
-
-    errors: Array
-    norms: Array
-    rms: float
-    skipped: int
-
-
-@dataclass(frozen=True)
-class RigidFitBatch:
-    """Many least-squares fits at once (SVD): ``R`` (B×3×3), ``t`` (B×3), ``scale`` (B,),
-    ``rms`` and ``max`` (B,); ``degenerate`` (B,) marks problems whose points are collinear
-    or coincident in either cloud, ``mirrored`` (B,) those a reflection fits far better
-    than a rotation, as :func:`fit_rigid` would refuse them; their R, t are not meaningful."""
-
-    R: Array
-    t: Array
-    scale: Array
-    rms: Array
-    max: Array
-    degenerate: NDArray[np.bool_]
-    mirrored: NDArray[np.bool_]
-
-    @property
-    def T(self) -> Array:
-        B = len(self.R)
-        out = np.zeros((B, 4, 4))
-        out[:, :3, :3] = self.R * self.scale[:, None, None]
-        out[:, :3, 3] = self.t
-        out[:, 3, 3] = 1.0
-        return out
 
 
 # --------------------------------------------------------------------------- input checks
@@ -437,116 +394,6 @@ def _solve_line(P: Array, Q: Array, lines: tuple[Sequence[int], Sequence[int]] |
     )
 
 
-def _pose_jacobian(Rp: Array, with_scale: bool, scale: float) -> Array:
-    """∂rᵢ/∂(ω, c[, s]) for rᵢ = qᵢ − (Exp(ω) s R pᵢ + c); ``Rp`` holds s R pᵢ (n×3)."""
-    J = np.zeros((len(Rp), 3, 7 if with_scale else 6))
-    J[:, 0, 1], J[:, 0, 2] = -Rp[:, 2], Rp[:, 1]
-    J[:, 1, 0], J[:, 1, 2] = Rp[:, 2], -Rp[:, 0]
-    J[:, 2, 0], J[:, 2, 1] = -Rp[:, 1], Rp[:, 0]
-    J[:, :, 3:6] = -np.eye(3)
-    if with_scale:
-        J[:, :, 6] = -Rp / scale
-    return J
-
-
-def _combined_weights(R: Array, s: float, C_src: Array, C_dst: Array) -> Array:
-    """Σᵢ⁻¹ with Σᵢ = C_dstᵢ + s² R C_srcᵢ Rᵀ; a singular Σᵢ is a user error."""
-    Sig = C_dst + s * s * np.einsum("ij,njk,lk->nil", R, C_src, R)
-    ev = np.linalg.eigvalsh(Sig)
-    bad = np.flatnonzero(ev[:, 0] <= 1e-12 * np.maximum(ev[:, 2], 1e-300))
-    if len(bad):
-        raise InputError(
-            f"covariances: point {int(bad[0])} has no uncertainty along some direction "
-            "(a zero σ on the same axis in both files); give every point a positive σ"
-        )
-    W: Array = np.linalg.inv(Sig)
-    return W
-
-
-def _refine_full_covariance(
-    P: Array,
-    Q: Array,
-    sol: _Solution,
-    C_src: Array,
-    C_dst: Array,
-    scale: bool,
-    inliers: NDArray[np.bool_] | None,
-) -> tuple[_Solution, Array]:
-    """Gauss–Newton on (ω, c[, s]) minimising Σ rᵢᵀ Σᵢ⁻¹ rᵢ over the inliers, where
-    Σᵢ = C_dst + s² R C_src Rᵀ is re-evaluated each step. Works on centred coordinates
-    (a datum kilometres away costs nothing); returns the solution and Σᵢ⁻¹ of every point."""
-    use = np.ones(len(P), dtype=bool) if inliers is None else inliers
-    pc, qc = P[use].mean(axis=0), Q[use].mean(axis=0)
-    Pc, Qc = P[use] - pc, Q[use] - qc
-    Cs, Cd = C_src[use], C_dst[use]
-    R, s = sol.R, sol.scale
-    c = s * (R @ pc) + sol.t - qc  # image of the source centroid, in centred dst coordinates
-    cost_prev = math.inf
-    for it in range(1, rs.MAX_ITER + 1):
-        W = _combined_weights(R, s, Cs, Cd)
-        Rp = s * (Pc @ R.T)
-        r = Qc - Rp - c
-        cost = float(np.einsum("ni,nij,nj->", r, W, r))
-        J = _pose_jacobian(Rp, scale, s)
-        N = np.einsum("nia,nij,njb->ab", J, W, J)
-        g = np.einsum("nia,nij,nj->a", J, W, r)
-        dx = -np.linalg.solve(N, g)
-        R, c = so3_exp(dx[:3]) @ R, c + dx[3:6]
-        if scale:
-            s *= 1.0 + dx[6] / s
-        small = float(dx[:3] @ dx[:3]) < 1e-26 and float(dx[3:6] @ dx[3:6]) < 1e-20
-        stalled = it > 2 and abs(cost_prev - cost) <= 1e-14 * cost
-        if small or stalled:
-            t = c + qc - s * (R @ pc)
-            return _Solution(R, t, s, sol.iterations + it), _combined_weights(R, s, C_src, C_dst)
-        cost_prev = cost
-    raise ConvergenceError(f"covariance-weighted fit: no convergence in {rs.MAX_ITER} steps")
-
-
-# --------------------------------------------------------------------------- robust wrappers
-
-
-def _robust_weights(u: Array, kind: str) -> Array:
-    if kind == "huber":
-        out: Array = np.minimum(1.0, HUBER_K / np.maximum(u, 1e-300))
-        return out
-    out = np.where(u < TUKEY_C, (1.0 - (u / TUKEY_C) ** 2) ** 2, 0.0)
-    return out
-
-
-def _irls(
-    P: Array, Q: Array, w0: Array, method: str, scale: bool, kind: str
-) -> tuple[_Solution, Array, NDArray[np.bool_]]:
-    w = w0.copy()
-    sol = _solve_ls(P, Q, w, method, scale)
-    kinds = ["huber"] if kind == "huber" else ["huber", "tukey"]
-    u = np.zeros(len(P))
-    total = 0
-    for k in kinds:
-        for _ in range(rs.MAX_ITER):
-            total += 1
-            r = np.linalg.norm(Q - sol.scale * (P @ sol.R.T) - sol.t, axis=1)
-            sigma = float(np.median(r[w0 > 0])) / CHI3_MEDIAN
-            if sigma <= 1e-12 * max(1.0, float(np.max(np.abs(Q)))):
-                break  # an exact fit: nothing to down-weight
-            u = r / sigma
-            w_new = w0 * _robust_weights(u, k)
-            if np.count_nonzero(w_new) < 3:
-                raise DegenerateGeometryError(
-                    f"robust ({kind}): fewer than 3 points left with a positive weight"
-                )
-            _diagnose_geometry(P, Q, w_new)
-            change = float(np.max(np.abs(w_new - w)))
-            w = w_new
-            sol = _solve_ls(P, Q, w, method, scale)
-            if change < 1e-10:
-                break
-    cut = HUBER_K if kind == "huber" else TUKEY_C
-    inl = u <= cut if kind == "huber" else w > 0
-    sol = _Solution(sol.R, sol.t, sol.scale, total)
-    return sol, w, np.asarray(inl & (w0 > 0))
-
-
 # --------------------------------------------------------------------------- public API
 
 
@@ -635,6 +482,8 @@ def fit_rigid(
     elif method == "line":
         sol = _solve_line(P, Q, lines)
     elif robust in ("huber", "tukey"):
+        from cellcal.calib.registration_weights import _irls  # it builds on this module's solvers
+
         sol, w, inliers = _irls(P, Q, _ones_or(w, n), method, scale, robust)
     elif robust == "ransac":
         from cellcal.calib.ransac import ransac  # it builds on this module's solvers
@@ -649,6 +498,8 @@ def fit_rigid(
     else:
         sol = _solve_ls(P, Q, _ones_or(w, n), method, scale)
     if C_src is not None and C_dst is not None:
+        from cellcal.calib.registration_weights import _refine_full_covariance  # as _irls
+
         sol, W = _refine_full_covariance(P, Q, sol, C_src, C_dst, scale, inliers)
     warnings += sol.warnings
 
@@ -738,114 +589,6 @@ def _check_options(
         )
     if weights is not None and (cov_src is not None or cov_dst is not None):
         raise InputError("give either weights or covariances, not both")
-
-
-def fit_rigid_batch(src: object, dst: object, *, scale: bool = False) -> RigidFitBatch:
-    """Least-squares (SVD) fits of B independent problems at once: src, dst are B×n×3."""
-    try:
-        P = np.asarray(src, dtype=np.float64)
-        Q = np.asarray(dst, dtype=np.float64)
-    except (TypeError, ValueError) as exc:
-        raise InputError(f"batch: not arrays of numbers ({exc})") from None
-    if P.ndim != 3 or P.shape[2] != 3 or P.shape != Q.shape:
-        raise InputError(f"batch: expected two (B, n, 3) arrays, got {P.shape} and {Q.shape}")
-    if P.shape[1] < 3:
-        raise DegenerateGeometryError(f"batch: need at least 3 points, got {P.shape[1]}")
-    if not (np.isfinite(P).all() and np.isfinite(Q).all()):
-        raise InputError("batch: points must be finite")
-    pc = P.mean(axis=1)
-    qc = Q.mean(axis=1)
-    Pc = P - pc[:, None, :]
-    Qc = Q - qc[:, None, :]
-    PcT = np.swapaxes(Pc, 1, 2)
-    H = PcT @ Qc
-    U, S, Vt = np.linalg.svd(H)
-    d = np.sign(np.linalg.det(U) * np.linalg.det(Vt))
-    d[d == 0] = 1.0
-    Vt[:, 2, :] *= d[:, None]
-    R = np.swapaxes(Vt, 1, 2) @ np.swapaxes(U, 1, 2)
-    pp = np.einsum("bni,bni->b", Pc, Pc)
-    qq = np.einsum("bni,bni->b", Qc, Qc)
-    s = (S[:, 0] + S[:, 1] + d * S[:, 2]) / np.maximum(pp, 1e-300) if scale else np.ones(len(P))
-    t = qc - s[:, None] * np.einsum("bij,bj->bi", R, pc)
-    res = Qc - s[:, None, None] * (Pc @ np.swapaxes(R, 1, 2))
-    sq = np.einsum("bni,bni->bn", res, res)
-    # Collinear or coincident points in either cloud (eigenvalues of the scatter matrices).
-    ev_p = np.linalg.eigvalsh(PcT @ Pc)
-    ev_q = np.linalg.eigvalsh(np.swapaxes(Qc, 1, 2) @ Qc)
-    tol2 = COLLINEAR_TOL**2
-    degenerate = ~((ev_p[:, 1] > tol2 * ev_p[:, 2]) & (ev_q[:, 1] > tol2 * ev_q[:, 2]))
-    # Mirrored: the reflection fits far better than the proper rotation (as in fit_rigid).
-    with np.errstate(divide="ignore", invalid="ignore"):
-        e_rot = qq - (S[:, 0] + S[:, 1] - S[:, 2]) ** 2 / pp
-        e_ref = qq - (S[:, 0] + S[:, 1] + S[:, 2]) ** 2 / pp
-        mirrored = (d < 0) & (S[:, 2] > 1e-9 * S[:, 0]) & (e_ref < 0.25 * e_rot)
-    return RigidFitBatch(
-        R=R,
-        t=t,
-        scale=s,
-        rms=np.sqrt(sq.mean(axis=1)),
-        max=np.sqrt(sq.max(axis=1)),
-        degenerate=degenerate,
-        mirrored=mirrored,
-    )
-
-
-#: leave_one_out refits once per point (O(n²) memory for the batched SVD path).
-LOO_MAX_POINTS = 5000
-
-
-def leave_one_out(src: object, dst: object, **kwargs: object) -> LeaveOneOut:
-    """Predict each point from a fit to all the others (same method and options).
-
-    With the plain SVD method this runs as one batched problem. Point indices given for
-    ``lines`` or ``three_points`` are remapped; a point that one of them needs cannot be
-    left out, and its error is NaN (counted in ``skipped``).
-    """
-    P = as_points(src, "src")
-    Q = as_points(dst, "dst")
-    n = len(P)
-    if Q.shape != P.shape:
-        raise InputError(f"src has {n} points but dst has {len(Q)}; they must correspond")
-    if n < 4:
-        raise DegenerateGeometryError(f"leave-one-out needs at least 4 points, got {n}")
-    if n > LOO_MAX_POINTS:
-        raise InputError(f"leave-one-out refits once per point: at most {LOO_MAX_POINTS}, got {n}")
-    errors = np.full((n, 3), np.nan)
-    keep = ~np.eye(n, dtype=bool)
-    options = [v for k, v in kwargs.items() if k not in ("method", "seed")]
-    plain = all(v is None or v is False for v in options)
-    if plain and kwargs.get("method", "svd") == "svd":
-        idx = np.array([np.flatnonzero(row) for row in keep])
-        b = fit_rigid_batch(P[idx], Q[idx])
-        pred = np.einsum("bij,bj->bi", b.R, P) + b.t
-        errors = Q - pred
-        errors[b.degenerate | b.mirrored] = np.nan
-    else:
-        for i in range(n):
-            others = np.flatnonzero(keep[i])
-            remap = {int(j): k for k, j in enumerate(others)}
-            kw = dict(kwargs)
-            try:
-                for key in ("lines", "three_points"):
-                    spec = kw.get(key)
-                    if spec is None:
-                        continue
-                    if key == "lines":
-                        kw[key] = tuple([remap[int(j)] for j in g] for g in spec)  # type: ignore[attr-defined]
-                    else:
-                        kw[key] = [remap[int(j)] for j in spec]  # type: ignore[attr-defined]
-                for key in ("weights", "cov_src", "cov_dst"):
-                    if kw.get(key) is not None:
-                        kw[key] = np.asarray(kw[key])[others]
-                f = fit_rigid(P[others], Q[others], **kw)  # type: ignore[arg-type]
-            except (KeyError, DegenerateGeometryError):
-                continue
-            errors[i] = Q[i] - apply_fit(f, P[i : i + 1])[0]
-    norms = np.linalg.norm(errors, axis=1)
-    ok = np.isfinite(norms)
-    rms = float(np.sqrt(np.mean(norms[ok] ** 2))) if ok.any() else float("nan")
-    return LeaveOneOut(errors=errors, norms=norms, rms=rms, skipped=int((~ok).sum()))
 
 
 def apply_fit(fit: RigidFit, points: object) -> Array:

@@ -21,7 +21,7 @@ from cellcal.calib.identification import (
     fit_frames,
 )
 from cellcal.calib.observations import check_measurements, on_a_line
-from cellcal.calib.registration import fit_rigid_batch
+from cellcal.calib.registration_batch import fit_rigid_batch
 from cellcal.calib.robot_model import RobotModel
 from cellcal.errors import AcceptanceError, InputError, UserError
 

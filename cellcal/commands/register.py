@@ -9,15 +9,8 @@ import numpy as np
 
 from cellcal.calib.geometry import rotation_angle, so3_log
 from cellcal.calib.outliers import PointResidual, dominant, point_residuals
-from cellcal.calib.registration import (
-    LOO_MAX_POINTS,
-    METHODS,
-    ROBUST,
-    LeaveOneOut,
-    RigidFit,
-    fit_rigid,
-    leave_one_out,
-)
+from cellcal.calib.registration import METHODS, ROBUST, RigidFit, fit_rigid
+from cellcal.calib.registration_batch import LOO_MAX_POINTS, LeaveOneOut, leave_one_out
 from cellcal.commands.output import POSITIVE, SEED, print_json, warn
 from cellcal.errors import InputError
 from cellcal.files.points import MatchedPoints, match_points, read_points

@@ -9,13 +9,8 @@ from hypothesis import strategies as st
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
-from cellcal.calib.registration import (
-    METHODS,
-    apply_fit,
-    fit_rigid,
-    fit_rigid_batch,
-    leave_one_out,
-)
+from cellcal.calib.registration import METHODS, apply_fit, fit_rigid
+from cellcal.calib.registration_batch import fit_rigid_batch, leave_one_out
 from cellcal.errors import (
     ConvergenceError,
     DegenerateGeometryError,
