@@ -147,7 +147,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "service": ("cellcal.commands.service:service", "The systemd service of this installation."),
     "tracker": (
         "cellcal.commands.tracker:tracker",
-        "Connect to a tracker, identify it, initialise it and measure its target.",
+        "Connect to a tracker, identify it, initialise it and measure its target; or check "
+        "its line protocol (--conformance).",
     ),
 }
 #: Subcommands that live in another module than their group's: group → (name, where).

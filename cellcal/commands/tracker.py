@@ -1,6 +1,8 @@
 """``cellcal tracker``: measure once with a tracker — one that speaks the line protocol
-(``--dialect line-protocol``, the default) or a Leica tracker on emScon TPI
-(``--dialect emscon``)."""
+(``--dialect line-protocol``, the default: the version the tracker announces) or a Leica
+tracker on emScon TPI (``--dialect emscon``) — or, with ``--conformance``, check that a
+line-protocol tracker or bridge answers every request and fault a campaign relies on
+(exit 1 when it does not: ``docs/tracker.md``)."""
 
 from __future__ import annotations
 
@@ -44,6 +46,12 @@ from cellcal.errors import InputError
     show_default=True,
     help="Seconds per request.",
 )
+@click.option(
+    "--conformance",
+    is_flag=True,
+    help="Line protocol: run every request and fault a campaign relies on and say what the "
+    "tracker got wrong (exit 1 when something does not hold).",
+)
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout.")
 def tracker(
     address: str | None,
@@ -52,13 +60,20 @@ def tracker(
     samples: int,
     rate_hz: float,
     timeout: float,
+    conformance: bool,
     as_json: bool,
 ) -> None:
-    """Connect to a tracker, identify it, initialise it and measure its target."""
+    """Connect to a tracker, identify it, initialise it and measure its target; or check
+    its line protocol (--conformance)."""
     if (address is None) == (url is None):
         raise InputError("give the tracker's --address (or --url), once")
     where = address if address is not None else url
     assert where is not None
+    if conformance:
+        if dialect != "line-protocol":
+            raise InputError("--conformance: for the line protocol (--dialect line-protocol)")
+        _conformance(where, rate_hz, timeout, as_json)
+        return
     if dialect == "emscon":
         out, text = _emscon(where, samples, timeout)
     else:
@@ -104,7 +119,7 @@ def _line_protocol(
 ) -> tuple[dict[str, Any], list[str]]:
     from cellcal.drivers.tracker import LineTracker
 
-    t = LineTracker("tracker", url, timeout=timeout)
+    t = LineTracker("tracker", url, timeout=timeout, protocol=None)
     t.connect()
     try:
         series = t.measure(samples, rate_hz)
@@ -123,8 +138,9 @@ def _line_protocol(
         "reconnections": t.reconnections,
         "device_time_s": [float(series.device_time[0]), float(series.device_time[-1])],
     }
+    out["protocol"] = t.version
     return out, [
-        f"tracker {idn_text} at {url}",
+        f"tracker {idn_text} at {url} (line protocol version {t.version})",
         *text,
         f"retries {t.retries}, reconnections {t.reconnections}, garbage lines {t.garbage}, "
         f"events: {', '.join(events) or 'none'}",
@@ -154,3 +170,39 @@ def _emscon(address: str, samples: int, timeout: float) -> tuple[dict[str, Any],
         *text,
         f"retries {series.retries}" + (f": {series.note}" if series.note else ""),
     ]
+
+
+def _conformance(address: str, rate_hz: float, timeout: float, as_json: bool) -> None:
+    from cellcal.drivers.tracker_conformance import check_conformance
+
+    click.echo(f"cellcal tracker: checking the line protocol of {address}", err=True)
+    result = check_conformance(address, timeout=timeout, rate_hz=rate_hz)
+    if as_json:
+        print_json(
+            {
+                "address": result.address,
+                "idn": result.idn,
+                "versions": list(result.versions),
+                "passed": result.passed,
+                "failed": list(result.failed),
+                "checks": [
+                    {"name": c.name, "ok": c.ok, "expected": c.expected, "got": c.got}
+                    for c in result.checks
+                ],
+            }
+        )
+    else:
+        versions = ", ".join(map(str, result.versions))
+        click.echo(f"tracker {result.idn} at {address}: line protocol version {versions}")
+        for c in result.checks:
+            if c.ok:
+                click.echo(f"ok    {c.name}: {c.got}")
+            else:
+                click.echo(f"FAIL  {c.name}: expected {c.expected}, got {c.got}")
+        n = len(result.checks)
+        if result.passed:
+            click.echo(f"all {n} checks hold")
+        else:
+            click.echo(f"{len(result.failed)} of {n} checks failed: {', '.join(result.failed)}")
+    if not result.passed:
+        raise click.exceptions.Exit(1)

@@ -8,8 +8,9 @@ Layers, each replaceable without touching the others: transport (bytes; serial, 
 TCP) → line framing → protocol (requests, replies, events, error codes as exceptions;
 ``tracker_protocol``) → this vendor-neutral API: identify, initialise, environment,
 reflector, status, and ``measure(n, rate)`` returning samples with device and host
-timestamps. A second dialect (Leica emScon, binary on TCP 700) would be another class
-with the same API over the same transport.
+timestamps — in line protocol version 2 (``tracker_versions``) each with its
+covariance and the air the tracker compensated it with. A second dialect (Leica emScon,
+binary on TCP 700) would be another class with the same API over the same transport.
 
 Faults, and what the driver does about them:
 
@@ -39,10 +40,8 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass, field
 from typing import Annotated, Literal
 
-import numpy as np
 from pydantic import Field
 
 from cellcal.clock import Clock, WallClock
@@ -69,6 +68,7 @@ from cellcal.drivers.tracker_protocol import (
     error_for,
     parse_line,
 )
+from cellcal.drivers.tracker_versions import Received, negotiate
 from cellcal.drivers.transport import SerialUrlTransport, Transport, TransportError
 from cellcal.errors import DeviceError
 
@@ -80,13 +80,6 @@ REFLECTORS = ("RRR15", "RRR05", "RRR0875", "TBR05")
 #: Bytes that are not the protocol, in one wait for an answer or one series, past which
 #: the device is said to talk something else (a banner or noise before are skipped).
 JUNK_LIMIT = 65536
-
-
-@dataclass
-class _Received:
-    host: list[float] = field(default_factory=list)
-    device: list[float] = field(default_factory=list)
-    xyz: list[tuple[float, float, float]] = field(default_factory=list)
 
 
 def request_of(n: int, rate_hz: float) -> str:
@@ -104,7 +97,8 @@ class LineTrackerOptions(SensorOptions):
     a reply later than ``timeout_s`` is a fault; a broken beam is waited for up to
     ``beam_wait_s`` and a series re-measured up to ``beam_retries`` times; a lost link is
     reopened up to ``reconnects`` times; ``reflector`` (RRR15, RRR05, RRR0875, TBR05)
-    is set at connect when given."""
+    is set at connect when given; ``protocol`` is the line protocol's version (1, or 2:
+    each sample's covariance and air), by default the highest the tracker announces."""
 
     kind: Literal["laser-tracker"] = "laser-tracker"
     driver: Literal["line-protocol"] = "line-protocol"
@@ -113,11 +107,15 @@ class LineTrackerOptions(SensorOptions):
     beam_wait_s: Annotated[float, Field(ge=0, le=3600)] = 30.0
     reconnects: Annotated[int, Field(ge=0, le=100)] = 5
     reflector: Literal["RRR15", "RRR05", "RRR0875", "TBR05"] | None = None
+    protocol: Literal[1, 2] | None = None
 
 
 class LineTracker:
     """A tracker at ``address``; implements the engine's PositionSensor Protocol. Every
-    DeviceError of its public calls names it (``device``: its name), the link's too."""
+    DeviceError of its public calls names it (``device``: its name), the link's too.
+    ``protocol``: the version to speak, 1 (asks nothing: the default here), 2, or None
+    for the highest the tracker announces (the configuration's default); ``version``:
+    the one the connection speaks."""
 
     def __init__(
         self,
@@ -133,6 +131,7 @@ class LineTracker:
         backoff_s: float = 0.1,
         reflector: str | None = None,
         environment: Environment | None = None,
+        protocol: int | None = 1,
     ) -> None:
         self.name = name
         # "tracker t1", but not "tracker tracker" when the sensor is called so.
@@ -149,6 +148,7 @@ class LineTracker:
         self.backoff_s = backoff_s
         self.reflector_type = reflector
         self.env = environment
+        self.protocol, self.version = protocol, 1
         self.identity: TrackerIdentity | None = None
         self.events: list[tuple[float, Evt]] = []
         self.garbage = 0
@@ -166,6 +166,7 @@ class LineTracker:
             beam_wait_s=options.beam_wait_s,
             reconnects=options.reconnects,
             reflector=options.reflector,
+            protocol=options.protocol,
         )
 
     # ------------------------------------------------------------------ connection
@@ -205,6 +206,7 @@ class LineTracker:
 
     def _handshake(self) -> None:
         self.identity = self._identify(retry=False)
+        self.version = negotiate(lambda r: self._request(r, retry=False), self.protocol, self.where)
         self._request("INIT", timeout=max(self.timeout, 60.0), retry=False)
         if self.reflector_type is not None:
             self._request(f"SMR {self.reflector_type}", retry=False)
@@ -371,7 +373,7 @@ class LineTracker:
 
     # ------------------------------------------------------------------ measuring
 
-    def _series(self, k: int, rate_hz: float, got: _Received) -> int:
+    def _series(self, k: int, rate_hz: float, got: Received) -> int:
         """One ``MEAS k``: append the points received to ``got``; return how many the
         tracker says it took (``END c``: fewer than ``k`` when it was stopped, more than
         were received when some came garbled); raises BeamBrokenError after keeping the
@@ -406,10 +408,8 @@ class LineTracker:
                 stalled = f"series stalled after {expected} of {k} points"
                 raise self._timed_out(junk, waiting, stalled, line_timeout)
             msg = parse_line(line.raw) if not line.overlong else Garbage(line.raw, "too long")
-            if isinstance(msg, Point) and msg.i == expected:
-                got.host.append(self.clock.now())
-                got.device.append(msg.t)
-                got.xyz.append((msg.x, msg.y, msg.z))
+            if isinstance(msg, Point) and msg.i == expected and msg.version == self.version:
+                got.add(self.clock.now(), msg)
                 expected += 1
                 waiting = f"measuring {request!r} ({expected} of {k} points)"
             elif isinstance(msg, End):
@@ -451,7 +451,7 @@ class LineTracker:
             raise TrackerBadParameterError(
                 f"measure: n in 1..10000 and rate in (0, 1000] Hz, got {n}, {rate_hz}"
             )
-        got = _Received()
+        got = Received()
         failed = breaks = links = series = 0
         problems: list[str] = []
         empty = ""
@@ -512,11 +512,4 @@ class LineTracker:
         note = ""
         if problems:
             note = f"{kept} of {n} samples after {kept + failed} attempts ({failed} failed): {why}"
-        return Series(
-            self.name,
-            np.array(got.host),
-            np.array(got.device),
-            np.array(got.xyz, dtype=np.float64).reshape(-1, 3),
-            retries=series - 1,
-            note=note,
-        )
+        return got.series(self.name, retries=series - 1, note=note)

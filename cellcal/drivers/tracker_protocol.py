@@ -1,5 +1,10 @@
-"""The tracker line protocol, version 1 (``docs/tracker.md``):
+"""The tracker line protocol, versions 1 and 2 (``docs/tracker.md``):
 parsing of every line a tracker may send, and the error codes as exceptions.
+
+A version 1 point is ``PT i t x y z``; a version 2 point adds the sample's covariance
+(six terms, mm², the upper triangle row by row: xx xy xz yy yz zz) and the air the
+tracker compensated it with (T °C, p hPa, RH %): 13 numbers after ``i``. Which one a
+client may take is the version it asked for (``PROTO``); the parser reads both.
 
 :func:`parse_line` never raises: whatever bytes arrive become one of the message types,
 and anything that is not a valid line of the protocol becomes :class:`Garbage` — counted
@@ -35,11 +40,21 @@ class Evt:
 
 @dataclass(frozen=True)
 class Point:
+    """One ``PT`` line; ``cov`` (xx, xy, xz, yy, yz, zz; mm²) and ``air`` (°C, hPa, %RH)
+    in version 2 only."""
+
     i: int
     t: float
     x: float
     y: float
     z: float
+    cov: tuple[float, float, float, float, float, float] | None = None
+    air: tuple[float, float, float] | None = None
+
+    @property
+    def version(self) -> int:
+        """The protocol version whose form the line has."""
+        return 1 if self.cov is None else 2
 
 
 @dataclass(frozen=True)
@@ -84,8 +99,41 @@ class Environment:
 _NUMBER = r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?"
 _ERR = re.compile(r"ERR (\d+) ([A-Z_]+)(?: (.*))?")
 _EVT = re.compile(r"EVT ([A-Z_]+)(?: (.*))?")
-_PT = re.compile(rf"PT (\d+) ({_NUMBER}) ({_NUMBER}) ({_NUMBER}) ({_NUMBER})")
+_NUM = re.compile(_NUMBER)
 _END = re.compile(r"END (\d+)")
+
+
+def _tuple3(values: list[float]) -> tuple[float, float, float]:
+    return values[0], values[1], values[2]
+
+
+def parse_versions(payload: str) -> tuple[int, ...] | None:
+    """The versions a ``PROTO?`` answer announces (``1,2``: ascending, 1 among them), or
+    None when the payload is not such a list."""
+    parts = payload.strip().split(",")
+    if not all(p.isdigit() and len(p) <= 3 for p in parts):
+        return None
+    versions = tuple(int(p) for p in parts)
+    if versions[0] != 1 or list(versions) != sorted(set(versions)):
+        return None
+    return versions
+
+
+def _point(raw: bytes, tokens: list[str]) -> Point | Garbage:
+    """``PT``'s fields (split token by token: a regular expression of 13 numbers would
+    backtrack for ever on a long wrong line)."""
+    if len(tokens) not in (5, 14) or not tokens[0].isdigit():
+        return Garbage(raw, "not a line of the protocol")
+    if not all(_NUM.fullmatch(v) for v in tokens[1:]):
+        return Garbage(raw, "not a line of the protocol")
+    values = [float(v) for v in tokens[1:]]
+    if not all(math.isfinite(v) for v in values):
+        return Garbage(raw, "non-finite point")
+    i, (t, x, y, z) = int(tokens[0]), values[:4]
+    if len(values) == 4:
+        return Point(i, t, x, y, z)
+    c = values[4:10]
+    return Point(i, t, x, y, z, (c[0], c[1], c[2], c[3], c[4], c[5]), _tuple3(values[10:]))
 
 
 def parse_line(raw: bytes) -> Message:
@@ -106,12 +154,8 @@ def parse_line(raw: bytes) -> Message:
     m = _EVT.fullmatch(text)
     if m:
         return Evt(m.group(1), m.group(2) or "")
-    m = _PT.fullmatch(text)
-    if m:
-        values = [float(v) for v in m.groups()[1:]]
-        if not all(math.isfinite(v) for v in values):
-            return Garbage(raw, "non-finite point")
-        return Point(int(m.group(1)), *values)
+    if text.startswith("PT "):
+        return _point(raw, text[3:].split(" "))
     m = _END.fullmatch(text)
     if m:
         return End(int(m.group(1)))
@@ -201,6 +245,18 @@ class Junk:
             "bridge, the baud rate)?"
         )
 
+
+#: The TEXT of each error code of the protocol (``ERR <code> <TEXT>``).
+ERROR_TEXT = {
+    1: "BUSY",
+    2: "NOT_IMPLEMENTED",
+    3: "BAD_PARAMETER",
+    4: "UNKNOWN_COMMAND",
+    38: "NO_TRACKER",
+    39: "NOT_INITIALIZED",
+    40: "BEAM_BROKEN",
+    57: "METEO_OUT_OF_RANGE",
+}
 
 ERRORS: dict[int, type[TrackerError]] = {
     cls.code: cls

@@ -89,14 +89,17 @@ def finished(request, tmp_path_factory):
 def test_the_rig_measures_every_pose_it_sees_with_an_honest_covariance(finished):
     folder, run = finished
     conn = sqlite3.connect(folder / "c.db")
-    # every rig sample carries its covariance and the target's orientation; the tracker's none
+    # every rig sample carries its covariance and the target's orientation; every tracker
+    # sample (line protocol version 2, negotiated with the twin) its covariance and air
     n, cov, ori = conn.execute(
         "SELECT COUNT(*), COUNT(cov_xx), COUNT(ori_w) FROM samples WHERE sensor = 'rig'"
     ).fetchone()
     assert n > 0 and cov == ori == n
-    assert conn.execute(
-        "SELECT COUNT(cov_xx) FROM samples WHERE sensor = 'tracker'"
-    ).fetchone() == (0,)
+    n, cov, ori, air = conn.execute(
+        "SELECT COUNT(*), COUNT(cov_xx), COUNT(ori_w), COUNT(temperature_c) FROM samples "
+        "WHERE sensor = 'tracker'"
+    ).fetchone()
+    assert n > 0 and cov == air == n and ori == 0
     sigma = np.sqrt(conn.execute("SELECT cov_xx, cov_yy, cov_zz FROM samples WHERE sensor = 'rig'")
                     .fetchall())  # fmt: skip
     assert 0.003 < float(np.median(sigma)) < 0.05  # mm per sample, 1σ

@@ -20,6 +20,7 @@ import serial
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from cellcal.drivers.tracker_protocol import ERROR_TEXT
 from cellcal.mocks import link_server
 from cellcal.mocks.tracker.server import TrackerFaults, TrackerTwin
 
@@ -34,16 +35,6 @@ ERR_LINE = re.compile(rb"ERR ([0-9]+) ([A-Z_]+)( [\x20-\x7e]*)?")
 EVT_LINE = re.compile(rb"EVT [A-Z_]+( [\x20-\x7e]+)?")
 PT_LINE = re.compile(rb"PT ([0-9]+) (-?[0-9]+\.[0-9]{3})((?: -?[0-9]+\.[0-9]{4}){3})")
 END_LINE = re.compile(rb"END ([0-9]+)")
-ERR_TEXT = {
-    1: "BUSY",
-    2: "NOT_IMPLEMENTED",
-    3: "BAD_PARAMETER",
-    4: "UNKNOWN_COMMAND",
-    38: "NO_TRACKER",
-    39: "NOT_INITIALIZED",
-    40: "BEAM_BROKEN",
-    57: "METEO_OUT_OF_RANGE",
-}
 
 
 def is_protocol_line(raw: bytes) -> bool:
@@ -55,7 +46,7 @@ def is_reply(raw: bytes) -> bool:
     if OK_LINE.fullmatch(raw):
         return True
     m = ERR_LINE.fullmatch(raw)
-    return m is not None and ERR_TEXT.get(int(m.group(1))) == m.group(2).decode()
+    return m is not None and ERROR_TEXT.get(int(m.group(1))) == m.group(2).decode()
 
 
 # ---------------------------------------------------------------------------- doubles

@@ -1,4 +1,4 @@
-"""A protocol-level mock laser tracker: tracker line protocol v1
+"""A protocol-level mock laser tracker: tracker line protocol versions 1 and 2
 (``docs/tracker.md``) over TCP on a loopback address or over a
 pseudo-terminal, so that the real driver runs unchanged against it in CI and in
 ``cellcal mock tracker``.
@@ -12,6 +12,10 @@ the tracker and outlives a connection; what concerns one link (line counters for
 fault cadences, a running series) belongs to the connection's ``TrackerSession``. One
 series runs at a time, whichever connection started it.
 
+* Version 2's covariance is the simulated noise's where the target is
+  (``emscon_server.noise_covariance``, as the emScon twin's) for the simulated cell's
+  target, else ``covariance`` (by default 10 µm in every direction); its air is the
+  environment the tracker holds (``ENV``).
 * ``STAT?``: ``ready`` = initialised and beam and no series running; ``meteo`` = 1 (the
   environment can only hold values within range).
 * After a beam break, ``EVT BEAM OK`` goes to every connection when the beam is back
@@ -29,6 +33,7 @@ import re
 import threading
 import time
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Protocol
 
@@ -53,6 +58,7 @@ from cellcal.mocks.tracker.session import (
 from cellcal.mocks.twins import TRACKER_HOST, RunningTwin
 
 if TYPE_CHECKING:
+    from cellcal.calib.geometry import Array
     from cellcal.drivers.tracker import LineTrackerOptions
     from cellcal.mocks.simulated_cell import SimulatedCell
 
@@ -69,6 +75,7 @@ __all__ = [
     "REFLECTORS",
     "RH_RANGE",
     "T_RANGE",
+    "VERSIONS",
     "TargetSource",
     "TrackerFaults",
     "TrackerTwin",
@@ -80,6 +87,10 @@ log = logging.getLogger("cellcal.mocks.tracker")
 MAKER = "cellcal"
 MODEL = "mock-tracker"
 FIRMWARE = "1.0"
+#: The versions of the line protocol the twin speaks.
+VERSIONS = (1, 2)
+#: Version 2's covariance (mm²) of a target that is not the simulated cell's: 10 µm.
+COVARIANCE = np.eye(3) * 0.010**2
 
 _SERIAL = re.compile(r"[\x21-\x7e]+")
 
@@ -119,11 +130,14 @@ class TrackerFaults:
 
 
 class TrackerTwin:
-    """A simulated laser tracker serving the tracker line protocol v1.
+    """A simulated laser tracker serving the tracker line protocol, versions 1 and 2
+    (``versions=(1,)``: a tracker of version 1 alone, which knows no ``PROTO``).
 
     ``time_scale`` 0 streams points as fast as possible; > 0 waits
     (1/rate)·time_scale wall seconds between points. ``requests`` keeps the last
-    :attr:`REQUEST_LOG` request lines (a long client's do not pile up).
+    :attr:`REQUEST_LOG` request lines (a long client's do not pile up). ``covariance``:
+    version 2's covariance of each point (3×3, mm²), by default the simulated noise's for
+    the simulated cell's target (:func:`noise_of`).
     """
 
     REQUEST_LOG = 10000
@@ -136,6 +150,8 @@ class TrackerTwin:
         serial: str = "SIM-0001",
         time_scale: float = 0.0,
         clock_start: float = 12.0,
+        versions: tuple[int, ...] = VERSIONS,
+        covariance: Callable[[], Array] | None = None,
     ) -> None:
         if not _SERIAL.fullmatch(serial) or "," in serial:
             raise ValueError(f"serial {serial!r}: printable ASCII without spaces or commas")
@@ -143,7 +159,11 @@ class TrackerTwin:
             raise ValueError(f"time_scale must be finite and >= 0, got {time_scale}")
         if not math.isfinite(clock_start):
             raise ValueError(f"clock_start must be finite, got {clock_start}")
+        if versions not in ((1,), VERSIONS):
+            raise ValueError(f"versions must be (1,) or {VERSIONS}, got {versions}")
         self.source = source
+        self.versions = versions
+        self._covariance = covariance or noise_of(source)
         self.faults = faults
         self.serial = serial
         self.time_scale = float(time_scale)
@@ -367,6 +387,17 @@ class TrackerTwin:
                 f"PT -{i} {t} {x} {y} {z}",
             )
             return forms[int(rng.integers(0, len(forms)))].encode("ascii")
+
+
+def noise_of(source: TargetSource) -> Callable[[], Array]:
+    """Version 2's covariance of ``source``'s points: for the simulated cell's target the
+    covariance of its noise where the target is now, else :data:`COVARIANCE`."""
+    from cellcal.mocks.simulated_cell import CellTarget
+    from cellcal.mocks.tracker.emscon_server import noise_covariance
+
+    if isinstance(source, CellTarget):
+        return lambda: noise_covariance(source.cell, source.sensor)
+    return lambda: COVARIANCE
 
 
 def serve(options: LineTrackerOptions, cell: SimulatedCell, time_scale: float) -> RunningTwin:

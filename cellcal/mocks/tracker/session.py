@@ -1,8 +1,9 @@
-"""The tracker twin's side of one connection: the codec of tracker line protocol v1
-(``docs/tracker.md``: framing, request parsing, replies) and ``TrackerSession``, which
-reads the request lines of one link, answers them, streams a series and keeps the fault
-cadences of that connection. The tracker state the sessions share is ``TrackerTwin``
-(``tracker_server``); the link and its thread come from ``link_server``.
+"""The tracker twin's side of one connection: the codec of tracker line protocol
+versions 1 and 2 (``docs/tracker.md``: framing, request parsing, replies) and
+``TrackerSession``, which reads the request lines of one link, answers them, streams a
+series and keeps the fault cadences of that connection. The tracker state the sessions
+share is ``TrackerTwin`` (``tracker_server``); the link and its thread come from
+``link_server``.
 
 A session is one select loop (its link's ``wait``) that reads requests and streams points,
 so a ``STOP`` is heard while a series streams.
@@ -20,7 +21,8 @@ Choices where the spec leaves room (the protocol spec is the contract; these fil
 * ``MEAS`` checks, in order: a series running (``ERR 1 BUSY``), the arguments
   (``ERR 3``; the rate is a decimal number, 0.001 to 1000 Hz), ``INIT`` done (``ERR 39``),
   the beam (``ERR 40``). If the target source fails or returns anything but n finite
-  rows of 3, the answer is ``ERR 38 NO_TRACKER``.
+  rows of 3 (in version 2: or no finite 3×3 covariance), the answer is
+  ``ERR 38 NO_TRACKER``.
 * The tracker clock advances 1/rate *before* each point, so with ``clock_start`` 12.0 and
   10 Hz the first point is at 12.100 (as in the spec's example); it only moves with points.
 * Requests that arrive while a series streams are answered at once, between ``PT``
@@ -29,6 +31,13 @@ Choices where the spec leaves room (the protocol spec is the contract; these fil
 * Beam break: after ``beam_break_after`` points, ``EVT BEAM LOST`` then
   ``ERR 40 BEAM_BROKEN``; a series with n <= ``beam_break_after`` completes and the break
   stays pending.
+* Every connection starts in version 1. ``PROTO?`` answers the versions the twin speaks
+  (``OK 1,2``; a twin of version 1 alone answers ``PROTO?`` and ``PROTO`` ``ERR 4``);
+  ``PROTO <v>`` switches this connection (``ERR 1 BUSY`` while its series runs,
+  ``ERR 3`` for a version it does not speak). In version 2 each ``PT`` line adds the
+  covariance of the simulated noise where the target is (the same for the points of a
+  series: the target does not move), ``%.6g`` each, and the environment the tracker
+  holds when the point is sent (``T`` and ``P`` with two decimals, ``RH`` with one).
 * Fault cadences count the protocol lines (and replies) of one connection; garbage lines
   are not counted. After ``drop_after_lines`` lines the session raises ``DropLinkError``
   (what a drop does to a TCP connection or a pty: ``link_server``).
@@ -75,6 +84,9 @@ METEO_OUT_OF_RANGE = "ERR 57 METEO_OUT_OF_RANGE"
 _COMMANDS = frozenset(
     {b"*IDN?", b"INIT", b"STAT?", b"ENV?", b"ENV", b"SMR", b"SMR?", b"MEAS", b"STOP"}
 )
+_VERSION_2 = frozenset({b"PROTO?", b"PROTO"})
+#: The upper triangle of a 3×3 covariance, row by row: xx xy xz yy yz zz.
+_UPPER = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
 _PRINTABLE = re.compile(rb"[\x20-\x7e\t]*")
 _INT = re.compile(rb"[0-9]+")
 _NUMBER = re.compile(rb"[-+]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][-+]?[0-9]+)?")
@@ -119,6 +131,7 @@ class _Series:
     interval_s: float  # wall seconds between points
     start_wall: float
     break_at: int | None
+    cov: str = ""  # version 2: the six covariance terms of every point, formatted
     sent: int = 0
 
 
@@ -136,6 +149,7 @@ class TrackerSession:
         self.replies = 0
         self.series: _Series | None = None
         self.pending_events: deque[str] = deque()
+        self.version = 1  # every connection starts in version 1
 
     # -- loop
 
@@ -251,7 +265,7 @@ class TrackerSession:
             return
         self.tracker._record(raw)
         cmd, args = tokens[0], tokens[1:]
-        if cmd not in _COMMANDS:
+        if cmd not in _COMMANDS and (cmd not in _VERSION_2 or 2 not in self.tracker.versions):
             self._reply(UNKNOWN_COMMAND)
             return
         if not _PRINTABLE.fullmatch(raw):
@@ -280,6 +294,8 @@ class TrackerSession:
                 return env
             t._set_environment(env)
             return "OK"
+        if cmd == b"PROTO":
+            return self._protocol(args)
         if cmd == b"SMR":
             if len(args) != 1 or args[0].decode() not in REFLECTORS:
                 return BAD_PARAMETER
@@ -298,7 +314,22 @@ class TrackerSession:
             return f"OK T={_fmt(T)} P={_fmt(P)} RH={_fmt(RH)}"
         if cmd == b"SMR?":
             return f"OK {t._reflector()}"
+        if cmd == b"PROTO?":
+            return "OK " + ",".join(map(str, t.versions))
         return "OK"  # STOP; the series, if any, is ended after the reply
+
+    def _protocol(self, args: list[bytes]) -> str:
+        """``PROTO <v>``: this connection speaks version v from the next line on."""
+        if self.series is not None:
+            return BUSY
+        if (
+            len(args) != 1
+            or not _INT.fullmatch(args[0])
+            or int(args[0]) not in self.tracker.versions
+        ):
+            return BAD_PARAMETER
+        self.version = int(args[0])
+        return f"OK {self.version}"
 
     # -- series
 
@@ -319,15 +350,24 @@ class TrackerSession:
         refused = t._claim(self)
         if refused is not None:
             return refused
+        c = np.zeros((3, 3))
         try:
             xyz = np.array(t.source.sample(n), dtype=np.float64)
+            if self.version == 2:
+                c = np.array(t._covariance(), dtype=np.float64)
         except Exception:
             log.exception("mock tracker: target source failed")
             xyz = np.empty((0, 3))
-        if xyz.shape != (n, 3) or not bool(np.all(np.abs(xyz) < _MAX_COORD)):
+        if (
+            xyz.shape != (n, 3)
+            or not bool(np.all(np.abs(xyz) < _MAX_COORD))
+            or c.shape != (3, 3)
+            or not bool(np.all(np.isfinite(c)))
+        ):
             t._release(self)
             return f"{NO_TRACKER} target source failed"
         t0, break_at = t._series_start(n)
+        cov = "".join(f" {c[i, j]:.6g}" for i, j in _UPPER) if self.version == 2 else ""
         self.series = _Series(
             n=n,
             rate=rate,
@@ -336,6 +376,7 @@ class TrackerSession:
             interval_s=t.time_scale / rate,
             start_wall=time.monotonic(),
             break_at=break_at,
+            cov=cov,
         )
         return f"OK {n}"
 
@@ -362,7 +403,11 @@ class TrackerSession:
             x, y, z = s.xyz[i]
             t._set_clock(tp)
             s.sent += 1
-            self._emit(f"PT {i} {tp:.3f} {x:.4f} {y:.4f} {z:.4f}")
+            line = f"PT {i} {tp:.3f} {x:.4f} {y:.4f} {z:.4f}"
+            if s.cov:
+                T, P, RH = t._environment()
+                line += f"{s.cov} {T:.2f} {P:.2f} {RH:.1f}"
+            self._emit(line)
             budget -= 1
 
     def _end_series(self, last: str) -> None:
