@@ -99,7 +99,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     ),
     "export": (
         "cellcal.commands.export:export",
-        "Write a robot model in another program's format.",
+        "Write a robot model in another program's format, or the program a controller runs.",
     ),
     "iso9283": (
         "cellcal.commands.iso9283:iso9283",

@@ -1,10 +1,15 @@
-"""``cellcal export urdf``: a robot model (calibrated or nominal) as URDF."""
+"""``cellcal export urdf``: a robot model (calibrated or nominal) as URDF;
+``cellcal export robot-program``: the program a robot's controller runs for its driver."""
 
 from __future__ import annotations
+
+from importlib import resources
+from pathlib import Path
 
 import click
 
 from cellcal.commands.output import print_json
+from cellcal.errors import InputError
 from cellcal.files.models import load_model, write_atomically
 from cellcal.files.outputs import check_output_file
 from cellcal.files.urdf import to_urdf
@@ -12,7 +17,7 @@ from cellcal.files.urdf import to_urdf
 
 @click.group()
 def export() -> None:
-    """Write a robot model in another program's format."""
+    """Write a robot model in another program's format, or the program a controller runs."""
 
 
 @export.command("urdf")
@@ -50,3 +55,35 @@ def export_urdf(model_spec: str, out_path: str, as_json: bool) -> None:
         return
     kind = "calibrated" if loaded.calibrated else "nominal"
     click.echo(f"{kind} model {loaded.model.name} as URDF in {out_path}: {', '.join(frames)}")
+
+
+#: The drivers whose controller runs a program cellcal ships, and its folder in the
+#: package (``cellcal/data/robot_programs/<driver>``).
+ROBOT_PROGRAMS = ("kuka-kvp",)
+
+
+@export.command("robot-program")
+@click.option(
+    "--driver",
+    required=True,
+    type=click.Choice(ROBOT_PROGRAMS),
+    help="The robot driver whose controller-side program to write.",
+)
+@click.option("--out", "out_dir", required=True, help="Folder to write the files into.")
+@click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout.")
+def export_robot_program(driver: str, out_dir: str, as_json: bool) -> None:
+    """The program that runs on the robot's controller for DRIVER (KRL for kuka-kvp),
+    to install as docs/robots.md says. Files already there are replaced."""
+    folder = Path(out_dir)
+    if not folder.is_dir():
+        raise InputError(f"--out {out_dir}: not a folder (create it first)")
+    source = resources.files("cellcal") / "data" / "robot_programs" / driver
+    written = []
+    for item in sorted(source.iterdir(), key=lambda f: f.name):
+        if item.is_file():
+            write_atomically(folder / item.name, item.read_text(encoding="utf-8"))
+            written.append(str(folder / item.name))
+    if as_json:
+        print_json({"driver": driver, "files": written})
+        return
+    click.echo(f"{driver}: wrote {', '.join(written)} (install: docs/robots.md)")

@@ -47,7 +47,7 @@ from pymodbus.constants import ExcCodes
 from pymodbus.exceptions import ModbusException
 
 from cellcal.calib.geometry import Array
-from cellcal.drivers.base import ROBOT_NAME, DeviceContext, DeviceDescription, host_port, label
+from cellcal.drivers.base import DeviceContext, DeviceDescription, host_port
 from cellcal.drivers.modbus_map import (
     BIT_NAMES,
     BUSY,
@@ -63,7 +63,8 @@ from cellcal.drivers.modbus_map import (
     ModbusMap,
 )
 from cellcal.drivers.modbus_options import ModbusRobotOptions as ModbusRobotOptions
-from cellcal.errors import DeviceError, InputError
+from cellcal.drivers.stop_and_measure import ControllerState, HandshakeRobot
+from cellcal.errors import InputError
 
 log = logging.getLogger("cellcal.modbus_robot")
 # pymodbus logs through "pymodbus.logging" without a handler, so Python's last-resort
@@ -71,9 +72,6 @@ log = logging.getLogger("cellcal.modbus_robot")
 # error; a NullHandler stops that and leaves the records to the application's logging.
 logging.getLogger("pymodbus").addHandler(logging.NullHandler())
 
-POSITION_TOLERANCE_RAD = 1e-3
-MAX_JOINT_DEG = 1e4  # beyond this a joint reading is taken for garbage
-MIN_NONZERO_DEG = 1e-20  # a word-swapped float32 of a round value lands below this
 _F32 = ModbusTcpClient.DATATYPE.FLOAT32
 DEFAULT_PORT = 502
 
@@ -119,10 +117,6 @@ class ModbusRobotStatus:
         )
 
 
-def _one_line(text: str) -> str:
-    return " ".join(str(text).split())
-
-
 def _exception_name(code: int) -> str:
     try:
         return ExcCodes(code).name
@@ -130,8 +124,11 @@ def _exception_name(code: int) -> str:
         return "unknown"
 
 
-class ModbusRobot:
-    """A :class:`~cellcal.drivers.base.Robot` behind Modbus TCP; see the module docstring."""
+class ModbusRobot(HandshakeRobot):
+    """A :class:`~cellcal.drivers.base.Robot` behind Modbus TCP; see the module docstring.
+    The move → settle → read contract is :class:`HandshakeRobot`'s."""
+
+    family = "modbus"
 
     def __init__(
         self,
@@ -144,26 +141,23 @@ class ModbusRobot:
         poll_s: float = 0.01,
         heartbeat_timeout_s: float = 2.0,
     ) -> None:
-        for key, value in (
-            ("timeout_s", timeout_s),
-            ("poll_s", poll_s),
-            ("heartbeat_timeout_s", heartbeat_timeout_s),
-        ):
-            if not (math.isfinite(value) and value > 0):
-                raise InputError(f"{name}: {key} must be a positive number, got {value!r}")
+        if not (math.isfinite(heartbeat_timeout_s) and heartbeat_timeout_s > 0):
+            raise InputError(
+                f"{name}: heartbeat_timeout_s must be a positive number, "
+                f"got {heartbeat_timeout_s!r}"
+            )
         if not 0 < port <= 0xFFFF:
             raise InputError(f"{name}: port must be 1..65535, got {port!r}")
+        super().__init__(name, f"{host}:{port}", timeout_s=timeout_s, poll_s=poll_s)
         self.host = host
         self.port = port
-        self.name = name
         self.map = map or ModbusMap()
-        self.timeout_s = float(timeout_s)
-        self.poll_s = float(poll_s)
         self.heartbeat_timeout_s = float(heartbeat_timeout_s)
         self._client = ModbusTcpClient(
             host, port=port, timeout=self.heartbeat_timeout_s, retries=0, name=name
         )
-        self._last_seq: int | None = None
+        self._status: ModbusRobotStatus | None = None
+        self._heartbeat: tuple[int, float] = (0, 0.0)
 
     @classmethod
     def from_options(cls, options: ModbusRobotOptions, context: DeviceContext) -> ModbusRobot:
@@ -177,88 +171,19 @@ class ModbusRobot:
             heartbeat_timeout_s=options.heartbeat_timeout_s,
         )
 
-    # ------------------------------------------------------------------ Robot
-
-    def connect(self) -> None:
-        """Open the connection and refuse a controller that cannot take commands."""
-        if not self._client.connect():  # type: ignore[no-untyped-call]
-            raise self._error("cannot connect (nothing listening, or unreachable)")
-        try:
-            status = self.status()
-            self._refuse_unless_ready(status, "connect")
-            self.actual_joints()
-        except DeviceError:
-            self._drop()
-            raise
-        log.info("%s: connected to %s (%s)", self.name, self.where, status.describe())
-
-    def move_joints(self, q: Array, speed: float) -> None:
-        """Move to ``q`` (rad) at ``speed`` (fraction of maximum, 0 < speed <= 1); return
-        once the controller reports the move done and the joints at the target."""
-        target = np.asarray(q, dtype=np.float64)
-        if target.shape != (N_JOINTS,) or not np.isfinite(target).all():
-            raise InputError(f"{self.name}: target must be {N_JOINTS} finite joint angles (rad)")
-        target_deg = np.degrees(target)
-        if (np.abs(target_deg) > MAX_JOINT_DEG).any():
-            raise InputError(f"{self.name}: target beyond ±{MAX_JOINT_DEG:g} deg")
-        if not (math.isfinite(speed) and 0.0 < speed <= 1.0):
-            raise InputError(f"{self.name}: speed must be in (0, 1], got {speed!r}")
-
-        before = self.status()
-        self._refuse_unless_ready(before, "move")
-        m = self.map
-        self._write(m.target_joints, self._encode(target_deg), "target joints")
-        self._write(m.speed, self._encode([speed]), "speed")
-        seq = self._command(CMD_MOVE_JOINTS, before.ack)
-        self._wait_done(seq, before)
-
-        actual = self.actual_joints()
-        err = np.abs(actual - target)
-        worst = int(np.argmax(err))
-        if err[worst] > POSITION_TOLERANCE_RAD:
-            raise self._error(
-                f"reports the move done but joint {worst + 1} is at "
-                f"{np.degrees(actual[worst]):.4f} deg, target {target_deg[worst]:.4f} deg "
-                f"(off by {err[worst]:.2e} rad)"
-            )
-
-    def actual_joints(self) -> Array:
-        """The joint positions the controller reports (rad)."""
-        values = self._decode(self._read(self.map.actual_joints, 2 * N_JOINTS, "actual joints"))
-        bad = (
-            ~np.isfinite(values)
-            | (np.abs(values) > MAX_JOINT_DEG)
-            | ((values != 0.0) & (np.abs(values) < MIN_NONZERO_DEG))
-        )
-        if bad.any():
-            shown = ", ".join(f"{v:.6g}" for v in values)
-            raise self._error(
-                f"implausible actual joints [{shown}] deg; is the word order "
-                f"({self.map.word_order!r}) the controller's?"
-            )
-        out: Array = np.radians(values)
-        return out
-
     def describe(self) -> DeviceDescription:
         """The controller at host:port: the handshake map has no identity registers (and
         Modbus's device identification, function 43, is not asked: a controller behind a
         PLC or gateway would describe the gateway), so maker, model, firmware and serial
         are None."""
-        return DeviceDescription(ROBOT_NAME, "modbus", self.where)
+        return super().describe()
 
     def stop(self) -> None:
         """Command a stop and return once the controller acknowledged it."""
         seq = self._command(CMD_STOP)
         self._wait_ack(seq, "stop")
 
-    def close(self) -> None:
-        self._drop()
-
     # ------------------------------------------------------------------ extras
-
-    @property
-    def where(self) -> str:
-        return f"{self.host}:{self.port}"
 
     def status(self) -> ModbusRobotStatus:
         """Read heartbeat, status bits, error code and acknowledgement: one request for
@@ -291,31 +216,63 @@ class ModbusRobot:
         if status.error or status.estop:
             raise self._error(f"error reset did not clear the fault: {status.describe()}")
 
-    def __enter__(self) -> ModbusRobot:
-        self.connect()
-        return self
+    # ------------------------------------------------------------------ the contract's transport
 
-    def __exit__(self, *exc: object) -> None:
-        self.close()
+    def _open(self) -> None:
+        if not self._client.connect():  # type: ignore[no-untyped-call]
+            raise self._error("cannot connect (nothing listening, or unreachable)")
+
+    def _close(self) -> None:
+        self._drop()
+
+    def _state(self) -> ControllerState:
+        status = self._status = self.status()
+        text = status.describe()
+        refusal = fault = None
+        if status.estop:
+            refusal = f"e-stop is set ({text})"
+            fault = f"e-stop during the move ({text})"
+        elif status.error:
+            refusal = f"controller reports error code {status.error_code} ({text})"
+            fault = f"move failed: controller reports error code {status.error_code} ({text})"
+        elif not status.remote:
+            refusal = f"not in remote mode ({text})"
+        moving = status.busy or not status.in_position
+        return ControllerState(refusal, fault, moving, status.ack, text)
+
+    def _send_move(self, target_deg: Array, speed: float, seq: int) -> None:
+        m = self.map
+        if self._status is not None:
+            self._heartbeat = (self._status.heartbeat, time.monotonic())
+        self._write(m.target_joints, self._encode(target_deg), "target joints")
+        self._write(m.speed, self._encode([speed]), "speed")
+        self._write(m.command, [CMD_MOVE_JOINTS, seq], f"command {CMD_MOVE_JOINTS}")
+
+    def _watch(self, state: ControllerState, since: ControllerState) -> None:
+        """A heartbeat that does not change for ``heartbeat_timeout_s`` is a comms fault."""
+        if self._status is None:
+            return
+        now = time.monotonic()
+        heartbeat, at = self._heartbeat
+        if self._status.heartbeat != heartbeat:
+            self._heartbeat = (self._status.heartbeat, now)
+        elif now - at > self.heartbeat_timeout_s:
+            self._stop_quietly()
+            raise self._error(
+                f"comms fault: heartbeat stuck at {heartbeat} for {now - at:.1f} s during a "
+                f"move ({state.text})"
+            )
+
+    def _read_joints_deg(self) -> Array:
+        return self._decode(self._read(self.map.actual_joints, 2 * N_JOINTS, "actual joints"))
+
+    def _joints_hint(self) -> str:
+        return f"is the word order ({self.map.word_order!r}) the controller's?"
+
+    def _send_stop(self) -> None:
+        self._command(CMD_STOP)
 
     # ------------------------------------------------------------------ handshake
-
-    def _refuse_unless_ready(self, status: ModbusRobotStatus, action: str) -> None:
-        if status.estop:
-            raise self._error(f"{action} refused: e-stop is set ({status.describe()})")
-        if status.error:
-            raise self._error(
-                f"{action} refused: controller reports error code {status.error_code} "
-                f"({status.describe()})"
-            )
-        if not status.remote:
-            raise self._error(f"{action} refused: not in remote mode ({status.describe()})")
-
-    def _next_seq(self, ack: int) -> int:
-        seq = ack % 0xFFFF + 1
-        if seq == self._last_seq:
-            seq = seq % 0xFFFF + 1
-        return seq
 
     def _command(self, command: int, ack: int | None = None) -> int:
         """Write command and a new sequence number in one request; the sequence number."""
@@ -336,60 +293,11 @@ class ModbusRobot:
                 raise self._error(f"{what} not acknowledged (sequence {seq}; {status.describe()})")
             time.sleep(self.poll_s)
 
-    def _wait_done(self, seq: int, before: ModbusRobotStatus) -> None:
-        start = time.monotonic()
-        deadline = start + self.timeout_s
-        heartbeat, heartbeat_at = before.heartbeat, start
-        while True:
-            status = self.status()
-            now = time.monotonic()
-            if status.heartbeat != heartbeat:
-                heartbeat, heartbeat_at = status.heartbeat, now
-            elif now - heartbeat_at > self.heartbeat_timeout_s:
-                self._stop_quietly()
-                raise self._error(
-                    f"comms fault: heartbeat stuck at {heartbeat} for "
-                    f"{now - heartbeat_at:.1f} s during a move ({status.describe()})"
-                )
-            if status.estop:
-                raise self._error(f"e-stop during the move ({status.describe()})")
-            if status.error:
-                raise self._error(
-                    f"move failed: controller reports error code {status.error_code} "
-                    f"({status.describe()})"
-                )
-            if status.ack not in (seq, before.ack):
-                raise self._error(
-                    f"move interrupted: the controller acknowledged sequence {status.ack}, "
-                    f"not {seq} (another command, such as a stop; {status.describe()})"
-                )
-            if status.ack == seq and status.in_position and not status.busy:
-                return
-            if now > deadline:
-                self._stop_quietly()
-                raise self._error(
-                    f"move not done after {self.timeout_s:g} s (sequence {seq}; "
-                    f"{status.describe()})"
-                )
-            time.sleep(self.poll_s)
-
-    def _stop_quietly(self) -> None:
-        """A stop on the way out of a failed move; its own failure is only logged."""
-        try:
-            self._command(CMD_STOP)
-        except DeviceError as exc:
-            log.warning("%s: stop after a failed move failed too: %s", self.name, exc)
-
     # ------------------------------------------------------------------ registers
 
     def _drop(self) -> None:
         """Close the socket; the next request reconnects."""
         self._client.close()  # type: ignore[no-untyped-call]
-
-    def _error(self, message: str) -> DeviceError:
-        return DeviceError(
-            _one_line(f"{label(self.name, self.where)}: {message}"), device=ROBOT_NAME
-        )
 
     def _encode(self, values: Array | list[float]) -> list[int]:
         floats = [float(v) for v in values]

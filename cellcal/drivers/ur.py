@@ -53,6 +53,7 @@ import numpy as np
 from cellcal.calib.geometry import Array
 from cellcal.device_options import Positive, RobotOptions
 from cellcal.drivers.base import ROBOT_NAME, DeviceContext, DeviceDescription, label
+from cellcal.drivers.stop_and_measure import POSITION_TOLERANCE_RAD
 from cellcal.errors import DeviceError, InputError
 
 log = logging.getLogger("cellcal.drivers.ur")
@@ -62,8 +63,6 @@ T = TypeVar("T")
 #: ur_rtde's limits (rtde_control_interface.h).
 MAX_JOINT_VELOCITY = 3.14
 MAX_JOINT_ACCELERATION = 40.0
-#: How far from the target a finished move may leave a joint (rad).
-POSITION_TOLERANCE_RAD = 1e-3
 #: How long getActualQ may lag behind the end of a move (s).
 SETTLE_S = 0.5
 DASHBOARD_PORT = 29999
