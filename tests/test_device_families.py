@@ -178,7 +178,14 @@ def test_the_table_is_consistent():
     tags = [f.tag for f in registry.FAMILIES]
     assert len(set(tags)) == len(tags)
     names = [f.mock_name for f in registry.FAMILIES if f.mock_name is not None]
-    assert sorted(set(names)) == ["cameras", "kuka-kvp", "modbus-robot", "tracker", "ur"]
+    assert sorted(set(names)) == [
+        "cameras",
+        "kuka-eki",
+        "kuka-kvp",
+        "modbus-robot",
+        "tracker",
+        "ur",
+    ]
     # two dialects of one kind share their command (cellcal mock tracker --dialect)
     for name in set(names):
         commands = {f.mock_command for f in registry.FAMILIES if f.mock_name == name}
@@ -227,7 +234,7 @@ def test_the_camera_backends_are_rows_of_the_registry():
 @pytest.mark.parametrize(
     ("robot", "message"),
     [
-        ({"driver": "fanuc"}, r"robot\.driver: no robot driver 'fanuc' \(choose simulated, modbus, ur, kuka-kvp\)"),  # noqa: E501
+        ({"driver": "fanuc"}, r"robot\.driver: no robot driver 'fanuc' \(choose simulated, modbus, ur, kuka-kvp, kuka-eki\)"),  # noqa: E501
         ({"driver": "ur", "map": {}}, r"robot\.map: unknown key"),
         ({"driver": "ur", "heartbeat_timeout_s": 1.0}, r"robot\.heartbeat_timeout_s: unknown key"),
         ({"driver": "simulated", "move_timeout_s": 5.0}, r"robot\.move_timeout_s: unknown key"),

@@ -1,8 +1,11 @@
-"""``cellcal mock kuka-kvp``: the twins of the robot controllers reached through their
-own interfaces (docs/robots.md), each serving the simulated cell's robot as the
-controller running cellcal's program would."""
+"""``cellcal mock kuka-kvp`` and ``cellcal mock kuka-eki``: the twins of the robot
+controllers reached through their own interfaces (docs/robots.md), each serving the
+simulated cell's robot as the controller running cellcal's program would."""
 
 from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
 
 import click
 
@@ -11,65 +14,81 @@ from cellcal.commands.output import SEED, TIME_SCALE
 from cellcal.errors import InputError
 
 
-@click.command("kuka-kvp")
-@click.option(
-    "--listen", required=True, help="TCP address HOST:PORT (a 127.0.0.x address for tests)."
-)
-@click.option(
-    "--config",
-    "config_path",
-    help='Cell configuration with driver = "kuka-kvp" (default: the bundled cell\'s robot).',
-)
-@click.option("--seed", type=SEED, help="Seed of the simulated truth.")
-@click.option(
-    "--time-scale",
-    type=TIME_SCALE,
-    default=1.0,
-    show_default=True,
-    help="Wall seconds per second of motion.",
-)
-@click.option(
-    "--mode",
-    type=click.Choice(["T1", "T2", "AUT", "EX"]),
-    default="EX",
-    show_default=True,
-    help="The operating mode ($MODE_OP).",
-)
-@click.option("--drives-off", is_flag=True, help="Fault: the drives are off ($PERI_RDY FALSE).")
-@click.option("--no-ack", is_flag=True, help="Fault: the KRL loop never acknowledges a move.")
-def mock_kuka_kvp(
-    listen: str,
-    config_path: str | None,
-    seed: int | None,
-    time_scale: float,
-    mode: str,
-    drives_off: bool,
-    no_ack: bool,
-) -> None:
-    """A KUKA controller running cellcal's KRL loop behind KUKAVARPROXY (docs/robots.md):
-    the simulated cell's robot, served until Ctrl-C or SIGTERM; prints HOST:PORT."""
-    from cellcal.drivers.kuka_kvp import KukaKvpOptions
-    from cellcal.families import KvpTwin, krc_for
+def _kuka_options(f: Callable[..., None]) -> Callable[..., None]:
+    for option in reversed(
+        [
+            click.option(
+                "--listen",
+                required=True,
+                help="TCP address HOST:PORT (a 127.0.0.x address for tests).",
+            ),
+            click.option(
+                "--config",
+                "config_path",
+                help="Cell configuration (default: the bundled cell); its robot's home and "
+                "model are served.",
+            ),
+            click.option("--seed", type=SEED, help="Seed of the simulated truth."),
+            click.option(
+                "--time-scale",
+                type=TIME_SCALE,
+                default=1.0,
+                show_default=True,
+                help="Wall seconds per second of motion.",
+            ),
+            click.option(
+                "--mode",
+                type=click.Choice(["T1", "T2", "AUT", "EX"]),
+                default="EX",
+                show_default=True,
+                help="The operating mode ($MODE_OP).",
+            ),
+            click.option(
+                "--drives-off", is_flag=True, help="Fault: the drives are off ($PERI_RDY FALSE)."
+            ),
+            click.option(
+                "--no-ack", is_flag=True, help="Fault: the KRL loop never acknowledges a move."
+            ),
+        ]
+    ):
+        f = option(f)
+    return f
 
-    config, cell = simulated_cell_of(config_path, seed)
-    robot = config.robot
-    options = (
-        robot
-        if isinstance(robot, KukaKvpOptions)
-        else KukaKvpOptions(model=robot.model, home_deg=list(robot.home_deg))
-    )
-    controller = krc_for(options, cell, time_scale)
-    controller.faults.mode = f"#{mode}"
-    controller.faults.drives_on = not drives_off
-    controller.faults.no_ack = no_ack
-    twin = KvpTwin(controller)
+
+def _serve_kuka(interface: str, **o: Any) -> None:
+    from cellcal.families import EkiTwin, KvpTwin, krc_for_cell
+
+    config, cell = simulated_cell_of(o["config_path"], o["seed"])
+    controller = krc_for_cell(list(config.robot.home_deg), cell, o["time_scale"])
+    controller.faults.mode = f"#{o['mode']}"
+    controller.faults.drives_on = not o["drives_off"]
+    controller.faults.no_ack = o["no_ack"]
+    twin = KvpTwin(controller) if interface == "KUKAVARPROXY" else EkiTwin(controller)
+    listen = o["listen"]
     try:
         host, port = twin.start(*_host_port(listen))
     except (OSError, RuntimeError) as exc:
         raise InputError(f"--listen {listen}: cannot listen ({exc})") from None
     try:
-        click.echo(f"mock KUKA controller (KUKAVARPROXY) serving on {host}:{port}", err=True)
+        click.echo(f"mock KUKA controller ({interface}) serving on {host}:{port}", err=True)
         click.echo(f"{host}:{port}")
         wait_for_signal()
     finally:
         twin.stop()
+
+
+@click.command("kuka-kvp")
+@_kuka_options
+def mock_kuka_kvp(**options: Any) -> None:
+    """A KUKA controller running cellcal's KRL loop behind KUKAVARPROXY (docs/robots.md):
+    the simulated cell's robot, served until Ctrl-C or SIGTERM; prints HOST:PORT."""
+    _serve_kuka("KUKAVARPROXY", **options)
+
+
+@click.command("kuka-eki")
+@_kuka_options
+def mock_kuka_eki(**options: Any) -> None:
+    """A KUKA controller running CellCalEki, the EthernetKRL channel's server
+    (docs/robots.md): the simulated cell's robot, served until Ctrl-C or SIGTERM; prints
+    HOST:PORT."""
+    _serve_kuka("EthernetKRL", **options)

@@ -35,10 +35,12 @@ loop hangs: nothing is executed or acknowledged).
 
 from __future__ import annotations
 
+import math
 import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -51,6 +53,10 @@ from cellcal.drivers.kuka_kvp_wire import (
     parse_int,
 )
 from cellcal.mocks.motion import JointMove
+from cellcal.mocks.twins import limits_deg
+
+if TYPE_CHECKING:
+    from cellcal.mocks.simulated_cell import SimulatedCell
 
 MANUAL = ("#T1", "#T2")
 MODES = ("#T1", "#T2", "#AUT", "#EX")
@@ -217,3 +223,17 @@ class KrcController:
     def acknowledge_stop_message(self) -> None:
         """What the operator's acknowledgement on the pendant does."""
         self.stop_message = False
+
+
+def krc_for_cell(home_deg: list[float], cell: SimulatedCell, time_scale: float) -> KrcController:
+    """The simulated cell's robot as a KRC running cellcal's loop: its home, joint limits
+    and speed; the cell follows its moves."""
+    return KrcController(
+        q0_deg=list(home_deg),
+        limits_deg=limits_deg(cell),
+        joint_speed_deg_s=math.degrees(cell.joint_speed),
+        time_scale=time_scale,
+        robot_name=cell.model.name.upper(),
+        faults=KrcFaults(),
+        on_move=cell.set_q,
+    )

@@ -13,7 +13,6 @@ than read and write) closes that connection, as the proxy's socket does.
 from __future__ import annotations
 
 import logging
-import math
 from typing import TYPE_CHECKING
 
 from cellcal.drivers.kuka_kvp_wire import (
@@ -23,9 +22,9 @@ from cellcal.drivers.kuka_kvp_wire import (
     decode_request,
     encode_reply,
 )
-from cellcal.mocks.kuka.krc import KrcController, KrcFaults
+from cellcal.mocks.kuka.krc import KrcController, KrcFaults, krc_for_cell
 from cellcal.mocks.link_server import POLL_S, Link, TcpLinkServer
-from cellcal.mocks.twins import RunningTwin, limits_deg
+from cellcal.mocks.twins import KUKA_HOST, RunningTwin
 
 if TYPE_CHECKING:
     from cellcal.drivers.kuka_kvp import KukaKvpOptions
@@ -33,8 +32,6 @@ if TYPE_CHECKING:
 
 log = logging.getLogger("cellcal.mocks.kuka")
 
-#: The loopback address of mock mode's KUKA twins (an ephemeral port each).
-KUKA_HOST = "127.0.0.7"
 MAX_REQUEST = 65536
 
 
@@ -91,22 +88,9 @@ class KvpTwin:
         return encode_reply(msg_id, function, result.encode("ascii"), True)
 
 
-def krc_for(options: KukaKvpOptions, cell: SimulatedCell, time_scale: float) -> KrcController:
-    """The simulated cell's robot as a KRC running the loop: its home, limits and speed."""
-    return KrcController(
-        q0_deg=list(options.home_deg),
-        limits_deg=limits_deg(cell),
-        joint_speed_deg_s=math.degrees(cell.joint_speed),
-        time_scale=time_scale,
-        robot_name=cell.model.name.upper(),
-        faults=KrcFaults(),
-        on_move=cell.set_q,
-    )
-
-
 def serve(options: KukaKvpOptions, cell: SimulatedCell, time_scale: float) -> RunningTwin:
     """The twin of the configured KUKA robot on an ephemeral port of a loopback address."""
-    twin = KvpTwin(krc_for(options, cell, time_scale))
+    twin = KvpTwin(krc_for_cell(options.home_deg, cell, time_scale))
     host, port = twin.start(KUKA_HOST, 0)
     twin_options = options.model_copy(update={"address": f"{host}:{port}", "poll_s": 0.005})
     return RunningTwin(twin_options, twin)
