@@ -26,6 +26,7 @@ PROVIDERS: dict[str, tuple[str, str]] = {
     "rtde_control": ("ur-rtde", "ur"),  # the UR driver
     "rtde_receive": ("ur-rtde", "ur"),
     "pymodbus": ("pymodbus", "modbus"),  # the Modbus robot driver
+    "httpx": ("httpx", "abb"),  # the ABB driver (Robot Web Services)
     # the photogrammetry rig: its maths, the opencv and files backends, the twins' images
     "cv2": ("opencv-contrib-python-headless", "opencv"),
     "gi": ("PyGObject", "cameras"),  # the aravis backend (with Debian's Aravis packages)

@@ -338,5 +338,5 @@ def test_every_optional_library_is_in_its_extra_and_not_in_the_core():
 
 def test_all_is_every_feature_extra():
     extras = _extras()
-    features = ("ur", "modbus", "opencv", "cameras", "urdf", "service", "report")
+    features = ("ur", "modbus", "abb", "opencv", "cameras", "urdf", "service", "report")
     assert sorted(extras["all"]) == sorted({r for e in features for r in extras[e]})

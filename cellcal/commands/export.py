@@ -59,7 +59,7 @@ def export_urdf(model_spec: str, out_path: str, as_json: bool) -> None:
 
 #: The drivers whose controller runs a program cellcal ships, and its folder in the
 #: package (``cellcal/data/robot_programs/<driver>``).
-ROBOT_PROGRAMS = ("kuka-kvp", "kuka-eki")
+ROBOT_PROGRAMS = ("kuka-kvp", "kuka-eki", "abb-rws")
 
 
 @export.command("robot-program")
@@ -73,7 +73,7 @@ ROBOT_PROGRAMS = ("kuka-kvp", "kuka-eki")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout.")
 def export_robot_program(driver: str, out_dir: str, as_json: bool) -> None:
     """The program that runs on the robot's controller for DRIVER (KRL, and the
-    EthernetKRL channel's XML for kuka-eki),
+    EthernetKRL channel's XML for kuka-eki; the RAPID module for abb-rws),
     to install as docs/robots.md says. Files already there are replaced."""
     folder = Path(out_dir)
     if not folder.is_dir():

@@ -1,4 +1,4 @@
-"""``cellcal mock kuka-kvp`` and ``cellcal mock kuka-eki``: the twins of the robot
+"""``cellcal mock kuka-kvp``, ``kuka-eki`` and ``abb-rws``: the twins of the robot
 controllers reached through their own interfaces (docs/robots.md), each serving the
 simulated cell's robot as the controller running cellcal's program would."""
 
@@ -92,3 +92,69 @@ def mock_kuka_eki(**options: Any) -> None:
     (docs/robots.md): the simulated cell's robot, served until Ctrl-C or SIGTERM; prints
     HOST:PORT."""
     _serve_kuka("EthernetKRL", **options)
+
+
+@click.command("abb-rws")
+@click.option(
+    "--listen", required=True, help="TCP address HOST:PORT (a 127.0.0.x address for tests)."
+)
+@click.option(
+    "--config",
+    "config_path",
+    help="Cell configuration (default: the bundled cell); its robot's home and model are served.",
+)
+@click.option("--seed", type=SEED, help="Seed of the simulated truth.")
+@click.option(
+    "--time-scale",
+    type=TIME_SCALE,
+    default=1.0,
+    show_default=True,
+    help="Wall seconds per second of motion.",
+)
+@click.option(
+    "--opmode",
+    type=click.Choice(["AUTO", "MANR", "MANF"]),
+    default="AUTO",
+    show_default=True,
+    help="The operating mode (rw/panel/opmode).",
+)
+@click.option("--motors-off", is_flag=True, help="Fault: the motors are off.")
+@click.option("--stopped", is_flag=True, help="Fault: RAPID is not running.")
+@click.option(
+    "--mastership-held", is_flag=True, help="Fault: another client holds RAPID mastership."
+)
+def mock_abb_rws(
+    listen: str,
+    config_path: str | None,
+    seed: int | None,
+    time_scale: float,
+    opmode: str,
+    motors_off: bool,
+    stopped: bool,
+    mastership_held: bool,
+) -> None:
+    """An ABB IRC5 running cellcal's RAPID module behind Robot Web Services 1.0
+    (docs/robots.md): the simulated cell's robot, served until Ctrl-C or SIGTERM; prints
+    http://HOST:PORT. The user is ABB's factory user."""
+    from cellcal.families import RwsTwin, krc_for_cell
+
+    config, cell = simulated_cell_of(config_path, seed)
+    twin = RwsTwin(
+        krc_for_cell(list(config.robot.home_deg), cell, time_scale), system_name=cell.model.name
+    )
+    twin.faults.opmode = opmode
+    twin.faults.motors_on = not motors_off
+    twin.faults.running = not stopped
+    twin.faults.mastership_held = mastership_held
+    try:
+        host, port = twin.start(*_host_port(listen))
+    except (OSError, RuntimeError) as exc:
+        raise InputError(f"--listen {listen}: cannot listen ({exc})") from None
+    try:
+        click.echo(
+            f"mock ABB controller (Robot Web Services 1.0) on http://{host}:{port}", err=True
+        )
+        click.echo(f"http://{host}:{port}")
+        wait_for_signal()
+    finally:
+        twin.stop()

@@ -17,6 +17,7 @@ if TYPE_CHECKING:
 TRACKER_HOST = "127.0.0.5"
 MODBUS_HOST = "127.0.0.3"
 KUKA_HOST = "127.0.0.7"
+ABB_HOST = "127.0.0.8"
 UR_HOSTS = tuple(f"127.0.0.{k}" for k in range(100, 140))
 
 
