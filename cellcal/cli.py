@@ -21,9 +21,20 @@ from __future__ import annotations
 
 # the interpreter's own, loaded at start-up: installing the handler waits for no import
 import _signal  # type: ignore[import-not-found]
-import contextlib
 import os
 import sys
+
+if os.path.basename(sys.argv[0] if sys.argv else "") in ("cellcal", "cellcal.exe") and (
+    getattr(sys.modules.get("__main__"), "__name__", "") == "__main__"
+):
+    # the console script: Ctrl-C from this line on is one line, before anything else
+    # runs (_interrupted_now, below, takes over once it is defined)
+    _signal.signal(
+        _signal.SIGINT,
+        lambda signum, frame: (os.write(2, b"cellcal: interrupted\n"), os._exit(130)),
+    )
+
+import contextlib
 
 EXIT_INTERRUPTED = 130
 INTERRUPTED = "cellcal: interrupted"
