@@ -8,7 +8,7 @@ STAMP  := $(VENV)/.installed
 
 # Every extra but the one PyGObject is in (it builds against Debian's packages: $(ARAVIS)
 # below installs them, then `.[all,dev]`): the suite needs them all (pyproject.toml).
-EXTRAS := dev,ur,modbus,opencv,urdf,service,report
+EXTRAS := dev,ur,modbus,abb,opencv,urdf,service,report
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
