@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import logging
 import os
+import ssl
 import stat
 from pathlib import Path
 from typing import Annotated, Any, Literal
@@ -155,7 +156,12 @@ class AbbRwsRobot(HandshakeRobot):
             if self.dialect.version == 1
             else httpx.BasicAuth(user, password)
         )
-        verify: Any = self.options.tls_ca or self.options.tls_verify
+        verify: Any = self.options.tls_verify
+        if self.options.tls_ca is not None:
+            try:
+                verify = ssl.create_default_context(cafile=self.options.tls_ca)
+            except (OSError, ssl.SSLError) as exc:
+                raise InputError(f"robot.tls_ca {self.options.tls_ca}: {exc}") from None
         self._client = httpx.Client(
             base_url=self.options.address.rstrip("/"),
             auth=auth,
@@ -197,6 +203,11 @@ class AbbRwsRobot(HandshakeRobot):
             )
         except httpx.ConnectError as exc:
             self._close()
+            if "CERTIFICATE" in str(exc).upper():
+                raise self._error(
+                    f"the controller's certificate is not trusted ({exc}): give its "
+                    "certificate as robot.tls_ca"
+                ) from None
             raise self._error(f"cannot connect ({exc}): is Robot Web Services reachable?") from None
         except httpx.TimeoutException:
             self._close()
@@ -207,6 +218,13 @@ class AbbRwsRobot(HandshakeRobot):
             self._close()
             raise self._error(f"{method} {path} failed: {exc}") from None
         if res.status_code == 401:
+            scheme = res.headers.get("www-authenticate", "").partition(" ")[0].lower()
+            if scheme in ("basic", "digest") and scheme != ("digest", "basic")[d.version - 1]:
+                other = 2 if scheme == "basic" else 1
+                raise self._error(
+                    f"the controller asks for {scheme} authentication: it speaks RWS {other}.0 "
+                    f"(RobotWare {other + 5}), not {d.version}.0: set robot.rws = {other}"
+                )
             raise self._error(
                 f"the controller refused the credentials (HTTP 401, realm {REALM}): check "
                 "robot.credentials or robot.credentials_env"

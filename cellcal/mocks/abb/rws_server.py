@@ -1,6 +1,12 @@
 """The Robot Web Services twin: an IRC5 (RobotWare 6, RWS 1.0) running cellcal's RAPID
 module ``CellCal``, served over HTTP with aiohttp on a loopback address, for the
 ``abb-rws`` driver, ``cellcal mock abb-rws``, ``cellcal run --mock`` and abb-robot-client.
+With ``dialect=RWS2`` and an SSL context it is an OmniCore (RobotWare 7, RWS 2.0) instead:
+HTTPS, basic authentication, ``Accept`` with ``;v=2.0`` required (406 without), fields
+in ``state[0]``, errors in ``status``, the actions and RAPID data at RWS 2.0's paths
+(``rw/rapid/symbol/RAPID/T_ROB1/CellCal/<var>/data``, ``rw/rapid/execution/stop``,
+``rw/panel/ctrl-state``, ``rw/mastership/edit/request``); the collections (tasks, event
+log) keep RWS 1.0's shape.
 
 What it serves, as a controller does (docs/robots.md, "ABB"):
 
@@ -28,6 +34,7 @@ mastership held by another client (a write: 403, -1073445862).
 from __future__ import annotations
 
 import asyncio
+import base64
 import hashlib
 import logging
 import re
@@ -41,6 +48,7 @@ from cellcal.drivers.abb_rws_dialects import (
     REALM,
     REFUSED,
     RWS1,
+    Dialect,
     RapidValueError,
     format_jointtarget,
     format_num,
@@ -61,6 +69,11 @@ log = logging.getLogger("cellcal.mocks.abb")
 
 VARS = ("cc_target", "cc_seq", "cc_ack", "cc_speed")
 _SYMBOL = re.compile(r"/rw/rapid/symbol/data/RAPID/T_ROB1(?:/CellCal)?/([A-Za-z_][A-Za-z0-9_]*)")
+_RWS2_SYMBOL = re.compile(
+    r"/rw/rapid/symbol/RAPID/T_ROB1/(?:CellCal/)?([A-Za-z_][A-Za-z0-9_]*)/data"
+)
+_RWS2_ACTION = re.compile(r"/rw/rapid/execution/(start|stop|resetpp)")
+_RWS2_MASTERSHIP = re.compile(r"/rw/mastership(?:/edit|/motion|/rapid)?/(request|release)")
 _DIGEST_FIELD = re.compile(r'(\w+)=(?:"([^"]*)"|([^,\s]*))')
 JSON = "application/json"
 
@@ -96,7 +109,11 @@ class RwsTwin:
         password: str = "robotics",
         faults: RwsFaults | None = None,
         system_name: str = "IRB 140",
+        dialect: Dialect = RWS1,
+        ssl_context: Any = None,
     ) -> None:
+        self.dialect = dialect
+        self.ssl_context = ssl_context
         self.controller = controller
         self.system_name = system_name
         self.faults = faults or RwsFaults()
@@ -125,7 +142,7 @@ class RwsTwin:
             self._runner = web.AppRunner(app, access_log=None)
             try:
                 loop.run_until_complete(self._runner.setup())
-                site = web.TCPSite(self._runner, host, port)
+                site = web.TCPSite(self._runner, host, port, ssl_context=self.ssl_context)
                 loop.run_until_complete(site.start())
                 server = site._server
                 assert server is not None
@@ -147,7 +164,8 @@ class RwsTwin:
             raise failed[0]
         if not bound:
             raise RuntimeError("the RWS twin did not start")
-        self.base = f"http://{bound[0][0]}:{bound[0][1]}"
+        scheme = "https" if self.ssl_context is not None else "http"
+        self.base = f"{scheme}://{bound[0][0]}:{bound[0][1]}"
         return bound[0]
 
     def stop(self) -> None:
@@ -170,10 +188,10 @@ class RwsTwin:
         )
 
     def _error(self, status: int, code: int, msg: str) -> web.Response:
-        return self._reply(status, RWS1.wrap_error(code, msg))
+        return self._reply(status, self.dialect.wrap_error(code, msg))
 
     def _state(self, fields: dict[str, Any]) -> web.Response:
-        return self._reply(200, RWS1.wrap(fields, self.base + "/"))
+        return self._reply(200, self.dialect.wrap(fields, self.base + "/"))
 
     def _authorised(self, request: web.Request) -> str | None:
         """The session cookie to set (or "" when the request already had one); None when
@@ -182,6 +200,13 @@ class RwsTwin:
         if request.cookies.get("-http-session-") in a.sessions:
             return ""
         header = request.headers.get("Authorization", "")
+        if self.dialect.version == 2:
+            expected_basic = base64.b64encode(f"{a.user}:{a.password}".encode()).decode()
+            if header != f"Basic {expected_basic}":
+                return None
+            session = f"{len(a.sessions) + 1}::http.session::{secrets.token_hex(16)}"
+            a.sessions.add(session)
+            return session
         if not header.startswith("Digest "):
             return None
         f = {m.group(1): m.group(2) if m.group(2) is not None else m.group(3)
@@ -201,18 +226,25 @@ class RwsTwin:
         session = self._authorised(request)
         if session is None:
             challenge = (
-                f'Digest realm="{REALM}", domain="/", qop="auth", nonce="{self.auth.nonce}", '
-                'opaque="799d5", algorithm="MD5", stale="FALSE"'
+                f'Basic realm="{REALM}"'
+                if self.dialect.version == 2
+                else f'Digest realm="{REALM}", domain="/", qop="auth", '
+                f'nonce="{self.auth.nonce}", opaque="799d5", algorithm="MD5", stale="FALSE"'
             )
             return self._reply(
                 401,
                 RWS1.wrap_error(-1, "authentication required"),
                 **{"WWW-Authenticate": challenge},
             )
+        if self.dialect.version == 2 and ";v=2.0" not in request.headers.get("Accept", ""):
+            return self._error(406, -1073445879, "Accept must name version 2.0 (;v=2.0)")
         form = dict(await request.post()) if request.method == "POST" else {}
         self.requests.append((request.method, request.path_qs))
+        path, action = request.path.rstrip("/"), request.query.get("action")
+        if self.dialect.version == 2:
+            path, action = _as_rws1(request.method, path)
         with self.controller.lock:
-            response = self._route(request.method, request.path, request.query, form)
+            response = self._route(request.method, path, action, form)
         if session:
             response.set_cookie("-http-session-", session, path="/")
             response.set_cookie("ABBCX", str(len(self.auth.sessions)), path="/")
@@ -220,11 +252,11 @@ class RwsTwin:
 
     # ------------------------------------------------------------------ resources
 
-    def _route(self, method: str, path: str, query: Any, form: dict[str, Any]) -> web.Response:
+    def _route(
+        self, method: str, path: str, action: str | None, form: dict[str, Any]
+    ) -> web.Response:
         c, f = self.controller, self.faults
         self._sync()
-        action = query.get("action")
-        path = path.rstrip("/")
         if path.endswith("/users/rmmp/poll"):
             return self._state({"_type": "user-rmmp-poll", "_title": "poll", "status": "GRANTED"})
         if path == "/users/rmmp" and method == "POST":
@@ -337,6 +369,27 @@ class RwsTwin:
             c.acknowledge_stop_message()
             f.running = False
             self.elog.append("50050 Position outside reach: cc_target beyond a joint limit")
+
+
+def _as_rws1(method: str, path: str) -> tuple[str, str | None]:
+    """An RWS 2.0 request's resource and action in RWS 1.0's terms (the RWS 1.0 form of
+    RAPID data does not exist in 2.0: it stays unknown)."""
+    if path.startswith("/rw/rapid/symbol/data/"):
+        return "/rw/unknown", None
+    m = _RWS2_SYMBOL.fullmatch(path)
+    if m:
+        return f"/rw/rapid/symbol/data/RAPID/T_ROB1/CellCal/{m.group(1)}", (
+            "set" if method == "POST" else None
+        )
+    if path == "/rw/panel/ctrl-state":
+        return "/rw/panel/ctrlstate", "setctrlstate" if method == "POST" else None
+    m = _RWS2_ACTION.fullmatch(path)
+    if m:
+        return "/rw/rapid/execution", m.group(1)
+    m = _RWS2_MASTERSHIP.fullmatch(path)
+    if m:
+        return "/rw/mastership", m.group(1)
+    return path, None
 
 
 def serve(options: AbbRwsOptions, cell: SimulatedCell, time_scale: float) -> RunningTwin:
