@@ -359,7 +359,8 @@ class RwsTwin:
 
     def _sync(self) -> None:
         """The controller model follows the panel: motors, RAPID running; a target into
-        a limit stops RAPID with an event log entry."""
+        a limit, or the simulated cell's protective stop, stops RAPID with an event log
+        entry."""
         c, f = self.controller, self.faults
         c.faults.mode = "#AUT" if f.opmode == "AUTO" else "#T1"
         c.faults.drives_on = f.motors_on
@@ -368,7 +369,12 @@ class RwsTwin:
         if c.stop_message:
             c.acknowledge_stop_message()
             f.running = False
-            self.elog.append("50050 Position outside reach: cc_target beyond a joint limit")
+            inside = all(lo <= v <= hi for v, (lo, hi) in zip(c.target, c.limits, strict=True))
+            self.elog.append(
+                "50050 Position outside reach: cc_target beyond a joint limit"
+                if not inside
+                else "20205 Protective stop: RAPID stopped (the simulated cell's fault)"
+            )
 
 
 def _as_rws1(method: str, path: str) -> tuple[str, str | None]:

@@ -30,7 +30,8 @@ it where it is; it resumes when they are back. ``CC_STOP = TRUE`` brakes the mov
 it is, abandons it (``CC_ACK`` as on arrival) and resets ``CC_STOP``.
 
 Faults (:class:`KrcFaults`, settable at run time): the mode, the drives, ``no_ack`` (the
-loop hangs: nothing is executed or acknowledged).
+loop hangs: nothing is executed or acknowledged), ``stop_every`` (every N-th move raises a
+stop message instead of moving — the simulated cell's ``robot_protective_stop_every``).
 """
 
 from __future__ import annotations
@@ -68,6 +69,7 @@ class KrcFaults:
     mode: str = "#EX"
     drives_on: bool = True
     no_ack: bool = False
+    stop_every: int = 0  # every N-th move ends in a stop message before it starts (0: never)
 
 
 def _bool(value: bool) -> str:
@@ -112,6 +114,7 @@ class KrcController:
         self.stop_message = False
         self.move: JointMove | None = None
         self.move_seq = 0  # the CC_SEQ the running move answers (read when it started)
+        self.moves_started = 0
         self.move_started = 0.0
         self.requests: list[tuple[int, str, str | None]] = []
 
@@ -203,7 +206,9 @@ class KrcController:
             return
         target = self.target
         inside = all(lo <= v <= hi for v, (lo, hi) in zip(target, self.limits, strict=True))
-        if not inside:
+        self.moves_started += 1
+        every = self.faults.stop_every
+        if not inside or (every and self.moves_started % every == 0):
             self.stop_message = True
             return
         speed = self.joint_speed * self.speed / 100.0
@@ -234,6 +239,6 @@ def krc_for_cell(home_deg: list[float], cell: SimulatedCell, time_scale: float) 
         joint_speed_deg_s=math.degrees(cell.joint_speed),
         time_scale=time_scale,
         robot_name=cell.model.name.upper(),
-        faults=KrcFaults(),
+        faults=KrcFaults(stop_every=cell.faults.robot_protective_stop_every),
         on_move=cell.set_q,
     )
