@@ -13,7 +13,7 @@ from __future__ import annotations
 import signal
 import threading
 from types import FrameType
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Protocol
 
 import click
 
@@ -278,16 +278,29 @@ def mock_modbus_robot(
         on_move=cell.set_q,
         pose_fn=lambda q: xyzabc(cell.flange_pose(q)),
     )
+    serve_until_signal(sim, listen, "mock Modbus robot serving on {}")
+
+
+class _Startable(Protocol):
+    def start(self, host: str, port: int = 0) -> tuple[str, int]: ...
+    def stop(self) -> None: ...
+
+
+def serve_until_signal(twin: _Startable, listen: str, banner: str, scheme: str = "") -> None:
+    """Start ``twin`` on ``--listen`` HOST:PORT, say where on stderr (``banner`` with
+    ``{}`` for the address) and print it on stdout (with ``scheme``: ``http://``), serve
+    until Ctrl-C or SIGTERM, then stop it."""
     try:
-        host, port = sim.start(*_host_port(listen))
+        host, port = twin.start(*_host_port(listen))
     except (OSError, RuntimeError) as exc:
         raise InputError(f"--listen {listen}: cannot listen ({exc})") from None
     try:
-        click.echo(f"mock Modbus robot serving on {host}:{port}", err=True)
-        click.echo(f"{host}:{port}")
+        where = f"{scheme}{host}:{port}"
+        click.echo(banner.format(where), err=True)
+        click.echo(where)
         wait_for_signal()
     finally:
-        sim.stop()
+        twin.stop()
 
 
 @click.command("ur")

@@ -9,9 +9,8 @@ from typing import Any
 
 import click
 
-from cellcal.commands.mock import _host_port, simulated_cell_of, wait_for_signal
+from cellcal.commands.mock import serve_until_signal, simulated_cell_of
 from cellcal.commands.output import SEED, TIME_SCALE
-from cellcal.errors import InputError
 
 
 def _kuka_options(f: Callable[..., None]) -> Callable[..., None]:
@@ -64,17 +63,7 @@ def _serve_kuka(interface: str, **o: Any) -> None:
     controller.faults.drives_on = not o["drives_off"]
     controller.faults.no_ack = o["no_ack"]
     twin = KvpTwin(controller) if interface == "KUKAVARPROXY" else EkiTwin(controller)
-    listen = o["listen"]
-    try:
-        host, port = twin.start(*_host_port(listen))
-    except (OSError, RuntimeError) as exc:
-        raise InputError(f"--listen {listen}: cannot listen ({exc})") from None
-    try:
-        click.echo(f"mock KUKA controller ({interface}) serving on {host}:{port}", err=True)
-        click.echo(f"{host}:{port}")
-        wait_for_signal()
-    finally:
-        twin.stop()
+    serve_until_signal(twin, o["listen"], f"mock KUKA controller ({interface}) serving on {{}}")
 
 
 @click.command("kuka-kvp")
@@ -146,15 +135,4 @@ def mock_abb_rws(
     twin.faults.motors_on = not motors_off
     twin.faults.running = not stopped
     twin.faults.mastership_held = mastership_held
-    try:
-        host, port = twin.start(*_host_port(listen))
-    except (OSError, RuntimeError) as exc:
-        raise InputError(f"--listen {listen}: cannot listen ({exc})") from None
-    try:
-        click.echo(
-            f"mock ABB controller (Robot Web Services 1.0) on http://{host}:{port}", err=True
-        )
-        click.echo(f"http://{host}:{port}")
-        wait_for_signal()
-    finally:
-        twin.stop()
+    serve_until_signal(twin, listen, "mock ABB controller (RWS 1.0) on {}", scheme="http://")

@@ -24,28 +24,17 @@ from cellcal.drivers.abb_rws_dialects import (
 )
 from cellcal.errors import DeviceError, InputError
 from cellcal.mocks.abb.rws_server import RwsTwin
-from cellcal.mocks.kuka.krc import KrcController
+from tests.robot_controllers import krc
 
 pytest.importorskip("httpx")
 pytest.importorskip("aiohttp")
 pytestmark = pytest.mark.timeout(60)
 
-LIMITS = [
-    (-155.0, 155.0),
-    (-180.0, 65.0),
-    (-15.0, 158.0),
-    (-350.0, 350.0),
-    (-130.0, 130.0),
-    (-350.0, 350.0),
-]
 HOME = [0.0, -60.0, 60.0, 0.0, 30.0, 0.0]
 
 
 def twin(host: str, time_scale: float = 0.0, **kw: str) -> tuple[RwsTwin, str]:
-    controller = KrcController(
-        q0_deg=HOME, limits_deg=LIMITS, joint_speed_deg_s=150.0, time_scale=time_scale
-    )
-    server = RwsTwin(controller, **kw)  # type: ignore[arg-type]
+    server = RwsTwin(krc(HOME, time_scale=time_scale), **kw)  # type: ignore[arg-type]
     h, p = server.start(host, 0)
     return server, f"http://{h}:{p}"
 

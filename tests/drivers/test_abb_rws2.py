@@ -17,14 +17,13 @@ from cellcal.drivers.abb_rws import AbbRwsOptions, AbbRwsRobot
 from cellcal.drivers.abb_rws_dialects import RWS2
 from cellcal.errors import DeviceError
 from cellcal.mocks.abb.rws_server import RwsTwin
-from cellcal.mocks.kuka.krc import KrcController
+from tests.robot_controllers import krc
 
 pytest.importorskip("httpx")
 pytest.importorskip("aiohttp")
 pytestmark = pytest.mark.timeout(60)
 
 HOST = "127.0.0.188"
-LIMITS = [(-170.0, 170.0)] * 6
 HOME = [0.0, -20.0, 30.0, 0.0, 40.0, 0.0]
 
 
@@ -48,9 +47,7 @@ def omnicore(certificate, monkeypatch):
     cert, key = certificate
     context = ssl.create_default_context(ssl.Purpose.CLIENT_AUTH)
     context.load_cert_chain(cert, key)
-    controller = KrcController(
-        q0_deg=HOME, limits_deg=LIMITS, joint_speed_deg_s=150.0, time_scale=0.0
-    )
+    controller = krc(HOME)
     twin = RwsTwin(controller, user="cellcal", password="pw", dialect=RWS2, ssl_context=context)
     host, port = twin.start(HOST, 0)
     monkeypatch.setenv("CELLCAL_RWS", "cellcal:pw")

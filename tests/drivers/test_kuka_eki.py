@@ -23,11 +23,10 @@ from cellcal.drivers.kuka_eki_wire import (
 )
 from cellcal.errors import DeviceError
 from cellcal.mocks.kuka.eki_server import EkiTwin
-from cellcal.mocks.kuka.krc import KrcController, KrcFaults
+from tests.robot_controllers import krc
 
 pytestmark = pytest.mark.timeout(60)
 
-LIMITS = [(-155, 155), (-180, 65), (-15, 158), (-350, 350), (-130, 130), (-350, 350)]
 HOME = [0.0, -90.0, 90.0, 0.0, 0.0, 0.0]
 STATE = (
     b'<CellCal><State Seq="7" Ack="6" Mode="#AUT" Drives="1" EStop="0" GuardStop="0" '
@@ -37,14 +36,7 @@ STATE = (
 
 
 def twin(host: str, **kw: object) -> tuple[EkiTwin, str, int]:
-    controller = KrcController(
-        q0_deg=HOME,
-        limits_deg=[(float(a), float(b)) for a, b in LIMITS],
-        joint_speed_deg_s=150.0,
-        time_scale=float(kw.pop("time_scale", 0.0)),  # type: ignore[arg-type]
-        faults=KrcFaults(**kw),  # type: ignore[arg-type]
-    )
-    server = EkiTwin(controller, cycle_s=0.01)
+    server = EkiTwin(krc(HOME, **kw), cycle_s=0.01)  # type: ignore[arg-type]
     h, p = server.start(host, 0)
     return server, h, p
 

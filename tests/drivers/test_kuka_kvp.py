@@ -24,24 +24,16 @@ from cellcal.drivers.kuka_kvp_wire import (
     parse_int,
 )
 from cellcal.errors import DeviceError, InputError
-from cellcal.mocks.kuka.krc import KrcController, KrcFaults
 from cellcal.mocks.kuka.kvp_server import KvpTwin
+from tests.robot_controllers import krc
 
 pytestmark = pytest.mark.timeout(60)
 
-LIMITS = [(-155, 155), (-180, 65), (-15, 158), (-350, 350), (-130, 130), (-350, 350)]
 HOME = [0.0, -90.0, 90.0, 0.0, 0.0, 0.0]
 
 
 def twin(host: str, **kw: object) -> tuple[KvpTwin, str, int]:
-    controller = KrcController(
-        q0_deg=HOME,
-        limits_deg=[(float(a), float(b)) for a, b in LIMITS],
-        joint_speed_deg_s=150.0,
-        time_scale=float(kw.pop("time_scale", 0.0)),  # type: ignore[arg-type]
-        faults=KrcFaults(**kw),  # type: ignore[arg-type]
-    )
-    server = KvpTwin(controller)
+    server = KvpTwin(krc(HOME, **kw))  # type: ignore[arg-type]
     h, p = server.start(host, 0)
     return server, h, p
 

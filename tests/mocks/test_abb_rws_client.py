@@ -11,31 +11,17 @@ import numpy as np
 import pytest
 
 from cellcal.mocks.abb.rws_server import RwsTwin
-from cellcal.mocks.kuka.krc import KrcController
+from tests.robot_controllers import krc
 
 rws = pytest.importorskip("abb_robot_client.rws")
 pytest.importorskip("aiohttp")
 
 pytestmark = pytest.mark.timeout(60)
-LIMITS = [
-    (-155.0, 155.0),
-    (-180.0, 65.0),
-    (-15.0, 158.0),
-    (-350.0, 350.0),
-    (-130.0, 130.0),
-    (-350.0, 350.0),
-]
 
 
 @pytest.fixture
 def client():
-    controller = KrcController(
-        q0_deg=[0.0, -60.0, 60.0, 0.0, 30.0, 0.0],
-        limits_deg=LIMITS,
-        joint_speed_deg_s=150.0,
-        time_scale=0.01,
-    )
-    twin = RwsTwin(controller)
+    twin = RwsTwin(krc([0.0, -60.0, 60.0, 0.0, 30.0, 0.0], time_scale=0.01))
     host, port = twin.start("127.0.0.189", 0)
     yield rws.RWS(f"http://{host}:{port}"), twin
     twin.stop()

@@ -9,31 +9,17 @@ import time
 import pytest
 
 from cellcal.drivers.kuka_kvp_wire import format_axes, parse_axes
-from cellcal.mocks.kuka.krc import KrcController, KrcFaults
 from cellcal.mocks.kuka.kvp_server import KvpTwin
+from tests.robot_controllers import krc
 
 openshowvar = pytest.importorskip("py_openshowvar").openshowvar
 
 pytestmark = pytest.mark.timeout(60)
-LIMITS = [
-    (-155.0, 155.0),
-    (-180.0, 65.0),
-    (-15.0, 158.0),
-    (-350.0, 350.0),
-    (-130.0, 130.0),
-    (-350.0, 350.0),
-]
 
 
 @pytest.fixture
 def kvp():
-    controller = KrcController(
-        q0_deg=[0.0, -90.0, 90.0, 0.0, 0.0, 0.0],
-        limits_deg=LIMITS,
-        joint_speed_deg_s=150.0,
-        time_scale=0.01,
-        faults=KrcFaults(mode="#AUT"),
-    )
+    controller = krc([0.0, -90.0, 90.0, 0.0, 0.0, 0.0], time_scale=0.01, mode="#AUT")
     twin = KvpTwin(controller)
     host, port = twin.start("127.0.0.176", 0)
     client = openshowvar(host, port)

@@ -1,8 +1,8 @@
-"""A mock campaign with a KUKA robot through EthernetKRL (issue 32): the real kuka-eki
-driver against the KUKA twin (a KR C4 running CellCalEki, its EthernetKRL channel) over
-TCP. Every pose is moved to, acknowledged, read back from a state telegram (the
-controller's ``$AXIS_ACT_MEAS``) and measured; the calibration finds the simulated errors
-as it does behind Modbus."""
+"""A mock campaign through each robot family that drives a program on its controller
+(issue 32): KUKA through KUKAVARPROXY and through EthernetKRL, ABB through Robot Web
+Services — the real driver against its twin over TCP. Every pose is moved to,
+acknowledged, read back as the controller's measured joints and measured; the
+calibration finds the simulated errors as it does behind Modbus."""
 
 from __future__ import annotations
 
@@ -19,10 +19,14 @@ from tests.inprocess import cellcal
 pytestmark = [pytest.mark.twin, pytest.mark.timeout(240)]
 
 ROOT = Path(__file__).resolve().parents[2]
+MAKERS = {"kuka-kvp": "KUKA", "kuka-eki": "KUKA", "abb-rws": "ABB"}
 
 
-def test_a_kuka_eki_campaign_is_stored_and_calibrated(tmp_path: Path):
-    cell = tomllib.loads((ROOT / "config" / "mock-cell-kuka-eki.toml").read_text())
+@pytest.mark.parametrize("driver", sorted(MAKERS))
+def test_a_campaign_is_stored_and_calibrated(tmp_path: Path, driver: str):
+    if driver == "abb-rws":
+        pytest.importorskip("httpx")
+    cell = tomllib.loads((ROOT / "config" / f"mock-cell-{driver}.toml").read_text())
     cell["campaign"] |= {
         "grid": [3, 3, 3],
         "samples_per_pose": 5,
@@ -31,7 +35,7 @@ def test_a_kuka_eki_campaign_is_stored_and_calibrated(tmp_path: Path):
     }
     config = tmp_path / "cell.toml"
     config.write_text(tomli_w.dumps(cell))
-    db = tmp_path / "e.db"
+    db = tmp_path / "c.db"
     done = cellcal("run", "--mock", "--config", config, "--db", db, "--json")
     assert done.returncode == 0, done.stderr[-3000:]
     summary = json.loads(done.stdout)
@@ -39,10 +43,10 @@ def test_a_kuka_eki_campaign_is_stored_and_calibrated(tmp_path: Path):
     per_pose = conn.execute("SELECT COUNT(*) FROM samples GROUP BY pose_id").fetchall()
     assert len(per_pose) >= 27 and {n for (n,) in per_pose} == {5}
     (device,) = conn.execute(
-        "SELECT message FROM events WHERE kind = 'device' AND message LIKE '%kuka-eki%'"
+        "SELECT message FROM events WHERE kind = 'device' AND message LIKE ?", (f"%{driver}%",)
     ).fetchone()
-    assert '"maker": "KUKA"' in device
-    # the joints stored are the measured ones of the state telegram, at the targets
+    assert f'"maker": "{MAKERS[driver]}"' in device
+    # the joints stored are the controller's measured ones, at the targets
     for planned, reached in conn.execute("SELECT planned_q_deg, reached_q_deg FROM poses"):
         assert json.loads(reached) == pytest.approx(json.loads(planned), abs=1e-3)
     # 27 calibration poses: the simulated 0.3 mm / 0.03° errors found as behind Modbus
