@@ -1,4 +1,6 @@
-"""The move → settle → read contract every stop-and-measure robot meets, once.
+"""The move → settle → read contract every stop-and-measure robot meets, once:
+:class:`StopAndMeasureRobot` (``move_joints`` for every family, UR's included) and
+:class:`HandshakeRobot` (the families that command a program on their controller).
 
 A campaign moves the robot to a joint target, waits for it to stand still there, and
 measures; the joints it records are the controller's measured ones, read after the move
@@ -73,19 +75,51 @@ def one_line(text: str) -> str:
 
 
 def checked_target(name: str, q: Array, speed: float) -> Array:
-    """The target in degrees, after the checks every family makes."""
+    """The target (rad), after the checks every family makes."""
     target = np.asarray(q, dtype=np.float64)
     if target.shape != (N_JOINTS,) or not np.isfinite(target).all():
         raise InputError(f"{name}: target must be {N_JOINTS} finite joint angles (rad)")
-    target_deg: Array = np.degrees(target)
-    if (np.abs(target_deg) > MAX_JOINT_DEG).any():
+    if (np.abs(np.degrees(target)) > MAX_JOINT_DEG).any():
         raise InputError(f"{name}: target beyond ±{MAX_JOINT_DEG:g} deg")
     if not (math.isfinite(speed) and 0.0 < speed <= 1.0):
         raise InputError(f"{name}: speed must be in (0, 1], got {speed!r}")
-    return target_deg
+    return target
 
 
-class HandshakeRobot(ABC):
+class StopAndMeasureRobot(ABC):
+    """``move_joints`` as the contract has it, once for every robot family: the target
+    and speed checked, the controller asked whether it can move (``_ready_to_move``),
+    the move sent and waited for until the controller says it is done and the robot
+    stands still (``_move_and_settle``), the measured joints checked against the target
+    (``_check_arrived``). :class:`HandshakeRobot` is the base of the families that
+    command a program on their controller; the UR driver implements the three steps with
+    ur_rtde's blocking ``moveJ``."""
+
+    name: str
+
+    def move_joints(self, q: Array, speed: float) -> None:
+        """Move to ``q`` (rad) at ``speed`` (fraction of maximum); return once the
+        controller reports the move done, the robot stands still and its measured joints
+        are at the target."""
+        target = checked_target(self.name, q, speed)
+        self._ready_to_move(target)
+        self._move_and_settle(target, speed)
+        self._check_arrived(target)
+
+    @abstractmethod
+    def _ready_to_move(self, target: Array) -> None:
+        """Refuse (one line) a controller that cannot take this move now."""
+
+    @abstractmethod
+    def _move_and_settle(self, target: Array, speed: float) -> None:
+        """Send the move; return once the controller says it is done and still."""
+
+    @abstractmethod
+    def _check_arrived(self, target: Array) -> None:
+        """Refuse measured joints that are not at the target."""
+
+
+class HandshakeRobot(StopAndMeasureRobot):
     """A :class:`~cellcal.drivers.base.Robot` through a controller-side program and a
     sequence handshake; see the module docstring. Subclasses set ``name``, ``where``,
     ``timeout_s`` (a move), ``poll_s`` and ``family`` (the driver's name)."""
@@ -101,6 +135,7 @@ class HandshakeRobot(ABC):
         self.timeout_s = float(timeout_s)
         self.poll_s = float(poll_s)
         self._last_seq: int | None = None
+        self._before = ControllerState("not read yet", None, False, 0, "")
 
     # ------------------------------------------------------------------ the transport
 
@@ -145,25 +180,26 @@ class HandshakeRobot(ABC):
             raise
         log.info("%s: connected to %s (%s)", self.name, self.where, state.text)
 
-    def move_joints(self, q: Array, speed: float) -> None:
-        """Move to ``q`` (rad) at ``speed`` (fraction of maximum); return once the
-        controller acknowledged the move, the robot stands still and its measured joints
-        are at the target."""
-        target_deg = checked_target(self.name, q, speed)
-        before = self._state()
-        self._refuse_unless_ready(before, "move")
+    def _ready_to_move(self, target: Array) -> None:
+        self._before = self._state()
+        self._refuse_unless_ready(self._before, "move")
+
+    def _move_and_settle(self, target: Array, speed: float) -> None:
+        before = self._before
         seq = self._next_seq(before.ack)
-        self._send_move(target_deg, speed, seq)
+        self._send_move(np.degrees(target), speed, seq)
         self._last_seq = seq
         self._wait_done(seq, before)
+
+    def _check_arrived(self, target: Array) -> None:
         actual = self.actual_joints()
-        err = np.abs(actual - np.radians(target_deg))
+        err = np.abs(actual - target)
         worst = int(np.argmax(err))
         if err[worst] > POSITION_TOLERANCE_RAD:
             raise self._error(
                 f"reports the move done but joint {worst + 1} is at "
-                f"{np.degrees(actual[worst]):.4f} deg, target {target_deg[worst]:.4f} deg "
-                f"(off by {err[worst]:.2e} rad)"
+                f"{np.degrees(actual[worst]):.4f} deg, target {np.degrees(target[worst]):.4f} "
+                f"deg (off by {err[worst]:.2e} rad)"
             )
 
     def actual_joints(self) -> Array:

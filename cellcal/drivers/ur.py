@@ -53,7 +53,7 @@ import numpy as np
 from cellcal.calib.geometry import Array
 from cellcal.device_options import Positive, RobotOptions
 from cellcal.drivers.base import ROBOT_NAME, DeviceContext, DeviceDescription, label
-from cellcal.drivers.stop_and_measure import POSITION_TOLERANCE_RAD
+from cellcal.drivers.stop_and_measure import POSITION_TOLERANCE_RAD, StopAndMeasureRobot
 from cellcal.errors import DeviceError, InputError
 
 log = logging.getLogger("cellcal.drivers.ur")
@@ -99,7 +99,7 @@ class UROptions(RobotOptions):
     move_timeout_s: Positive = 60.0
 
 
-class URRobot:
+class URRobot(StopAndMeasureRobot):
     """A UR arm on ``host`` through ur_rtde. ``move_joints(q, speed)`` moves with
     ``moveJ`` at ``speed × velocity_rad_s`` (leading joint) and ``acceleration_rad_s2``."""
 
@@ -181,20 +181,21 @@ class URRobot:
         self._receive, self._control = self._call(make, "connect")
         log.info("%s: connected", self.label)
 
-    def move_joints(self, q: Array, speed: float) -> None:
-        target = np.asarray(q, dtype=np.float64)
-        if target.shape != (6,) or not np.all(np.isfinite(target)):
-            raise InputError(f"{self.label}: a joint target is 6 finite values (rad)")
-        if not (math.isfinite(speed) and 0.0 < speed <= 1.0):
-            raise InputError(f"{self.label}: speed is a fraction within (0, 1], not {speed}")
-        control, receive = self._require()
+    # move_joints is StopAndMeasureRobot's: the checks, then these three steps
+
+    def _ready_to_move(self, target: Array) -> None:
+        _, receive = self._require()
         self._check_safety(receive, f"cannot move to {_deg(target)}")
+
+    def _move_and_settle(self, target: Array, speed: float) -> None:
+        """``moveJ`` blocks until the move ended; a refused or aborted one is one line
+        saying why (the receive connection may be a cycle behind: it is given SETTLE_S)."""
+        control, receive = self._require()
         v = speed * self.velocity_rad_s
         a = self.acceleration_rad_s2
         qs = target.tolist()
         ok = self._call(lambda: control.moveJ(qs, v, a, False), "moveJ")
         if not ok:
-            # The control connection saw why; the receive connection may be a cycle behind.
             deadline = time.monotonic() + SETTLE_S
             while True:
                 self._check_safety(receive, f"the move to {_deg(target)} did not complete")
@@ -211,6 +212,9 @@ class URRobot:
                 f"{self.label}: moveJ to {_deg(target)} failed: {why}", device=ROBOT_NAME
             )
         self._check_safety(receive, f"the move to {_deg(target)} did not complete")
+
+    def _check_arrived(self, target: Array) -> None:
+        _, receive = self._require()
         err = self._position_error(receive, target)
         if err > POSITION_TOLERANCE_RAD:
             raise DeviceError(
