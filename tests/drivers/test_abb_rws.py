@@ -160,6 +160,21 @@ def test_faults_end_in_one_line_naming_the_robot():
                 r.move_joints(np.radians(HOME), 0.2)
             r._request("POST", "/rw/rapid/execution", {"regain": "continue"}, action="start")
             r.move_joints(np.radians(HOME), 0.2)
+            # a loop that never acknowledges: the timeout, and RAPID stopped on the way out
+            f.hang = True
+            with pytest.raises(DeviceError, match=r"move not done after 2 s \(sequence \d+"):
+                r.move_joints(np.radians([1, -60, 60, 0, 30, 0]), 0.2)
+            assert not f.running and server.requests[-1] == (
+                "POST",
+                "/rw/rapid/execution?json=1&action=stop",
+            )
+            f.hang = False
+            r._request("POST", "/rw/rapid/execution", {"regain": "continue"}, action="start")
+        # the link drops (the controller goes away) in the middle of a session
+        with robot(address) as r:
+            server.stop()
+            with pytest.raises(DeviceError, match=f"robot at {address}: cannot connect"):
+                r.move_joints(np.radians(HOME), 0.2)
     finally:
         server.stop()
 

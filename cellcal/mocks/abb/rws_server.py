@@ -28,7 +28,7 @@ What it serves, as a controller does (docs/robots.md, "ABB"):
 
 Faults (:class:`RwsFaults`, settable at run time): the operating mode (a write in
 ``MANR``/``MANF`` is refused: 400, -1073414146, no RMMP), motors off, RAPID stopped,
-mastership held by another client (a write: 403, -1073445862).
+mastership held by another client (a write: 403, -1073445862), a loop that hangs.
 """
 
 from __future__ import annotations
@@ -84,6 +84,7 @@ class RwsFaults:
     motors_on: bool = True
     running: bool = True
     mastership_held: bool = False
+    hang: bool = False  # RAPID runs but never acknowledges (a loop stuck in a WaitUntil)
 
 
 @dataclass
@@ -364,7 +365,7 @@ class RwsTwin:
         c, f = self.controller, self.faults
         c.faults.mode = "#AUT" if f.opmode == "AUTO" else "#T1"
         c.faults.drives_on = f.motors_on
-        c.faults.no_ack = not f.running
+        c.faults.no_ack = f.hang or not f.running
         c.step()
         if c.stop_message:
             c.acknowledge_stop_message()
