@@ -6,7 +6,7 @@ EthernetKRL channel, for the ``kuka-eki`` driver, ``cellcal mock kuka-eki`` and
 As the channel the shipped XML configuration declares: one client at a time (a second
 connection is accepted and closed at once, as EthernetKRL's server does while its one
 connection is up); a state telegram every ``cycle_s`` (50 ms, the KRL timer interrupt's
-period) from the connection on; a ``<Cmd>`` writes the target, the speed and the
+period; in mock mode scaled like the motion, 2 ms at the least) from the connection on; a ``<Cmd>`` writes the target, the speed and the
 sequence number the loop answers; a ``<Stop>`` brakes the running move. A telegram that
 is not one of cellcal's is logged and dropped (EthernetKRL reports an XML error on the
 pendant and keeps the connection). In T1/T2 a command is ignored (the loop's variables
@@ -126,7 +126,9 @@ class EkiTwin:
 
 def serve(options: KukaEkiOptions, cell: SimulatedCell, time_scale: float) -> RunningTwin:
     """The twin of the configured KUKA robot on an ephemeral port of a loopback address."""
-    twin = EkiTwin(krc_for_cell(options.home_deg, cell, time_scale))
+    # the 50 ms period runs on the simulated clock, as the motion does (2 ms at the least)
+    cycle_s = max(0.002, CYCLE_S * time_scale)
+    twin = EkiTwin(krc_for_cell(options.home_deg, cell, time_scale), cycle_s=cycle_s)
     host, port = twin.start(KUKA_HOST, 0)
     twin_options = options.model_copy(update={"address": f"{host}:{port}", "poll_s": 0.005})
     return RunningTwin(twin_options, twin)
