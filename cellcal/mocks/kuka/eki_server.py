@@ -6,11 +6,12 @@ EthernetKRL channel, for the ``kuka-eki`` driver, ``cellcal mock kuka-eki`` and
 As the channel the shipped XML configuration declares: one client at a time (a second
 connection is accepted and closed at once, as EthernetKRL's server does while its one
 connection is up); a state telegram every ``cycle_s`` (50 ms, the KRL timer interrupt's
-period; in mock mode scaled like the motion, 2 ms at the least) from the connection on; a ``<Cmd>`` writes the target, the speed and the
-sequence number the loop answers; a ``<Stop>`` brakes the running move. A telegram that
-is not one of cellcal's is logged and dropped (EthernetKRL reports an XML error on the
-pendant and keeps the connection). In T1/T2 a command is ignored (the loop's variables
-are not written from outside in the manual modes).
+period; in mock mode scaled like the motion, 2 ms at the least) from the connection on;
+a ``<Cmd>`` writes the target, the speed and the sequence number the loop answers; a
+``<Stop>`` brakes the running move. A telegram that is not one of cellcal's is logged
+and dropped (EthernetKRL reports an XML error on the pendant and keeps the connection).
+In T1/T2 a command is ignored (the loop's variables are not written from outside in the
+manual modes).
 """
 
 from __future__ import annotations
