@@ -1,5 +1,6 @@
-"""The controller model the KUKA and ABB twins share (``cellcal/mocks/kuka/krc.py``: a
-controller running cellcal's loop), built for the tests with the KR 5 arc's joint limits."""
+"""The KR 5 arc's joint limits as the robot twins' tests give them to a controller, and
+the controller model the KUKA and ABB twins share (``cellcal/mocks/kuka/krc.py``: a
+controller running cellcal's loop), built for the tests."""
 
 from __future__ import annotations
 

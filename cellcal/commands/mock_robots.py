@@ -13,7 +13,9 @@ from cellcal.commands.mock import serve_until_signal, simulated_cell_of
 from cellcal.commands.output import SEED, TIME_SCALE
 
 
-def _kuka_options(f: Callable[..., None]) -> Callable[..., None]:
+def _twin_options(f: Callable[..., None]) -> Callable[..., None]:
+    """The options every controller twin here takes: where, which cell, which truth, how
+    fast."""
     for option in reversed(
         [
             click.option(
@@ -35,6 +37,15 @@ def _kuka_options(f: Callable[..., None]) -> Callable[..., None]:
                 show_default=True,
                 help="Wall seconds per second of motion.",
             ),
+        ]
+    ):
+        f = option(f)
+    return f
+
+
+def _kuka_options(f: Callable[..., None]) -> Callable[..., None]:
+    for option in reversed(
+        [
             click.option(
                 "--mode",
                 type=click.Choice(["T1", "T2", "AUT", "EX"]),
@@ -51,7 +62,7 @@ def _kuka_options(f: Callable[..., None]) -> Callable[..., None]:
         ]
     ):
         f = option(f)
-    return f
+    return _twin_options(f)
 
 
 def _serve_kuka(interface: str, **o: Any) -> None:
@@ -84,22 +95,7 @@ def mock_kuka_eki(**options: Any) -> None:
 
 
 @click.command("abb-rws")
-@click.option(
-    "--listen", required=True, help="TCP address HOST:PORT (a 127.0.0.x address for tests)."
-)
-@click.option(
-    "--config",
-    "config_path",
-    help="Cell configuration (default: the bundled cell); its robot's home and model are served.",
-)
-@click.option("--seed", type=SEED, help="Seed of the simulated truth.")
-@click.option(
-    "--time-scale",
-    type=TIME_SCALE,
-    default=1.0,
-    show_default=True,
-    help="Wall seconds per second of motion.",
-)
+@_twin_options
 @click.option(
     "--opmode",
     type=click.Choice(["AUTO", "MANR", "MANF"]),

@@ -26,19 +26,12 @@ from cellcal.mocks.modbus.server import (
     ModbusRobotFaults,
     ModbusRobotTwin,
 )
+from tests.robot_controllers import LIMITS_DEG
 
 pytestmark = [pytest.mark.twin, pytest.mark.timeout(30)]
 
 Q0_DEG = [0.0, -90.0, 90.0, 0.0, 45.0, 0.0]
 TARGET_DEG = [10.0, -80.0, 75.5, 20.0, 30.0, -45.0]
-LIMITS_DEG = [
-    (-155.0, 155.0),
-    (-180.0, 65.0),
-    (-15.0, 158.0),
-    (-350.0, 350.0),
-    (-130.0, 130.0),
-    (-350.0, 350.0),
-]
 _hosts = itertools.cycle(range(61, 100))
 
 
