@@ -167,6 +167,20 @@ class SimulatedFaults(Strict):
     robot_protective_stop_every: Annotated[int, Field(ge=0)] = 0
 
 
+class SimulatedChange(Strict):
+    """The simulated cell after its calibration (mock mode only): what a check between
+    calibrations should find. ``joint_offset_deg``: added to each joint's θ (one value a
+    joint, or none: a joint's zero moved); ``base_shift_mm``: the robot's base moved in the
+    cell (the sensors stay); ``link_mm``: a link length changed, by its parameter's name
+    (``a2``, ``d4``: mm added)."""
+
+    joint_offset_deg: list[Annotated[float, Field(ge=-10, le=10)]] = Field(default_factory=list)
+    base_shift_mm: Vec3 = Field(default_factory=lambda: [0.0, 0.0, 0.0])
+    link_mm: dict[
+        Annotated[str, Field(pattern=r"^[ad][1-9][0-9]?$")], Annotated[float, Field(ge=-50, le=50)]
+    ] = Field(default_factory=dict)
+
+
 class SimulationConfig(Strict):
     """The simulated cell's ground truth (mock mode only). Same seed, same campaign."""
 
@@ -183,6 +197,7 @@ class SimulationConfig(Strict):
     rig_noise_grey: Annotated[float, Field(ge=0, le=50)] = 2.0
     joint_speed_deg_s: Annotated[float, Field(gt=0, le=3600)] = 60.0
     faults: SimulatedFaults = Field(default_factory=SimulatedFaults)
+    change: SimulatedChange = Field(default_factory=SimulatedChange)
 
 
 class CellConfig(Strict):

@@ -7,12 +7,17 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from cellcal.calib.geometry import Array, so3_exp
 from cellcal.calib.kinematics import target_kinematics
 from cellcal.calib.robot_model import RobotModel
+from cellcal.errors import InputError
+
+if TYPE_CHECKING:
+    from cellcal.config import SimulatedChange
 
 
 @dataclass(frozen=True)
@@ -53,6 +58,29 @@ def perturbed_model(
             )
         )
     return nominal.with_joints(tuple(joints))
+
+
+def changed_model(model: RobotModel, change: SimulatedChange) -> RobotModel:
+    """``model`` after ``change`` (``[simulation.change]``): θ offsets (deg) added to the
+    joints, link lengths (``a2``, ``d4``: mm) added; one line naming a key that does not
+    fit the robot."""
+    n = model.dof
+    offsets = list(change.joint_offset_deg)
+    if offsets and len(offsets) != n:
+        raise InputError(
+            f"simulation.change.joint_offset_deg: {len(offsets)} values for a robot of {n} "
+            "joints (one a joint, or none)"
+        )
+    joints = list(model.joints)
+    for i, off in enumerate(offsets):
+        joints[i] = replace(joints[i], theta=joints[i].theta + math.radians(off))
+    for name, mm in change.link_mm.items():
+        i = int(name[1:]) - 1
+        if i >= n:
+            raise InputError(f"simulation.change.link_mm: {name}: the robot has {n} joints")
+        field = name[0]
+        joints[i] = replace(joints[i], **{field: getattr(joints[i], field) + mm})
+    return model.with_joints(tuple(joints))
 
 
 def random_cell(

@@ -26,7 +26,7 @@ import math
 import threading
 import zlib
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -37,7 +37,7 @@ from cellcal.calib.robot_model import RobotModel
 from cellcal.config import CellConfig
 from cellcal.device_options import SensorOptions
 from cellcal.families import find
-from cellcal.mocks.robot_truth import perturbed_model
+from cellcal.mocks.robot_truth import changed_model, perturbed_model
 
 
 @dataclass(frozen=True)
@@ -78,12 +78,17 @@ class SimulatedCell:
         self.noise_stream = noise_stream
         rng = np.random.default_rng(self.seed)
         self.nominal = nominal
-        self.model = perturbed_model(
+        self.model_at_calibration = perturbed_model(
             nominal, rng, length_mm=sim.length_error_mm, angle_deg=sim.angle_error_deg
         )
+        self.model = changed_model(self.model_at_calibration, sim.change)
         self.sensors: dict[str, SensorTruth] = {}
+        shift = np.eye(4)
+        shift[:3, 3] = -np.asarray(sim.change.base_shift_mm, dtype=np.float64)
         for s in config.sensor:
-            self.sensors[s.name] = self._sensor_truth(s, config, rng)
+            truth = self._sensor_truth(s, config, rng)
+            # the base moved by base_shift_mm: each sensor sits that much the other way
+            self.sensors[s.name] = replace(truth, T_sensor_base=truth.T_sensor_base @ invert(shift))
         # Each sample's noise is its own generator's (see the module's note); a resumed
         # campaign draws fresh noise: its stream is the number of poses already stored.
         self._sensor_k = {name: k for k, name in enumerate(self.sensors)}
