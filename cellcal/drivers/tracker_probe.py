@@ -87,4 +87,4 @@ class Probe:
         """Drop what comes until ``quiet`` s pass without a line (at most the timeout)."""
         deadline = time.monotonic() + max(self.timeout, 1.0)
         while time.monotonic() < deadline and self.lines.read_line(quiet) is not None:
-            pass
+            continue  # each line read is dropped

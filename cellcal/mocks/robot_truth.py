@@ -17,7 +17,7 @@ from cellcal.calib.robot_model import RobotModel
 from cellcal.errors import InputError
 
 if TYPE_CHECKING:
-    from cellcal.config import SimulatedChange
+    from cellcal.simulation_config import SimulatedChange
 
 
 @dataclass(frozen=True)

@@ -296,7 +296,7 @@ class EkiFake:
                 if len(buf) > BUFFSIZE:
                     break
         except OSError:
-            pass
+            pass  # the client reset the connection: it ends, as any other end does
         finally:
             conn.close()
             with self._lock:

@@ -1,7 +1,9 @@
 """A plain fake KUKA KR C controller behind KUKAVARPROXY, for tests only.
 
-Written from the KUKA facts of ``/work/shared/specs/real-cells.md`` alone, never from
-cellcal's own KUKA driver or twin: a second, independent server to prove the driver against.
+Written from the published KUKAVARPROXY protocol alone (request and reply layouts, the
+example read of ``$AXIS_ACT_MEAS``, as docs/robots.md summarises them), never from
+cellcal's own KUKA driver or twin: a second, independent server to prove the driver
+against.
 
 Wire (big-endian): request ``u16 id, u16 len, u8 fn (0 read, 1 write), u16 n, name
 [, u16 m, value]``; reply ``u16 id, u16 len, u8 fn, u16 m, value, u16 0x0001, u8 ok``. A

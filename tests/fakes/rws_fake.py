@@ -96,8 +96,8 @@ class _Handler(BaseHTTPRequestHandler):
     protocol_version, disable_nagle_algorithm = "HTTP/1.1", True
     server: _Server
 
-    def log_message(self, format: str, *args: object) -> None:  # quiet
-        pass
+    def log_message(self, format: str, *args: object) -> None:
+        """No access log on stderr: the tests read ``requests`` instead."""
 
     def setup(self) -> None:
         super().setup()

@@ -1,0 +1,58 @@
+"""The ``[simulation]`` table of a cell configuration (mock mode only): the simulated
+cell's ground truth, the faults its twins inject (``[simulation.faults]``) and how the
+cell changed after its calibration (``[simulation.change]``)."""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+from pydantic import Field
+
+from cellcal.device_options import Seed, Strict, Vec3
+
+
+class SimulatedFaults(Strict):
+    """Faults the twins inject, for soaks (mock mode only; 0: off)."""
+
+    #: every N-th tracker series loses the beam half-way (restored after beam_restore_s)
+    tracker_beam_break_every: Annotated[int, Field(ge=0)] = 0
+    tracker_beam_restore_s: Annotated[float, Field(ge=0, le=60)] = 0.2
+    #: the tracker drops its link after N lines on each connection
+    tracker_drop_after_lines: Annotated[int, Field(ge=0)] = 0
+    #: an emScon tracker's sensor warms up for this long after its twin starts (s)
+    tracker_warmup_s: Annotated[float, Field(ge=0, le=600)] = 0.0
+    #: every N-th move command of the robot ends in a protective stop
+    robot_protective_stop_every: Annotated[int, Field(ge=0)] = 0
+
+
+class SimulatedChange(Strict):
+    """The simulated cell after its calibration (mock mode only): what a check between
+    calibrations should find. ``joint_offset_deg``: added to each joint's θ (one value a
+    joint, or none: a joint's zero moved); ``base_shift_mm``: the robot's base moved in the
+    cell (the sensors stay); ``link_mm``: a link length changed, by its parameter's name
+    (``a2``, ``d4``: mm added)."""
+
+    joint_offset_deg: list[Annotated[float, Field(ge=-10, le=10)]] = Field(default_factory=list)
+    base_shift_mm: Vec3 = Field(default_factory=lambda: [0.0, 0.0, 0.0])
+    link_mm: dict[
+        Annotated[str, Field(pattern=r"^[ad][1-9][0-9]?$")], Annotated[float, Field(ge=-50, le=50)]
+    ] = Field(default_factory=dict)
+
+
+class SimulationConfig(Strict):
+    """The simulated cell's ground truth (mock mode only). Same seed, same campaign."""
+
+    seed: Seed = 2018
+    length_error_mm: Annotated[float, Field(ge=0)] = 0.3
+    angle_error_deg: Annotated[float, Field(ge=0)] = 0.03
+    tracker_position_mm: Vec3 = Field(default_factory=lambda: [2800.0, -600.0, 300.0])
+    tracker_rotation_deg: Vec3 = Field(default_factory=lambda: [0.0, 0.0, 160.0])
+    tracker_radial_um: Annotated[float, Field(ge=0)] = 10.0
+    tracker_transverse_um_per_m: Annotated[float, Field(ge=0)] = 6.0
+    rig_position_mm: Vec3 = Field(default_factory=lambda: [1478.051, 1015.744, 1026.564])
+    rig_rotation_deg: Vec3 = Field(default_factory=lambda: [91.234945, -9.586413, -35.837374])
+    rig_blur_px: Annotated[float, Field(ge=0, le=10)] = 0.8
+    rig_noise_grey: Annotated[float, Field(ge=0, le=50)] = 2.0
+    joint_speed_deg_s: Annotated[float, Field(gt=0, le=3600)] = 60.0
+    faults: SimulatedFaults = Field(default_factory=SimulatedFaults)
+    change: SimulatedChange = Field(default_factory=SimulatedChange)
