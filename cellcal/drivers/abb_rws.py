@@ -132,7 +132,6 @@ class AbbRwsRobot(HandshakeRobot):
         self.options = options
         self.dialect: Dialect = DIALECTS[options.version()]
         self._client: Any = None
-        self._sent_seq: int | None = None
         self.system: dict[str, Any] = {}
 
     @classmethod
@@ -303,25 +302,12 @@ class AbbRwsRobot(HandshakeRobot):
                 f"{self.options.module} in {self.options.task}"
             )
         fault = None if reason is None else f"move failed: {reason}"
-        if self._sent_seq is not None and seq != self._sent_seq and fault is None:
-            fault = (
-                f"another client set cc_seq = {seq} (this driver set {self._sent_seq}): "
-                "one client at a time"
-            )
-        return ControllerState(reason, fault, False, ack, text)
+        return ControllerState(reason, fault, False, ack, text, seq, "cc_seq")
 
     def _send_move(self, target_deg: Array, speed: float, seq: int) -> None:
-        self._sent_seq = None
         self.set_symbol("cc_target", format_jointtarget([float(v) for v in target_deg]))
         self.set_symbol("cc_speed", str(max(1, min(100, round(speed * 100)))))
         self.set_symbol("cc_seq", str(seq))
-        self._sent_seq = seq
-
-    def _wait_done(self, seq: int, before: ControllerState) -> None:
-        try:
-            super()._wait_done(seq, before)
-        finally:
-            self._sent_seq = None
 
     def _read_joints_deg(self) -> Array:
         item = self._get(self.dialect.jointtarget)

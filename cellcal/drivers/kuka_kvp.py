@@ -158,7 +158,6 @@ class KukaKvpRobot(HandshakeRobot):
         self.link = KvpLink(host, port, o.request_timeout_s)
         self.robot_name: str | None = None
         self.serial: str | None = None
-        self._sent_seq: int | None = None
 
     @classmethod
     def from_options(cls, options: KukaKvpOptions, context: DeviceContext) -> KukaKvpRobot:
@@ -265,20 +264,13 @@ class KukaKvpRobot(HandshakeRobot):
                 f"the KRL loop is not running ($PRO_STATE1 {program}): select CellCal and start it"
             )
         fault = None if reason is None else f"move failed: {reason}"
-        if self._sent_seq is not None and seq != self._sent_seq and fault is None:
-            fault = (
-                f"another client wrote {o.seq_var} = {seq} (this driver wrote "
-                f"{self._sent_seq}): one client at a time"
-            )
-        return ControllerState(reason, fault, not stopped, ack, text)
+        return ControllerState(reason, fault, not stopped, ack, text, seq, o.seq_var)
 
     def _send_move(self, target_deg: Array, speed: float, seq: int) -> None:
         o = self.options
-        self._sent_seq = None
         self.write(o.target_var, format_axes([float(v) for v in target_deg]))
         self.write(o.speed_var, str(max(1, min(100, round(speed * 100)))))
         self.write(o.seq_var, str(seq))
-        self._sent_seq = seq
 
     def _read_joints_deg(self) -> Array:
         name = self.options.joints_var
@@ -292,9 +284,3 @@ class KukaKvpRobot(HandshakeRobot):
 
     def _send_stop(self) -> None:
         self.write(self.options.stop_var, "TRUE")
-
-    def _wait_done(self, seq: int, before: ControllerState) -> None:
-        try:
-            super()._wait_done(seq, before)
-        finally:
-            self._sent_seq = None

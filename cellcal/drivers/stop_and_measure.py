@@ -27,9 +27,10 @@ reads the state and refuses as ``connect`` does, sends the move with a new seque
 number (1..65535, never the controller's last acknowledgement nor the one sent last, so a
 restarted driver never repeats what the controller holds), then polls every ``poll_s``
 until the controller acknowledges that number and is not moving. A fault during the move
-ends it at once; an acknowledgement of another number means another client commanded the
-controller; after ``timeout_s`` the move has failed. On a timeout a stop is sent. Last,
-the measured joints must be within 1e-3 rad of the target. Every error is one
+ends it at once; a requested number read back that is not this driver's, or an
+acknowledgement of another number, means another client commanded the controller; after
+``timeout_s`` the move has failed. On a timeout a stop is sent. Last, the measured joints
+must be within 1e-3 rad of the target. Every error is one
 :class:`~cellcal.errors.DeviceError` line naming the robot and where it is.
 """
 
@@ -61,13 +62,17 @@ class ControllerState:
     """One reading of a controller. ``refusal``: why it cannot take a move now (None: it
     can); ``fault``: why a move under way has failed (None: it has not); ``moving``: the
     robot is not yet standing still at its last target; ``ack``: the last acknowledged
-    sequence number; ``text``: the reading in a few words, for messages."""
+    sequence number; ``text``: the reading in a few words, for messages; ``seq``: the
+    sequence number the controller holds as requested, where it can be read back (a
+    number this driver did not write is another client's), with ``seq_name`` its name."""
 
     refusal: str | None
     fault: str | None
     moving: bool
     ack: int
     text: str
+    seq: int | None = None
+    seq_name: str = "the sequence number"
 
 
 def one_line(text: str) -> str:
@@ -251,6 +256,11 @@ class HandshakeRobot(StopAndMeasureRobot):
             self._watch(state, before)
             if state.fault is not None:
                 raise self._error(state.fault)
+            if state.seq is not None and state.seq != seq:
+                raise self._error(
+                    f"another client wrote {state.seq_name} = {state.seq} (this driver wrote "
+                    f"{seq}): one client at a time"
+                )
             if state.ack not in (seq, before.ack):
                 raise self._error(
                     f"move interrupted: the controller acknowledged sequence {state.ack}, "

@@ -193,7 +193,7 @@ def test_another_client_and_wrong_credentials():
 
             thread = threading.Thread(target=intrude)
             thread.start()
-            with pytest.raises(DeviceError, match="another client set cc_seq = 4242"):
+            with pytest.raises(DeviceError, match="another client wrote cc_seq = 4242"):
                 r.move_joints(np.radians([40, -60, 60, 0, 30, 0]), 1.0)
             thread.join(5)
         server.auth.password = "changed"

@@ -302,7 +302,7 @@ class RwsTwin:
                  "taskstate": "started", "excstate": "started" if f.running else "stopped",
                  "active": "On", "motiontask": "TRUE"}]}})  # fmt: skip
         if path == "/rw/motionsystem/mechunits/ROB_1/jointtarget":
-            q = c.q if c.move is None else c._moving_q()
+            q = c.q_now()
             fields = {"_type": "ms-jointtarget", "_title": "ROB_1"}
             fields |= {f"rax_{i + 1}": f"{v:.6f}" for i, v in enumerate(q)}
             fields |= {f"eax_{x}": "9E+09" for x in "abcdef"}

@@ -62,7 +62,7 @@ class EkiTwin:
         c = self.controller
         with c.lock:
             c.step()
-            q = c.q if c.move is None else c._moving_q()
+            q = c.q_now()
             f = c.faults
             return EkiState(
                 seq=c.seq,

@@ -166,15 +166,17 @@ class KrcController:
         return self.read(key)
 
     def _axis_text(self) -> str:
-        q = self.q if self.move is None else self._moving_q()
+        q = self.q_now()
         parts = [f"A{i + 1} {_real(v)}" for i, v in enumerate(q)]
         parts += [f"E{i + 1} 0.0" for i in range(6)]
         return "{E6AXIS: " + ", ".join(parts) + "}"
 
     # ------------------------------------------------------------------ the loop
 
-    def _moving_q(self) -> Array:
-        assert self.move is not None
+    def q_now(self) -> Array:
+        """Where the axes are now (deg): on the way when a move runs."""
+        if self.move is None:
+            return self.q
         t = (time.monotonic() - self.move_started) / self.time_scale if self.time_scale else 1e9
         q, _ = self.move.at(t)
         return q
@@ -187,12 +189,12 @@ class KrcController:
         """Advance the loop to now."""
         if self.move is not None:
             if not self.faults.drives_on:  # braked where it is; resumes with the drives
-                self.q, self.move = self._moving_q().copy(), None
+                self.q, self.move = self.q_now().copy(), None
                 if self.on_move is not None:
                     self.on_move(np.radians(self.q))
                 return
             if self.stop_requested:
-                self._arrive(self._moving_q())
+                self._arrive(self.q_now())
                 return
             t = (time.monotonic() - self.move_started) / self.time_scale if self.time_scale else 1e9
             if self.move.done(t):
