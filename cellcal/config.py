@@ -452,14 +452,15 @@ def load_config(
 
 
 def relative_to(config: CellConfig, folder: Path, *, database: bool = True) -> CellConfig:
-    """Relative file paths in a configuration (a robot model file, a sensor's files, the
-    database) are relative to the configuration file's folder, not to where the command
-    runs."""
+    """Relative file paths in a configuration (a robot model file, a robot driver's or a
+    sensor's files, the database) are relative to the configuration file's folder, not to
+    where the command runs."""
     from cellcal.files.models import builtin_names
 
     robot = config.robot
     if robot.model not in builtin_names() and not Path(robot.model).is_absolute():
         robot = robot.model_copy(update={"model": str(folder / robot.model)})
+    robot = robot.relative_to(folder)
     storage = config.storage
     if database and not Path(storage.database).is_absolute():
         storage = storage.model_copy(update={"database": str(folder / storage.database)})

@@ -44,6 +44,11 @@ class RobotOptions(Strict):
             raise ValueError(f"speed {self.speed} exceeds max_speed {self.max_speed}")
         return self
 
+    def relative_to(self, folder: Path) -> RobotOptions:
+        """The options with the driver's relative file paths taken relative to ``folder``
+        (the configuration file's); a driver with files overrides it."""
+        return self
+
 
 class SensorOptions(Strict):
     """A ``[[sensor]]`` table every sensor driver shares: the sensor's name, kind and

@@ -86,6 +86,16 @@ class AbbRwsOptions(RobotOptions):
             raise ValueError(f"address {self.address!r}: http://host[:port] or https://…")
         return self
 
+    def relative_to(self, folder: Path) -> AbbRwsOptions:
+        """``credentials`` and ``tls_ca`` relative to the configuration's folder."""
+
+        def at(path: str | None) -> str | None:
+            return path if path is None or Path(path).is_absolute() else str(folder / path)
+
+        return self.model_copy(
+            update={"credentials": at(self.credentials), "tls_ca": at(self.tls_ca)}
+        )
+
     def version(self) -> int:
         return self.rws or (2 if self.address.startswith("https://") else 1)
 

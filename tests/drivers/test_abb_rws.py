@@ -232,3 +232,26 @@ def test_a_server_that_is_not_rws_is_one_line():
     finally:
         thread.join(5)
         listener.close()
+
+
+def test_a_copied_configuration_finds_its_credentials_beside_it(tmp_path: Path, monkeypatch):
+    """`credentials` and `tls_ca` written relative are the configuration folder's, from
+    whatever folder the command runs in."""
+    from cellcal.config import load_config
+
+    folder = tmp_path / "cell"
+    folder.mkdir()
+    text = (Path(__file__).resolve().parents[2] / "config" / "mock-cell-abb-rws.toml").read_text()
+    text = text.replace(
+        '# credentials = "/etc/cellcal/abb-rws.credentials"',
+        'credentials = "abb.credentials"\ntls_ca = "tls/omnicore.pem"',
+    )
+    (folder / "cell.toml").write_text(text)
+    (folder / "abb.credentials").write_text("cellcal:pw\n")
+    (folder / "abb.credentials").chmod(0o600)
+    monkeypatch.chdir(tmp_path)
+    robot = load_config(folder / "cell.toml").robot
+    assert isinstance(robot, AbbRwsOptions)
+    assert robot.credentials == str(folder.resolve() / "abb.credentials")
+    assert robot.tls_ca == str(folder.resolve() / "tls" / "omnicore.pem")
+    assert read_credentials(robot) == ("cellcal", "pw")
