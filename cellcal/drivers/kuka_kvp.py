@@ -13,7 +13,8 @@ transport:
   ``$STOPMESS`` (a stop message waiting for acknowledgement), ``$PRO_STATE1`` (the loop
   running: ``#P_ACTIVE``), ``$ROB_STOPPED``, and the loop's ``CC_SEQ``/``CC_ACK``: a
   ``CC_SEQ`` this driver did not write means another client commands the robot;
-* a move: ``CC_TARGET`` (E6AXIS text, degrees), ``CC_SPEED`` (1..100), then ``CC_SEQ``;
+* a move: ``CC_STOP = FALSE`` (a stale stop cleared), ``CC_TARGET`` (E6AXIS text,
+  degrees), ``CC_SPEED`` (1..100), then ``CC_SEQ``;
 * the measured joints: ``$AXIS_ACT_MEAS`` (the encoders, not the set-point);
 * a stop: ``CC_STOP = TRUE``.
 
@@ -268,6 +269,9 @@ class KukaKvpRobot(HandshakeRobot):
 
     def _send_move(self, target_deg: Array, speed: float, seq: int) -> None:
         o = self.options
+        # a stop written while the loop stood idle stays TRUE: it would brake this move (or,
+        # KRL interrupts firing on the edge, leave the next stop without effect)
+        self.write(o.stop_var, "FALSE")
         self.write(o.target_var, format_axes([float(v) for v in target_deg]))
         self.write(o.speed_var, str(max(1, min(100, round(speed * 100)))))
         self.write(o.seq_var, str(seq))

@@ -102,9 +102,11 @@ def test_moves_settles_and_reads_the_measured_joints():
             r.move_joints(np.radians(HOME), 1.0)
         writes = [(name, value) for f, name, value in server.controller.requests if f == 1]
         # target, speed, then the sequence that starts the move
-        assert [n for n, _ in writes[:3]] == ["CC_TARGET", "CC_SPEED", "CC_SEQ"]
-        assert writes[1][1] == "50" and writes[2][1] == "1" and writes[5][1] == "2"
-        assert parse_axes(writes[0][1], "CC_TARGET") == pytest.approx([10.5, -80.25, 85, 5, 30, 12])
+        # a stale stop cleared, the target, the speed, then the sequence that starts it
+        assert [n for n, _ in writes[:4]] == ["CC_STOP", "CC_TARGET", "CC_SPEED", "CC_SEQ"]
+        assert writes[0][1] == "FALSE" and writes[2][1] == "50" and writes[3][1] == "1"
+        assert writes[7][1] == "2"
+        assert parse_axes(writes[1][1], "CC_TARGET") == pytest.approx([10.5, -80.25, 85, 5, 30, 12])
     finally:
         server.stop()
 
