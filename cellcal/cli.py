@@ -99,6 +99,13 @@ COMMANDS: dict[str, tuple[str, str]] = {
         "cellcal.commands.campaign:campaign",
         "Start, control and watch campaigns in the cell service; list a database's.",
     ),
+    "check": (
+        "cellcal.commands.check:check",
+        "Check the robot against its current model between calibrations: a few poses "
+        "measured like a calibration's, their errors against limits from the model's own "
+        "uncertainty and earlier checks, a verdict (ok, warning, recalibrate) and its likely "
+        "cause.",
+    ),
     "compensate": (
         "cellcal.commands.compensate:compensate_command",
         "Joint targets that bring the real robot's target to intended points.",
@@ -123,7 +130,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     ),
     "models": (
         "cellcal.commands.models:models",
-        "List the built-in robot models (use the name with --model).",
+        "List the built-in robot models (use the name with --model); with --cell, the models "
+        "the cell has carried: since when, until when and why, and the checks since.",
     ),
     "plan": (
         "cellcal.commands.plan:plan",

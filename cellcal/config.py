@@ -22,6 +22,7 @@ from typing import Annotated, Any, Literal
 from pydantic import Field, PlainValidator, SerializeAsAny, ValidationError, model_validator
 from pydantic_core import PydanticCustomError
 
+from cellcal.check_config import CheckConfig
 from cellcal.device_options import Positive, RobotOptions, Seed, SensorOptions, Strict, Vec3
 from cellcal.errors import FileFormatError, UserError
 from cellcal.families import ROBOT, Role, default_driver, families, find, kinds
@@ -163,6 +164,7 @@ class CellConfig(Strict):
     campaign: CampaignConfig = Field(default_factory=CampaignConfig)
     storage: StorageConfig = Field(default_factory=StorageConfig)
     simulation: SimulationConfig = Field(default_factory=SimulationConfig)
+    check: CheckConfig = Field(default_factory=CheckConfig)
 
     @model_validator(mode="after")
     def _sensors(self) -> CellConfig:

@@ -4,11 +4,16 @@ cell changed after its calibration (``[simulation.change]``)."""
 
 from __future__ import annotations
 
+import itertools
 from typing import Annotated
 
-from pydantic import Field
+import numpy as np
+from pydantic import Field, model_validator
 
 from cellcal.device_options import Seed, Strict, Vec3
+
+#: the simulated arm's temperature at its calibration (°C)
+REFERENCE_C = 20.0
 
 
 class SimulatedFaults(Strict):
@@ -30,13 +35,37 @@ class SimulatedChange(Strict):
     calibrations should find. ``joint_offset_deg``: added to each joint's θ (one value a
     joint, or none: a joint's zero moved); ``base_shift_mm``: the robot's base moved in the
     cell (the sensors stay); ``link_mm``: a link length changed, by its parameter's name
-    (``a2``, ``d4``: mm added)."""
+    (``a2``, ``d4``: mm added); ``thermal_mm_per_c``: the arm's reach (the sum of its link
+    lengths) grows this much per °C above the calibration's 20 °C, each link in proportion
+    to its length, at the temperature ``temperature_c`` gives: ``[[t_s, c], ...]`` over the
+    campaign's clock (s from its start), linear between the points and held beyond them
+    (none: 20 °C)."""
 
     joint_offset_deg: list[Annotated[float, Field(ge=-10, le=10)]] = Field(default_factory=list)
     base_shift_mm: Vec3 = Field(default_factory=lambda: [0.0, 0.0, 0.0])
     link_mm: dict[
         Annotated[str, Field(pattern=r"^[ad][1-9][0-9]?$")], Annotated[float, Field(ge=-50, le=50)]
     ] = Field(default_factory=dict)
+    thermal_mm_per_c: Annotated[float, Field(ge=-1, le=1)] = 0.0
+    temperature_c: list[
+        Annotated[list[Annotated[float, Field(ge=-1e7, le=1e7)]], Field(min_length=2, max_length=2)]
+    ] = Field(default_factory=list, max_length=10000)
+
+    @model_validator(mode="after")
+    def _profile(self) -> SimulatedChange:
+        times = [t for t, _ in self.temperature_c]
+        if any(b <= a for a, b in itertools.pairwise(times)):
+            raise ValueError("temperature_c: [t_s, c] points in increasing t_s")
+        if any(not -40 <= c <= 100 for _, c in self.temperature_c):
+            raise ValueError("temperature_c: each c from -40 to 100 °C")
+        return self
+
+    def temperature_at(self, t_s: float) -> float:
+        """The simulated arm's temperature (°C) at ``t_s`` of the campaign's clock."""
+        if not self.temperature_c:
+            return REFERENCE_C
+        ts, cs = zip(*self.temperature_c, strict=True)
+        return float(np.interp(t_s, ts, cs))
 
 
 class SimulationConfig(Strict):

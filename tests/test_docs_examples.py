@@ -3,7 +3,8 @@
 Convention of the documents: a ```sh block holds commands that are run, line by line,
 and must succeed (exit 0); a ```console block is a transcript: its ``$ `` lines are run
 and a ``cellcal: refused: …`` (exit 3) or ``cellcal: error: …`` (exit 2) line shown under
-a command must be exactly what it prints. ```text blocks (commands for real devices, a
+a command must be exactly what it prints, as must a check's ``verdict: recalibrate`` (exit
+4, on stdout). ```text blocks (commands for real devices, a
 server that runs until stopped, configuration messages) are not run.
 
 Each document runs in its own scratch folder that sees the repository's ``cellcal`` and
@@ -70,6 +71,8 @@ SHARED = frozenset(
         "cellcal/data/paper_table4_station2.csv --method line --line-a P1,P2 --line-b P2,P3",
     }
 )
+#: A check's verdict that exits 4, shown under the command in a transcript.
+RECALIBRATE = "verdict: recalibrate"
 #: How long a document waits for another worker's run of a shared command, s.
 SHARED_WAIT_S = 600.0
 
@@ -114,7 +117,7 @@ def steps(doc: Path) -> list[Step]:
                 for after in lines[k + 1 :]:
                     if after.startswith("$ "):
                         break
-                    if after.startswith(("cellcal: refused: ", "cellcal: error: ")):
+                    if after.startswith(("cellcal: refused: ", "cellcal: error: ", RECALIBRATE)):
                         shown.append(after)
                 out.append(Step(where, line[2:].strip(), tuple(shown)))
     return out
@@ -191,8 +194,11 @@ def _check(step: Step, res: subprocess.CompletedProcess[str]) -> None:
     if not step.expect:
         assert res.returncode == 0, f"{step.where}: {step.command}\n{res.stderr[-2000:]}"
         return
-    code = 3 if step.expect[0].startswith("cellcal: refused") else 2
+    first = step.expect[0]
+    code = 3 if first.startswith("cellcal: refused") else 4 if first == RECALIBRATE else 2
     assert res.returncode == code, f"{step.where}: {step.command}\n{res.stderr[-2000:]}"
+    if code == 4:
+        said = res.stdout.strip().splitlines()
     for line in step.expect:
         assert line in said, f"{step.where}: {step.command}\nshown: {line}\nsaid: {said}"
 

@@ -28,7 +28,7 @@ from cellcal.calib.kinematics import target_kinematics
 from cellcal.calib.outliers import PointResidual, point_residuals
 from cellcal.calib.repeat_spread import RepeatSpread, repeat_spread
 from cellcal.calib.robot_model import RobotModel
-from cellcal.calib.validation import ErrorStats
+from cellcal.calib.validation import ErrorStats, Validation
 from cellcal.campaign.plan import CALIBRATION, VALIDATION
 from cellcal.errors import AcceptanceError, CampaignError
 from cellcal.files.models import builtin_models, calibrated_toml
@@ -45,6 +45,8 @@ from cellcal.store.results import (
 PAPER = {"other_method_mm": 0.436, "cl_inside_mm": 0.200, "cl_outside_mm": 0.323}
 #: Floor of a per-axis σ of a pose mean (mm), so that one quiet pose cannot dominate.
 SIGMA_FLOOR_MM = 1e-4
+#: How a campaign's model file says its validation was held out.
+VALIDATION_IN_CUBE = "the campaign's validation poses in the cube"
 #: A sensor that measured fewer calibration poses than this is not registered.
 MIN_REGISTRATION_POSES = 6
 
@@ -343,7 +345,12 @@ def analysis_of(
         condition_number=result.condition_number,
         identified=tuple(result.identified),
         unidentifiable=tuple(result.unidentifiable),
-        model_toml=calibrated_toml(result, None, f"campaign {campaign_id}", summary.points),
+        model_toml=calibrated_toml(
+            result,
+            _held_out(e_before, e_after, reg_val == "cube"),
+            f"campaign {campaign_id}",
+            summary.points,
+        ),
     )
     fused_rows = tuple(
         FusedRow(int(pose_id), f.sensors, f.xyz, f.cov, f.chi2)
@@ -354,6 +361,15 @@ def analysis_of(
         campaign_id, tuple(writes), calibration, fused_rows, summary.to_dict()
     )
     return summary, results
+
+
+def _held_out(e_before: Array, e_after: Array, inside: Array) -> Validation | None:
+    """The validation in the cube as the model file keeps it (a check's limits start from
+    it: ``calib/drift.py``); None without a validation pose there."""
+    if not inside.any():
+        return None
+    b, a = e_before[inside], e_after[inside]
+    return Validation(VALIDATION_IN_CUBE, ErrorStats.of(b), ErrorStats.of(a), b, a)
 
 
 def _register(

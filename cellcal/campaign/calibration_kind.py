@@ -20,6 +20,7 @@ from cellcal.errors import CampaignError, InputError
 if TYPE_CHECKING:
     from cellcal.calib.robot_model import RobotModel
     from cellcal.campaign.plan import Plan
+    from cellcal.store.database import Store
 
 
 def calibration_plan(config: CellConfig) -> tuple[Plan, RobotModel]:
@@ -70,6 +71,9 @@ class CalibrationKind:
 
     def read_options(self, given: Mapping[str, Any]) -> dict[str, Any]:
         return self.options({k: v for k, v in given.items() if v is not None})
+
+    def from_database(self, options: Mapping[str, Any], store: Store | None) -> dict[str, Any]:
+        return dict(options)
 
     def plan(self, config: CellConfig, options: Mapping[str, Any]) -> tuple[Plan, RobotModel]:
         return calibration_plan(config)

@@ -128,7 +128,7 @@ def build_devices(
     if mock:
         from cellcal.families import SimulatedCell
 
-        cell = SimulatedCell(config, nominal, seed, noise_stream)
+        cell = SimulatedCell(config, nominal, seed, noise_stream, clock)
     context = DeviceContext(clock, cell, report)
     time_scale = float(getattr(clock, "time_scale", 0.0))
     servers: list[Closeable] = []

@@ -208,6 +208,9 @@ class Iso9283Kind:
         cycles = given.get(CYCLE_COUNT.name)
         return iso_options(str(spec), CYCLES if cycles is None else int(cycles))
 
+    def from_database(self, options: Mapping[str, Any], store: Store | None) -> dict[str, Any]:
+        return dict(options)
+
     def plan(self, config: CellConfig, options: Mapping[str, Any]) -> tuple[Plan, RobotModel]:
         from cellcal.files.models import load_model
 

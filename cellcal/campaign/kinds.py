@@ -112,6 +112,12 @@ class CampaignKind(Protocol):
         with the files they name read here: what is sent to the service and stored."""
         ...
 
+    def from_database(self, options: Mapping[str, Any], store: Store | None) -> dict[str, Any]:
+        """Its options completed from the database the campaign goes into (``store``;
+        None: there is none yet) before they are checked: a check's current model when
+        none is given. The other kinds' come back unchanged."""
+        ...
+
     def plan(self, config: CellConfig, options: Mapping[str, Any]) -> tuple[Plan, RobotModel]: ...
 
     def created(self, options: Mapping[str, Any]) -> Sequence[tuple[str, str]]:
@@ -129,9 +135,10 @@ def all_kinds() -> dict[str, CampaignKind]:
     and analysis load when used —, for ``cellcal run`` builds its options from this
     table before it says its first line.)"""
     from cellcal.campaign.calibration_kind import CALIBRATION_KIND
+    from cellcal.campaign.check_kind import CHECK_KIND
     from cellcal.campaign.iso9283_kind import ISO9283_KIND
 
-    return {k.name: k for k in (CALIBRATION_KIND, ISO9283_KIND)}
+    return {k.name: k for k in (CALIBRATION_KIND, CHECK_KIND, ISO9283_KIND)}
 
 
 def kind_named(name: str) -> CampaignKind:

@@ -145,7 +145,7 @@ def _ball(rng: np.random.Generator, centre: Array, radius: float, n: int) -> Arr
     return out
 
 
-def _solve_group(
+def solve_group(
     model: RobotModel,
     home_q: Array,
     target_offset: Array,
@@ -280,7 +280,7 @@ def _planned(
     for role, region_name, pts, Rs in groups:
         if len(pts) == 0:
             continue
-        q, ok = _solve_group(model, home_q, target_offset, R0, pts, Rs)
+        q, ok = solve_group(model, home_q, target_offset, R0, pts, Rs)
         for p, qi, good in zip(pts, q, ok, strict=True):
             in_box = bool(np.all(p >= lo_box) and np.all(p <= hi_box))
             if not in_box:

@@ -211,7 +211,8 @@ def plan_campaign(
     config: CellConfig, kind: str = DEFAULT_KIND, options: Mapping[str, Any] | None = None
 ) -> tuple[Plan, dict[str, Any]]:
     """A campaign's plan (pure; refused when it cannot work) and its kind's options
-    checked, for :func:`queue_campaign`."""
+    checked (completed from the database first: ``CampaignKind.from_database``), for
+    :func:`queue_campaign`."""
     k = kind_named(kind)
     checked = k.options(options or {})
     return k.plan(config, checked)[0], checked
@@ -240,7 +241,7 @@ def start_campaign(
     the campaign runs on and leaves open; by default it builds and closes its own."""
     config = with_seed(config, seed)
     k = kind_named(kind)
-    checked = k.options(options or {})
+    checked = k.options(_completed(k, options or {}, db_path))
     plan, nominal = k.plan(config, checked)
     c = StoredCampaign(k, checked, config, plan, nominal)
     if clock is None:
@@ -283,6 +284,19 @@ def start_campaign(
             raise
         finally:
             store.close()
+
+
+def _completed(k: CampaignKind, options: Mapping[str, Any], db_path: str) -> dict[str, Any]:
+    """The kind's options completed from the database the campaign goes into (a check's
+    current model), read-only; without a file yet (or the empty one a run lock leaves),
+    from none."""
+    if not Path(db_path).is_file() or Path(db_path).stat().st_size == 0:
+        return k.from_database(options, None)
+    store = Store(db_path, readonly=True)
+    try:
+        return k.from_database(options, store)
+    finally:
+        store.close()
 
 
 def stored_campaign(store: Store, campaign_id: int) -> StoredCampaign:
@@ -336,6 +350,7 @@ def _create(
         dwell_s=config.campaign.dwell_s,
         plan_digest=plan.digest,
         status=status,
+        kind=kind.name,
     )
     if plan.limits_deg:  # what a resumed campaign must keep
         store.add_event(campaign_id, LIMITS_EVENT, limits_record(plan.limits_deg), None)

@@ -26,7 +26,8 @@ from cellcal.errors import AcceptanceError, FileFormatError, InputError
 from cellcal.files.models import LoadedModel, load_model, write_atomically
 from cellcal.files.outputs import check_output_file
 from cellcal.files.targets import Targets, read_targets
-from cellcal.files.text import read_toml
+from cellcal.files.text import read_text, read_toml
+from cellcal.store.schema import model_digest
 
 #: How many failed targets a refusal names.
 NAMED = 5
@@ -187,6 +188,9 @@ def compensate_command(
     write_atomically(out_path, _csv(targets, comp))
     summary = {
         "out": out_path,
+        # the model used, by the name a cell's database knows it by (cellcal models --cell)
+        "model": str(Path(model_spec).resolve()) if Path(model_spec).is_file() else model_spec,
+        "model_digest": model_digest(read_text(model_spec, "a calibrated model")),
         "n_targets": len(p),
         "frame": frame,
         "orientation": "given"
@@ -204,3 +208,4 @@ def compensate_command(
         f"{summary['rms_correction_mm']:.4f} mm, max {summary['max_correction_mm']:.4f} mm "
         f"(orientation {summary['orientation']})"
     )
+    click.echo(f"model: {summary['model']}, digest {summary['model_digest']}")

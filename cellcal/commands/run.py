@@ -463,6 +463,11 @@ def run_kind(a: CampaignRun) -> None:
         finally:
             store.close()
     if outcome.summary is None:  # another kind's result: its own output
+        if outcome.kind == "check":
+            from cellcal.commands.check import print_check
+
+            print_check(outcome, folder, a.as_json)
+            return
         from cellcal.commands.iso9283 import print_outcome
 
         print_outcome(outcome, folder, a.as_json)

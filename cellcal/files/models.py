@@ -8,6 +8,7 @@ the same folder, renamed over the target only once it is complete.
 
 from __future__ import annotations
 
+import math
 import tomllib
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -20,6 +21,8 @@ import numpy as np
 import tomli_w
 
 from cellcal import __version__
+from cellcal.calib.drift import ModelUncertainty
+from cellcal.calib.error_model import parameter_specs
 from cellcal.calib.geometry import Array, so3_log
 from cellcal.calib.identification import CalibrationResult
 from cellcal.calib.outliers import PointResidual, point_residuals
@@ -187,6 +190,23 @@ def _clean(value: Any) -> Any:
     return plain(drop_none(value), str)
 
 
+def _covariance_document(result: CalibrationResult) -> dict[str, Any] | None:
+    """The fit's a-posteriori covariance of the parameters it identified (mm, deg; the
+    sensor frame's rotation about ``pivot_mm``, in the sensor frame), from which a check
+    predicts how well the model should match new poses (``calib/drift.py``); None when
+    the fit has none."""
+    cov, specs = result.covariance, result.covariance_specs
+    if cov is None or not specs or not np.isfinite(cov).all():
+        return None
+    scale = np.array([math.degrees(1.0) if s.is_angle else 1.0 for s in specs])
+    pivot = result.pivots[0] if result.pivots is not None else np.zeros(3)
+    return {
+        "parameters": [s.name for s in specs],
+        "matrix": cov * np.outer(scale, scale),
+        "pivot_mm": pivot,
+    }
+
+
 def calibrated_document(
     result: CalibrationResult,
     validation: Validation | None,
@@ -245,6 +265,7 @@ def calibrated_document(
             "correlated": [list(c) for c in result.identifiability.correlated],
             "warnings": list(result.warnings),
             "accepted_despite": list(result.accepted_despite),
+            "covariance": _covariance_document(result),
         },
         "point": [
             p.as_dict()
@@ -297,3 +318,48 @@ def write_calibrated(
     points: Sequence[PointResidual] = (),
 ) -> None:
     write_atomically(path, calibrated_toml(result, validation, data_path, points))
+
+
+def model_uncertainty(text: str, label: str) -> ModelUncertainty:
+    """What a calibrated model's text says of its own uncertainty (``[fit]`` and
+    ``[fit.covariance]``): refused in one line for a model without it (not calibrated,
+    or written by an earlier cellcal, which did not store the covariance)."""
+    loaded = model_from_text(text, label)
+    fit = tomllib.loads(text).get("fit", {})
+    cov = fit.get("covariance") if isinstance(fit, dict) else None
+    if not loaded.calibrated or not isinstance(cov, dict):
+        raise FileFormatError(
+            f"{label}: no covariance of its parameters ([fit.covariance]; a model "
+            "calibrated by an earlier cellcal has none): a check cannot compute its "
+            "limits; recalibrate"
+        )
+    if loaded.targets or loaded.sessions:
+        raise FileFormatError(
+            f"{label}: a model of several targets or sensor set-ups; a check compares with "
+            "a model of one target and one sensor frame"
+        )
+    specs = {s.name: s for s in parameter_specs(loaded.model)}
+    try:
+        names = [str(n) for n in cov["parameters"]]
+        chosen = tuple(specs[n] for n in names)
+        matrix = np.array(cov["matrix"], dtype=np.float64)
+        pivot = np.array(cov["pivot_mm"], dtype=np.float64)
+        n, dof, rms_after = int(fit["n_points"]), int(fit["dof"]), float(fit["rms_after_mm"])
+    except (KeyError, TypeError, ValueError) as exc:
+        raise FileFormatError(f"{label}: a damaged [fit.covariance] ({exc})") from None
+    P = len(chosen)
+    ok = matrix.shape == (P, P) and pivot.shape == (3,) and dof > 0 and n > 0
+    if not ok or not (np.isfinite(matrix).all() and np.isfinite(pivot).all()):
+        raise FileFormatError(
+            f"{label}: [fit.covariance] must be a finite {P}×{P} matrix with pivot_mm, "
+            "and [fit] n_points and dof positive"
+        )
+    scale = np.array([math.radians(1.0) if s.is_angle else 1.0 for s in chosen])
+    noise = rms_after * math.sqrt(3 * n / dof)
+    held_out = tomllib.loads(text).get("validation", {})
+    validation = held_out.get("after_rms_mm") if isinstance(held_out, dict) else None
+    if not isinstance(validation, int | float) or not math.isfinite(validation):
+        validation = None
+    return ModelUncertainty(
+        chosen, matrix * np.outer(scale, scale), pivot, noise, validation and float(validation)
+    )

@@ -83,6 +83,16 @@ def changed_model(model: RobotModel, change: SimulatedChange) -> RobotModel:
     return model.with_joints(tuple(joints))
 
 
+def grown_model(model: RobotModel, reach_mm: float) -> RobotModel:
+    """``model`` with its reach (the sum of its link lengths |a| + |d|) grown by
+    ``reach_mm``, each length in proportion to its own (thermal growth)."""
+    reach = sum(abs(j.a) + abs(j.d) for j in model.joints)
+    if reach_mm == 0 or reach == 0:
+        return model
+    k = 1.0 + reach_mm / reach
+    return model.with_joints(tuple(replace(j, a=j.a * k, d=j.d * k) for j in model.joints))
+
+
 def random_cell(
     nominal: RobotModel,
     rng: np.random.Generator,

@@ -34,10 +34,12 @@ from scipy.spatial.transform import Rotation
 from cellcal.calib.geometry import Array, invert
 from cellcal.calib.kinematics import target_kinematics
 from cellcal.calib.robot_model import RobotModel
+from cellcal.clock import Clock
 from cellcal.config import CellConfig
 from cellcal.device_options import SensorOptions
 from cellcal.families import find
-from cellcal.mocks.robot_truth import changed_model, perturbed_model
+from cellcal.mocks.robot_truth import changed_model, grown_model, perturbed_model
+from cellcal.simulation_config import REFERENCE_C
 
 
 @dataclass(frozen=True)
@@ -71,6 +73,7 @@ class SimulatedCell:
         nominal: RobotModel,
         seed: int | None = None,
         noise_stream: int = 0,
+        clock: Clock | None = None,
     ) -> None:
         sim = config.simulation
         self.faults = sim.faults  # what the twins inject (soaks)
@@ -82,6 +85,8 @@ class SimulatedCell:
             nominal, rng, length_mm=sim.length_error_mm, angle_deg=sim.angle_error_deg
         )
         self.model = changed_model(self.model_at_calibration, sim.change)
+        self.change = sim.change
+        self.clock = clock  # the campaign's: the temperature profile runs on it
         self.sensors: dict[str, SensorTruth] = {}
         shift = np.eye(4)
         shift[:3, 3] = -np.asarray(sim.change.base_shift_mm, dtype=np.float64)
@@ -186,11 +191,22 @@ class SimulatedCell:
         """The source a protocol-level mock of ``sensor`` serves."""
         return CellTarget(self, sensor)
 
+    def model_now(self) -> RobotModel:
+        """The robot's geometry now: after its change, grown with the temperature its
+        profile gives at the campaign clock's reading (``[simulation.change]``)."""
+        c = self.change
+        if c.thermal_mm_per_c == 0 or not c.temperature_c:
+            return self.model
+        t = self.clock.now() if self.clock is not None else 0.0
+        return grown_model(self.model, c.thermal_mm_per_c * (c.temperature_at(t) - REFERENCE_C))
+
     def true_position(self, sensor: str, q: Array | None = None) -> Array:
-        """Noise-free target position of ``sensor`` in its frame (mm)."""
+        """Noise-free target position of ``sensor`` in its frame (mm), the robot's
+        geometry as it is now (:meth:`model_now`)."""
         s = self.sensors[sensor]
         qq = self.q if q is None else q
-        p = target_kinematics(self.model, np.atleast_2d(qq), s.target_offset, jacobian=False).p
+        model = self.model_now()
+        p = target_kinematics(model, np.atleast_2d(qq), s.target_offset, jacobian=False).p
         out: Array = p @ s.T_sensor_base[:3, :3].T + s.T_sensor_base[:3, 3]
         return out if q is not None and np.ndim(q) == 2 else out[0]
 

@@ -31,6 +31,7 @@ from cellcal.errors import CellcalError
 from cellcal.files.models import load_model
 from cellcal.store.air import AirRange
 from cellcal.store.database import PoseData, Store
+from cellcal.store.validity import CheckRow, ModelRow
 
 #: Registration methods the comparison runs (the paper's Table 4, with the line method).
 METHODS = ("svd", "quaternion", "rodrigues", "small-angle", "three-point", "line")
@@ -82,6 +83,16 @@ class MethodComparison:
 
 
 @dataclass(frozen=True)
+class DriftHistory:
+    """The model a report is about (the one a calibration made, or the one a check
+    compared with; None: a file none of the database's) and every check of it so far,
+    oldest first (a check's report: up to itself)."""
+
+    model: ModelRow | None
+    checks: tuple[CheckRow, ...]
+
+
+@dataclass(frozen=True)
 class ReportData:
     campaign_id: int
     facts: dict[str, Any]
@@ -97,6 +108,8 @@ class ReportData:
     retries: dict[str, int]
     #: the air the sensors that report it measured in (an emScon tracker's meteo)
     air: tuple[AirRange, ...] = ()
+    #: the model's checks (a calibration's, a check's; None for an ISO 9283 test)
+    drift: DriftHistory | None = None
 
 
 def _state(doc: dict[str, Any]) -> State:
@@ -172,6 +185,21 @@ def _registration_residuals(
     return tuple(out)
 
 
+def drift_history(store: Store, campaign_id: int, summary: dict[str, Any] | None) -> DriftHistory:
+    """The model campaign ``campaign_id`` made (a calibration) or checked (a check), and
+    its checks so far: by the model's digest, so a model given as a file has its own."""
+    if summary is not None and summary.get("kind") == "check":
+        model_id, digest = summary.get("model_id"), str(summary.get("model_digest"))
+        model = store.model(int(model_id)) if isinstance(model_id, int) else None
+        checks = [c for c in store.checks() if c.model_digest == digest]
+        checks = [c for c in checks if c.campaign_id <= campaign_id]
+        return DriftHistory(model, tuple(checks))
+    model = store.model_of_campaign(campaign_id)
+    if model is None:
+        return DriftHistory(None, ())
+    return DriftHistory(model, tuple(c for c in store.checks() if c.model_digest == model.digest))
+
+
 def report_data(
     store: Store, campaign_id: int, facts: dict[str, Any], *, methods: bool = False
 ) -> ReportData:
@@ -182,6 +210,7 @@ def report_data(
     events = store.event_rows(campaign_id)
     retries = store.retries_by_sensor(campaign_id)
     air = store.air_ranges(campaign_id)
+    drift = None if facts.get("iso9283") else drift_history(store, campaign_id, summary)
     empty = np.zeros((0, 3))
     if summary is None or model_toml is None:
         return ReportData(
@@ -198,6 +227,7 @@ def report_data(
             events,
             retries,
             air,
+            drift,
         )
     doc = tomllib.loads(model_toml)
     state = _state(doc)
@@ -264,4 +294,5 @@ def report_data(
         events=events,
         retries=retries,
         air=air,
+        drift=drift,
     )

@@ -14,6 +14,7 @@ from collections.abc import Sequence
 import matplotlib as mpl
 import numpy as np
 from matplotlib.figure import Figure
+from matplotlib.ticker import FormatStrFormatter, LogLocator, NullFormatter
 
 from cellcal.calib.geometry import Array
 from cellcal.reports.data import (
@@ -179,3 +180,45 @@ def methods(rows: Sequence[MethodComparison], salt: str) -> str:
     ax.legend(frameon=False, fontsize=8)
     ax.grid(alpha=0.3, axis="y")
     return _svg(fig, f"{salt}-methods")
+
+
+VERDICT_COLOURS = {"ok": AFTER, "warning": "#d08c00", "recalibrate": BEFORE}
+
+
+def control_chart(
+    days: Array,
+    rms: Array,
+    warning: Array,
+    limit: Array,
+    verdicts: Sequence[str],
+    trend: tuple[float, float] | None,
+    salt: str,
+    *,
+    mark: int | None = None,
+) -> str:
+    """The checks of one model: each one's RMS error against its warning and
+    recalibration limits, over the days since the model became valid; ``trend`` (slope
+    mm/day, intercept mm) drawn over the checks' span; ``mark``: this report's check."""
+    fig = _figure(7.0, 3.2)
+    ax = fig.add_subplot()
+    ax.step(days, limit, where="post", color=BEFORE, lw=1, label="recalibrate limit")
+    ax.step(days, warning, where="post", color="#d08c00", lw=1, ls="--", label="warning limit")
+    for verdict, colour in VERDICT_COLOURS.items():
+        keep = np.array([v == verdict for v in verdicts], dtype=bool)
+        if keep.any():
+            ax.plot(days[keep], rms[keep], "o", ms=6, color=colour, label=f"check: {verdict}")
+    if mark is not None:
+        ax.plot(days[mark], rms[mark], "o", ms=12, mfc="none", mec="#222", label="this check")
+    if trend is not None:
+        x = np.array([days.min(), days.max()])
+        ax.plot(x, trend[1] + trend[0] * x, color=PAPER, lw=1, ls=":", label="trend (ok checks)")
+    ax.set_xlabel("days since the model became valid")
+    ax.set_ylabel("RMS error (mm)")
+    ax.set_yscale("log")
+    ax.yaxis.set_major_locator(LogLocator(subs=(1.0, 2.0, 5.0)))
+    ax.yaxis.set_major_formatter(FormatStrFormatter("%g"))
+    ax.yaxis.set_minor_formatter(NullFormatter())
+    ax.set_title("checks of the model")
+    ax.legend(frameon=False, fontsize=8, loc="upper left")
+    ax.grid(alpha=0.3, which="both")
+    return _svg(fig, salt)

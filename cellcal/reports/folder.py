@@ -257,7 +257,13 @@ def write_report(
         "summary.json": json.dumps({**facts, "summary": summary}, indent=2) + "\n",
         "poses.csv": poses_csv(data),
     }
+    check = summary is not None and summary.get("kind") == "check"
+    if check:
+        facts["plan"] = f"{row.n_poses} check poses in the cube"
     for sensor in sorted(data.mean):
+        if check:
+            files[f"measurements-{sensor}.csv"] = measurements_csv(data, sensor, "check")
+            continue
         if iso:  # every visit; there are no calibration or validation poses
             files[f"measurements-{sensor}.csv"] = iso_csv(store, cid, data, sensor, summary)
             continue

@@ -3,17 +3,21 @@ script, nothing fetched), readable offline and fit to mail or file."""
 
 from __future__ import annotations
 
-import html
 import math
 from collections import Counter
-from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
 
 from cellcal.files.models import TARGET_OFFSET_KINDS
 from cellcal.reports import figures as figs
+from cellcal.reports.checks_html import check_section, history_section
 from cellcal.reports.data import ReportData
+from cellcal.reports.html_parts import esc as _e
+from cellcal.reports.html_parts import figure_html as _figure
+from cellcal.reports.html_parts import mm_text as _mm
+from cellcal.reports.html_parts import table as _table
+from cellcal.reports.iso_html import iso9283_section as _iso9283
 from cellcal.store.air import AirRange
 from cellcal.store.devices import description_of
 
@@ -28,34 +32,6 @@ text-align:right;font-variant-numeric:tabular-nums}th{background:#f4f4f4}
 td.l,th.l{text-align:left}.verdict{font-size:1.3em}.bad{color:#b00}.note{color:#555;max-width:60em}
 figure{margin:1em 0}svg{max-width:100%;height:auto}
 """
-
-
-def _e(v: object) -> str:
-    return html.escape(str(v))
-
-
-def _mm(v: float | None, digits: int = 4) -> str:
-    return "—" if v is None or not math.isfinite(v) else f"{v:.{digits}f}"
-
-
-def _table(
-    head: Sequence[str], rows: Sequence[Sequence[object]], left: int = 1, ident: str = ""
-) -> str:
-    def cell(tag: str, k: int, v: object) -> str:
-        cls = ' class="l"' if k < left else ""
-        return f"<{tag}{cls}>{_e(v)}</{tag}>"
-
-    h = "".join(cell("th", k, v) for k, v in enumerate(head))
-    body = "".join(
-        "<tr>" + "".join(cell("td", k, v) for k, v in enumerate(r)) + "</tr>" for r in rows
-    )
-    head_row = f"<tr>{h}</tr>" if any(head) else ""
-    tag = f'<table id="{_e(ident)}">' if ident else "<table>"
-    return f"{tag}{head_row}{body}</table>"
-
-
-def _figure(svg: str, caption: str, ident: str) -> str:
-    return f'<figure id="{_e(ident)}">{svg}<figcaption>{_e(caption)}</figcaption></figure>'
 
 
 def _rms(e: np.ndarray) -> float:
@@ -371,7 +347,7 @@ def _campaign(d: ReportData, timeline: dict[str, Any]) -> str:
         ["sensors", ", ".join(f["sensors"])],
         ["mode", "mock (simulated cell)" if f["mock"] else "real devices"],
         ["cellcal", _versions(f)],
-        ["test poses" if f.get("iso9283") else "calibration poses", f.get("plan", "")],
+        [_poses_label(d), f.get("plan", "")],
         ["poses planned / stored", f"{f['n_poses']} / {f['poses_stored']}"],
         ["samples per pose", f["samples_per_pose"]],
         ["dwell", f"{f['dwell_s']:g} s"],
@@ -394,71 +370,18 @@ def _campaign(d: ReportData, timeline: dict[str, Any]) -> str:
     return "".join(parts)
 
 
-def _xyz(v: Sequence[float]) -> list[str]:
-    return [_mm(float(x)) for x in v]
-
-
-def _iso9283(s: dict[str, Any]) -> str:
-    """An ISO 9283 test: AP and RP of each point before and after calibration, then per
-    stage the commanded points, barycentres, AP components, l̄, S_l and RP."""
-    iso = s["iso9283"]
-    stages = list(iso)
-    points = [p["point"] for p in iso[stages[0]]["points"]]
-    rows = []
-    for k, name in enumerate(points):
-        row: list[object] = [name]
-        row += [_mm(iso[st]["points"][k]["ap_mm"]) for st in stages]
-        row += [_mm(iso[st]["points"][k]["rp_mm"]) for st in stages]
-        rows.append(row)
-    head = ["point", *(f"AP {st}" for st in stages), *(f"RP {st}" for st in stages)]
-    sources = "; ".join(f"{st}: joints from the {iso[st]['joints_from']}" for st in stages)
-    n = iso[stages[0]]["points"][0]["n"]
-    reference = s.get("reference_sensor")
-    parts = [
-        "<h2>ISO 9283 pose accuracy (AP) and repeatability (RP), mm</h2>",
-        f"<p>{n} cycles through the standard's five points P1…P5; {_e(sources)}. "
-        "Attained positions: the "
-        + (f"{_e(reference)}'s" if reference else "reference sensor's")
-        + " mean at each visit, in the calibrated model's base frame. AP = ‖x̄ − c‖ "
-        "(x̄ the barycentre of the attained positions, c the commanded point), "
-        "RP = l̄ + 3·S_l (ISO 9283, 7.2.1 and 7.2.2); position only. Every visit (stage, "
-        "point, cycle, commanded point, joints, the sensor's mean and the attained "
-        "position) is in measurements-&lt;sensor&gt;.csv, at full precision.</p>",
-        _table(head, rows, ident="iso-summary"),
-        "<h3>Commanded points (robot base frame, mm)</h3>",
-        _table(
-            ["point", "x", "y", "z"],
-            [[p["point"], *_xyz(p["commanded_mm"])] for p in iso[stages[0]]["points"]],
-            ident="iso-commanded",
-        ),
-    ]
-    for st in stages:
-        parts.append(
-            f"<h3>{_e(st)}: joints from the {_e(iso[st]['joints_from'])} "
-            f"(barycentre x̄ and AP components x̄ − c, mm)</h3>"
-        )
-        detail = [
-            [
-                p["point"],
-                *_xyz(p["barycentre_mm"]),
-                *_xyz(p["ap_xyz_mm"]),
-                _mm(p["ap_mm"]),
-                _mm(p["l_mean_mm"]),
-                _mm(p["s_l_mm"]),
-                _mm(p["rp_mm"]),
-                p["n"],
-            ]
-            for p in iso[st]["points"]
-        ]
-        head = ["point", "x̄", "ȳ", "z̄", "APx", "APy", "APz", "AP", "l̄", "S_l", "RP", "n"]
-        parts.append(_table(head, detail, ident=st))
-    return "".join(parts)
+def _poses_label(d: ReportData) -> str:
+    if d.summary is not None and d.summary.get("kind") == "check":
+        return "check poses"
+    return "test poses" if d.facts.get("iso9283") else "calibration poses"
 
 
 def _intro(d: ReportData) -> tuple[str, str]:
     """The page's title and first line: what the campaign is."""
     f = d.facts
     where = f"{_e(', '.join(f['sensors']))}; database {_e(f['database'])}."
+    if d.summary is not None and d.summary.get("kind") == "check":
+        return f"cellcal check (campaign {d.campaign_id})", f"<p>{_e(f['model'])}, {where}</p>"
     if not f.get("iso9283"):
         return f"cellcal campaign {d.campaign_id}", f"<p>{_e(f['model'])}, {where}</p>"
     return (
@@ -474,6 +397,8 @@ def report_html(d: ReportData, timeline: dict[str, Any]) -> str:
     parts = [f"<h1>{_e(title)}</h1>", intro]
     if d.summary is not None and "iso9283" in d.summary:
         parts.append(_iso9283(d.summary))
+    elif d.summary is not None and d.summary.get("kind") == "check":
+        parts.append(check_section(d.summary, d.drift))
     elif d.summary is None or d.model is None:
         parts.append(
             '<p class="verdict bad">No analysis is stored for this campaign '
@@ -489,6 +414,8 @@ def report_html(d: ReportData, timeline: dict[str, Any]) -> str:
             _points(d, salt),
             _methods(d, salt),
         ]
+    if d.drift is not None and (d.drift.model is not None or d.drift.checks):
+        parts.append(history_section(d.drift, salt, d.campaign_id))
     parts.append(_campaign(d, timeline))
     return (
         '<!doctype html><html lang="en"><head><meta charset="utf-8">'

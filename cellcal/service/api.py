@@ -326,7 +326,8 @@ async def start(request: web.Request) -> web.Response:
         )
     try:
         # Planning takes a moment (inverse kinematics): off the loop, which keeps serving.
-        plan, options = await asyncio.to_thread(plan_campaign, config, req.kind, req.options)
+        given = kind_named(req.kind).from_database(req.options or {}, svc.store)  # a check's model
+        plan, options = await asyncio.to_thread(plan_campaign, config, req.kind, given)
         check_deadline(request)  # still wanted? (a client that gave up meanwhile: not)
         cid = queue_campaign(
             svc.store,

@@ -132,7 +132,8 @@ class PoseData:
 class Store(AnalysisTables, StatusReads, CampaignQueries, AirReads):
     """One campaign database file (the analysis's tables: :class:`AnalysisTables`; the
     status's reads: :class:`StatusReads`; the campaign list's, the report's and the
-    queue's reads: :class:`CampaignQueries`; the samples' air: :class:`AirReads`)."""
+    queue's reads: :class:`CampaignQueries`; the samples' air: :class:`AirReads`; the
+    models' validity and the checks: ``ValidityTables``, the analysis tables' base)."""
 
     def __init__(self, path: str | Path, *, readonly: bool = False) -> None:
         self.path = database_path(path)
@@ -226,12 +227,14 @@ class Store(AnalysisTables, StatusReads, CampaignQueries, AirReads):
         dwell_s: float,
         plan_digest: str,
         status: str = "running",
+        kind: str = "calibration",
     ) -> int:
         with self.transaction():
             cur = self.conn.execute(
                 """INSERT INTO campaigns (created, status, mock, seed, time_scale, model,
                 sensors, n_poses, samples_per_pose, dwell_s, plan_digest, config_path,
-                config_json, cellcal_version) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)""",
+                config_json, cellcal_version, kind)
+                VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)""",
                 (
                     utc_now(),
                     status,
@@ -247,6 +250,7 @@ class Store(AnalysisTables, StatusReads, CampaignQueries, AirReads):
                     config_path,
                     config_json,
                     __version__,
+                    kind,
                 ),
             )
             return int(cur.lastrowid or 0)

@@ -18,6 +18,7 @@ from cellcal import __version__
 from cellcal.calib.geometry import Array
 from cellcal.store.connection import loads
 from cellcal.store.schema import COV_COLUMNS, UPPER, utc_now
+from cellcal.store.validity import ValidityTables
 
 
 class _Transaction(Protocol):
@@ -81,7 +82,7 @@ class AnalysisResults:
     summary: dict[str, Any]
 
 
-class AnalysisTables:
+class AnalysisTables(ValidityTables):
     """Writes and reads the analysis's results: one analysis in one transaction (stored
     whole or not at all), a report alone in its own."""
 
@@ -91,8 +92,9 @@ class AnalysisTables:
     transaction: Callable[[], _Transaction]
 
     def save_analysis(self, results: AnalysisResults) -> None:
-        """Store an analysis's registrations, calibration, fused positions and report in
-        one transaction: a failure at any of them (or a crash) leaves none of them."""
+        """Store an analysis's registrations, calibration, fused positions, report and
+        model (the cell's current one from now) in one transaction: a failure at any of
+        them (or a crash) leaves none of them."""
         cid = results.campaign_id
         with self.transaction():
             for r in results.registrations:
@@ -101,6 +103,7 @@ class AnalysisTables:
             for f in results.fused:
                 self._insert_fused(cid, f)
             self._insert_report(cid, results.summary)
+            self.add_model(cid, results.calibration.model_toml)
 
     def _insert_registration(self, campaign_id: int, r: RegistrationRow) -> None:
         self.conn.execute(

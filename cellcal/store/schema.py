@@ -5,7 +5,9 @@ The version is SQLite's ``user_version``: schema 1 holds the acquisition (``camp
 ``calibrations``, ``reports``), schema 3 adds each sample's covariance and orientation,
 the covariance of each pose's mean, and the fused positions (``fused``), schema 4 the
 cellcal version that created each campaign and made each calibration
-(``cellcal_version``; NULL in rows an older cellcal wrote).
+(``cellcal_version``; NULL in rows an older cellcal wrote), schema 5 each sample's air,
+schema 6 each campaign's ``kind``, the models with their validity (``models``) and the
+checks between calibrations (``checks``).
 :data:`MIGRATIONS` [v] brings a file from version v to v + 1; ``cellcal.store.database``
 runs them when it opens an older file. The core tables
 and columns are public (``docs/database.md``) and are never renamed.
@@ -14,6 +16,7 @@ and columns are public (``docs/database.md``) and are never renamed.
 from __future__ import annotations
 
 import functools
+import hashlib
 import sqlite3
 from collections.abc import Callable, Iterable
 from datetime import UTC, datetime
@@ -23,7 +26,7 @@ import sqlite_utils
 
 from cellcal.calib.geometry import Array
 
-SCHEMA_VERSION = 5
+SCHEMA_VERSION = 6
 
 #: A symmetric 3×3 covariance (mm²) as six columns.
 COV_COLUMNS = ("cov_xx", "cov_xy", "cov_xz", "cov_yy", "cov_yz", "cov_zz")
@@ -205,12 +208,87 @@ def _schema_5(db: sqlite_utils.Database) -> None:
         db.execute(f"ALTER TABLE samples ADD COLUMN {column} REAL")
 
 
+def _schema_6(db: sqlite_utils.Database) -> None:
+    # what each campaign is (a calibration, a check, an ISO 9283 test): read from its
+    # ``kind`` event where an earlier cellcal stored one, an ISO 9283 test of the first
+    # kind from its ``iso9283`` event, a calibration otherwise
+    db.execute("ALTER TABLE campaigns ADD COLUMN kind TEXT NOT NULL DEFAULT 'calibration'")
+    db.execute(
+        """UPDATE campaigns SET kind = coalesce(
+            (SELECT json_extract(e.message, '$.kind') FROM events e
+             WHERE e.campaign_id = campaigns.id AND e.kind = 'kind'
+             AND json_valid(e.message) ORDER BY e.id LIMIT 1),
+            (SELECT 'iso9283' FROM events e
+             WHERE e.campaign_id = campaigns.id AND e.kind = 'iso9283' LIMIT 1),
+            'calibration')"""
+    )
+    # every calibrated model, valid from its calibration until a newer model or a failed
+    # check ends it (``ended_by`` says which); the models of earlier campaigns are added
+    # in their order, each ended by the next
+    db.execute(
+        """CREATE TABLE models (
+            id INTEGER PRIMARY KEY,
+            campaign_id INTEGER NOT NULL REFERENCES campaigns(id),
+            created TEXT NOT NULL,
+            valid_from TEXT NOT NULL,
+            valid_until TEXT,
+            ended_by TEXT,
+            model_toml TEXT NOT NULL,
+            digest TEXT NOT NULL
+        )"""
+    )
+    db.execute(
+        """CREATE TABLE checks (
+            id INTEGER PRIMARY KEY,
+            campaign_id INTEGER NOT NULL UNIQUE REFERENCES campaigns(id),
+            model_id INTEGER REFERENCES models(id),
+            model_digest TEXT NOT NULL,
+            created TEXT NOT NULL,
+            n_poses INTEGER NOT NULL,
+            rms_mm REAL NOT NULL,
+            max_mm REAL NOT NULL,
+            warning_mm REAL NOT NULL,
+            limit_mm REAL NOT NULL,
+            verdict TEXT NOT NULL,
+            cause TEXT,
+            errors_mm TEXT NOT NULL
+        )"""
+    )
+    rows = db.execute(
+        """SELECT c.campaign_id, c.created, c.model_toml FROM calibrations c
+        JOIN campaigns k ON k.id = c.campaign_id
+        WHERE k.status = 'complete' AND c.id = (SELECT max(id) FROM calibrations
+            WHERE campaign_id = c.campaign_id)
+        ORDER BY c.id"""
+    ).fetchall()
+    previous = None
+    for campaign_id, created, text in rows:
+        if previous is not None:
+            db.execute(
+                "UPDATE models SET valid_until = ?, ended_by = ? WHERE id = ?",
+                (created, f"model of campaign {campaign_id}", previous),
+            )
+        cur = db.execute(
+            """INSERT INTO models (campaign_id, created, valid_from, model_toml, digest)
+            VALUES (?, ?, ?, ?, ?)""",
+            (campaign_id, created, created, text, model_digest(text)),
+        )
+        previous = cur.lastrowid
+
+
+def model_digest(text: str) -> str:
+    """A model's fingerprint: the SHA-256 of its text (hex, 16 digits), which a check, a
+    compensation and a report name it by."""
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
 MIGRATIONS: tuple[Callable[[sqlite_utils.Database], None], ...] = (
     _schema_1,
     _schema_2,
     _schema_3,
     _schema_4,
     _schema_5,
+    _schema_6,
 )
 
 

@@ -61,18 +61,21 @@ def test_a_new_kinds_options_come_from_the_table() -> None:
     kinds: dict[str, CampaignKind] = {**all_kinds(), "drift": DriftKind()}
     command = _command(kinds)
     names = [p.name for p in command.params]
-    assert names == ["kind", "model", "cycles", "hours"]
+    assert names == ["kind", "model", "poses", "cycles", "hours"]
     help_ = {p.name: p.help for p in command.params if isinstance(p, click.Option)}
     assert help_["kind"] == (
-        "The campaign's kind: calibration, iso9283 (the ISO 9283 test: --model, --cycles), "
-        "or drift (the drift check: --hours, --cycles)."
+        "The campaign's kind: calibration, check (the check: --model, --poses), iso9283 "
+        "(the ISO 9283 test: --model, --cycles), or drift (the drift check: --hours, "
+        "--cycles)."
     )
     assert help_["hours"] == "--kind drift: hours between checks."
     assert help_["cycles"] == "--kind iso9283, drift: cycles (the standard: 30)."
     runner = CliRunner()
     result = runner.invoke(command, ["--kind", "drift", "--hours", "12"])
     assert result.exit_code == 0, result.output
-    assert result.output == "drift [('cycles', None), ('hours', 12), ('model', None)]\n"
+    assert result.output == (
+        "drift [('cycles', None), ('hours', 12), ('model', None), ('poses', None)]\n"
+    )
     result = runner.invoke(command, ["--hours", "73"])
     assert result.exit_code == 2 and "1<=x<=72" in result.output
     # An option of another kind is refused by the kind asked for, in one line.
@@ -86,18 +89,22 @@ def test_a_new_kinds_options_come_from_the_table() -> None:
 def test_run_and_campaign_start_take_the_tables_options(command: click.Command, sent: bool) -> None:
     """The real commands: every kind's options, with the help the kind gives them (in
     ``campaign start``, the one that says what is sent), after ``--kind``."""
-    declared = [o for k in all_kinds().values() for o in k.command_options]
+    # an option two kinds declare is one option, with the first one's help
+    declared: dict[str, tuple[KindOption, list[str]]] = {}
+    for k in all_kinds().values():
+        for o in k.command_options:
+            declared.setdefault(o.name, (o, []))[1].append(k.name)
     params = {p.name: p for p in command.params if isinstance(p, click.Option)}
     names = [p.name for p in command.params]
     at = names.index("kind")
-    assert names[at + 1 : at + 1 + len(declared)] == [o.name for o in declared]
-    for o in declared:
+    assert names[at + 1 : at + 1 + len(declared)] == list(declared)
+    for o, kinds in declared.values():
         text = o.sent if sent and o.sent else o.help
-        assert params[o.name].help == f"--kind iso9283: {text}"
+        assert params[o.name].help == f"--kind {', '.join(kinds)}: {text}"
     assert params["model"].help == (
-        "--kind iso9283: the calibrated model (its text is sent)."
+        "--kind check, iso9283: the calibrated model (its text is sent)."
         if sent
-        else "--kind iso9283: the calibrated model (model.toml)."
+        else "--kind check, iso9283: the calibrated model (model.toml)."
     )
     cycles = params["cycles"].type
     assert isinstance(cycles, click.IntRange) and (cycles.min, cycles.max) == (2, 1000)

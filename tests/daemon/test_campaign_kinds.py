@@ -87,7 +87,7 @@ def test_unknown_kinds_and_other_kinds_options_are_refused_in_one_line(tmp_path:
     with pytest.raises(InputError, match="takes no option 'seed'"):
         all_kinds()["iso9283"].options({"seed": 3})
     for args, words in (
-        (("run", "--mock", "--kind", "drift"), "kind 'drift': one of calibration, iso9283"),
+        (("run", "--mock", "--kind", "drift"), "kind 'drift': one of calibration, check, iso9283"),
         (("run", "--mock", "--model", "m.toml"), "a calibration takes no options"),
         (("run", "--mock", "--kind", "iso9283"), "give --model FILE"),
         (("run", "--resume", "1", "--kind", "iso9283"), "--resume takes the campaign's kind"),
