@@ -19,7 +19,14 @@ from cellcal.errors import CampaignError, InputError
 from cellcal.extras import require
 from cellcal.files.outputs import check_output_file
 from cellcal.files.text import read_text
-from cellcal.service.unitfile import UNIT_NAME, render, verify
+from cellcal.service.unitfile import (
+    CHECK_SERVICE,
+    CHECK_TIMER,
+    UNIT_NAME,
+    render,
+    render_check,
+    verify,
+)
 
 DEFAULT_CONFIG = "/etc/cellcal/cell.toml"
 UNIT_DIR = "/etc/systemd/system"
@@ -50,11 +57,24 @@ def service() -> None:
 @click.option("--dry-run", is_flag=True, help="Print the unit and check it; write nothing.")
 @click.option("--unit-dir", default=UNIT_DIR, show_default=True, help="Where the unit goes.")
 @click.option("--force", is_flag=True, help="Replace a cellcal.service that differs.")
+@click.option(
+    "--check-every",
+    "every",
+    help="Also a timer that queues a check between calibrations this often (a systemd "
+    "time span: 7d, 12h, 1w).",
+)
 def install(
-    config_path: str, venv: str | None, user: str, dry_run: bool, unit_dir: str, force: bool
+    config_path: str,
+    venv: str | None,
+    user: str,
+    dry_run: bool,
+    unit_dir: str,
+    force: bool,
+    every: str | None,
 ) -> int:
     """Render the unit for this installation, check it with systemd-analyze verify,
-    write it, and say the two commands that enable and start the service."""
+    write it, and say the two commands that enable and start the service; with
+    --check-every, also cellcal-check.timer and its service, which queue a check."""
     # what the unit runs: cellcal daemon, which writes each campaign's report
     require("the cell service", "aiohttp", "matplotlib")
     config = Path(config_path).resolve()
@@ -66,28 +86,25 @@ def install(
         raise InputError(f"--venv {prefix}: no bin/cellcal there (give cellcal's venv)")
     _reachable(prefix, user)
     text = render(prefix, config, user)
-    checked = verify(text)
+    timer = {} if every is None else render_check(prefix, config, user, every)
+    checked = verify(text, others=timer)
     if not checked.ok:
         raise CampaignError(f"the rendered unit does not pass: {checked.message}")
     if dry_run:
         click.echo(text, nl=False)
+        for name, other in timer.items():
+            click.echo(f"# --- {name}")
+            click.echo(other, nl=False)
         click.echo(f"# {checked.message}; --dry-run: nothing written", err=True)
         return 0
     _user_exists(user)
-    target = Path(unit_dir) / UNIT_NAME
-    check_output_file(target)  # a FIFO would hang the reading, a device take the writing
-    current = read_text(target, "a unit file") if target.exists() else None
-    if current is not None and current != text and not force:
-        raise CampaignError(f"{target} exists and differs (see --dry-run); --force replaces it")
-    unchanged = current == text
-    if not unchanged:
-        try:
-            target.write_text(text)
-        except PermissionError:
-            raise InputError(f"{target}: permission denied (run it with sudo)") from None
-        except FileNotFoundError:
-            raise InputError(f"{unit_dir}: no such folder (is systemd installed?)") from None
-    click.echo(f"{target}: {'unchanged' if unchanged else 'written'} ({checked.message})")
+    files = {UNIT_NAME: text, **timer}
+    targets = {Path(unit_dir) / name: body for name, body in files.items()}
+    said = {target: _differs(target, body, force) for target, body in targets.items()}
+    for target, body in targets.items():
+        if said[target] == "written":
+            _write(target, body, unit_dir)
+        click.echo(f"{target}: {said[target]} ({checked.message})")
     if pwd.getpwnam(user).pw_uid == 0:
         click.echo(f"the service runs as {user}: operators reach its socket with sudo")
     else:
@@ -98,7 +115,32 @@ def install(
     click.echo("to enable and start the service:")
     click.echo(f"  sudo systemctl daemon-reload && sudo systemctl enable {unit}")
     click.echo(f"  sudo systemctl start {UNIT_NAME}")
+    if timer:
+        timer_unit = CHECK_TIMER if str(where) in SEARCH_PATH else str(where / CHECK_TIMER)
+        if timer_unit != CHECK_TIMER:
+            click.echo(f"  sudo systemctl link {where / CHECK_SERVICE}")
+        click.echo(f"and the checks every {' '.join(every.split())}:")  # type: ignore[union-attr]
+        click.echo(f"  sudo systemctl enable --now {timer_unit}")
     return 0
+
+
+def _differs(target: Path, text: str, force: bool) -> str:
+    """``unchanged`` or ``written`` (to be): a file there that differs is refused
+    without ``--force``, before anything is written."""
+    check_output_file(target)  # a FIFO would hang the reading, a device take the writing
+    current = read_text(target, "a unit file") if target.exists() else None
+    if current is not None and current != text and not force:
+        raise CampaignError(f"{target} exists and differs (see --dry-run); --force replaces it")
+    return "unchanged" if current == text else "written"
+
+
+def _write(target: Path, text: str, unit_dir: str) -> None:
+    try:
+        target.write_text(text)
+    except PermissionError:
+        raise InputError(f"{target}: permission denied (run it with sudo)") from None
+    except FileNotFoundError:
+        raise InputError(f"{unit_dir}: no such folder (is systemd installed?)") from None
 
 
 def _reachable(prefix: Path, user: str) -> None:

@@ -19,6 +19,15 @@ from cellcal.errors import CampaignError
 
 UNIT_NAME = "cellcal.service"
 FIELDS = ("venv", "config", "user", "protect_home")
+#: the checks between calibrations on a schedule (``--check-every``): a timer that starts
+#: a one-shot service, which queues a check in the cell service
+CHECK_SERVICE, CHECK_TIMER = "cellcal-check.service", "cellcal-check.timer"
+CHECK_FIELDS = ("venv", "user", "protect_home", "every")
+#: a systemd time span: numbers with units (``7d``, ``12h 30min``, ``1w``)
+_SPAN = re.compile(
+    r"^(\d+\s*(us|usec|ms|msec|s|sec|second|seconds|m|min|minute|minutes|h|hr|hour|hours|"
+    r"d|day|days|w|week|weeks|M|month|months|y|year|years)\s*)+$"
+)
 #: What systemd accepts in a path it executes or passes on without quoting.
 _PLAIN = re.compile(r"^/[A-Za-z0-9._/+-]+$")
 
@@ -32,14 +41,14 @@ class Verification:
     message: str
 
 
-def template() -> str:
-    return (resources.files("cellcal") / "data" / UNIT_NAME).read_text()
+def template(name: str = UNIT_NAME) -> str:
+    return (resources.files("cellcal") / "data" / name).read_text()
 
 
-def render(venv: Path, config: Path, user: str) -> str:
-    """The unit for this installation. ``ProtectHome`` is ``read-only`` when the venv or
-    the configuration lives under /home or /root (the service must read them), else
-    ``yes``."""
+def _values(venv: Path, config: Path, user: str) -> dict[str, str]:
+    """The fields every unit of the installation is filled in with. ``ProtectHome`` is
+    ``read-only`` when the venv or the configuration lives under /home or /root (the
+    service must read them), else ``yes``."""
     for what, path in (("--venv", venv), ("--config", config)):
         if not _PLAIN.match(str(path)):
             raise CampaignError(
@@ -49,19 +58,41 @@ def render(venv: Path, config: Path, user: str) -> str:
     if not re.match(r"^[a-z_][a-z0-9_-]*$", user):
         raise CampaignError(f"--user {user!r}: not a system user name")
     home = any(str(p).startswith(("/home/", "/root/")) for p in (venv, config))
-    values = {
+    return {
         "venv": str(venv),
         "config": str(config),
         "user": user,
         "protect_home": "read-only" if home else "yes",
     }
-    text = _rendered_header(template(), venv, config, user)
-    for key in FIELDS:
+
+
+def _filled(text: str, values: dict[str, str], fields: tuple[str, ...]) -> str:
+    for key in fields:
         text = text.replace("${" + key + "}", values[key])
     left = re.findall(r"\$\{(\w+)\}", text)
     if left:
         raise CampaignError(f"the unit template has unknown fields: {', '.join(left)}")
     return text
+
+
+def render(venv: Path, config: Path, user: str) -> str:
+    """The unit for this installation."""
+    text = _rendered_header(template(), venv, config, user)
+    return _filled(text, _values(venv, config, user), FIELDS)
+
+
+def render_check(venv: Path, config: Path, user: str, every: str) -> dict[str, str]:
+    """The timer and the one-shot service that queue a check every ``every`` (a systemd
+    time span), by file name."""
+    span = " ".join(every.split())
+    if not _SPAN.match(span):
+        raise CampaignError(
+            f"--check-every {every!r}: a systemd time span, e.g. 7d, 12h, 1w, 2d 12h"
+        )
+    values = {**_values(venv, config, user), "every": span}
+    return {
+        name: _filled(template(name), values, CHECK_FIELDS) for name in (CHECK_SERVICE, CHECK_TIMER)
+    }
 
 
 def _rendered_header(text: str, venv: Path, config: Path, user: str) -> str:
@@ -75,17 +106,24 @@ def _rendered_header(text: str, venv: Path, config: Path, user: str) -> str:
     )
 
 
-def verify(text: str, tool: str | None = None) -> Verification:
-    """``systemd-analyze verify`` on the rendered unit, in a folder of its own."""
+def verify(
+    text: str, tool: str | None = None, others: dict[str, str] | None = None
+) -> Verification:
+    """``systemd-analyze verify`` on the rendered unit (and ``others``, the check's timer
+    and service, by file name), in a folder of their own."""
     exe = tool or shutil.which("systemd-analyze")
     if exe is None:
         return Verification(False, True, "systemd-analyze is not installed: not verified")
     with tempfile.TemporaryDirectory(prefix="cellcal-unit-") as folder:
         path = Path(folder) / UNIT_NAME
         path.write_text(text)
+        paths = [str(path)]
+        for name, other in (others or {}).items():
+            (Path(folder) / name).write_text(other)
+            paths.append(str(Path(folder) / name))
         try:
             done = subprocess.run(
-                [exe, "verify", "--man=no", str(path)],
+                [exe, "verify", "--man=no", *paths],
                 capture_output=True,
                 text=True,
                 timeout=60,

@@ -128,7 +128,8 @@ def test_calibrate_check_change_check_recalibrate_check(
     page = (tmp_path / "r1" / "index.html").read_text()
     assert "<h2>Checks of the model</h2>" in page
     table = page[page.index('id="drift-checks"') :]
-    assert table[: table.index("</table>")].count("<tr>") == 3  # its two checks under the header, the later model's not
+    # its two checks under the header, not the later model's
+    assert table[: table.index("</table>")].count("<tr>") == 3
 
     # a compensation names the model it used, by the digest the database knows it by
     model = tmp_path / "model.toml"
