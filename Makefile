@@ -8,7 +8,7 @@ STAMP  := $(VENV)/.installed
 
 # Every extra but the one PyGObject is in (it builds against Debian's packages: $(ARAVIS)
 # below installs them, then `.[all,dev]`): the suite needs them all (pyproject.toml).
-EXTRAS := dev,ur,modbus,abb,opencv,urdf,service,report
+EXTRAS := dev,ur,modbus,abb,opencv,urdf,service,report,fleet
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
@@ -39,6 +39,13 @@ TOOLS := $(VENV)/.service-tools
 $(TOOLS): $(STAMP)
 	@scripts/debs.sh "service test tools" "the browser and unit-file tests skip" \
 	  $(TOOLS_DEBS) && touch $@ || true
+
+# The fleet's tests start a PostgreSQL server of their own (initdb in a temporary folder,
+# a loopback port): Debian's postgresql. Same rules: one line when it cannot.
+PG_DEBS := postgresql
+PG := $(VENV)/.postgresql
+$(PG): $(STAMP)
+	@scripts/debs.sh "PostgreSQL" "the fleet tests skip" $(PG_DEBS) && touch $@ || true
 
 T4 := --src cellcal/data/paper_table4_station1.csv --dst cellcal/data/paper_table4_station2.csv
 
@@ -81,7 +88,7 @@ $(UR_CLIENT): | $(STAMP)
 # SPREAD, whose tests go out one by one; README's examples, then the slow tests (marker slow)
 # first. The 20 slowest are listed at the end.
 PARALLEL := -n auto --dist loadfile --no-loadscope-reorder
-unit: $(STAMP) $(UR_CLIENT) $(ARAVIS) $(TOOLS)
+unit: $(STAMP) $(UR_CLIENT) $(ARAVIS) $(TOOLS) $(PG)
 	$(BIN)/pytest -q $(PARALLEL) --durations=20
 
 test: lint types unit

@@ -119,6 +119,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
         "cellcal.commands.export:export",
         "Write a robot model in another program's format, or the program a controller runs.",
     ),
+    "fleet": (
+        "cellcal.commands.fleet:fleet",
+        "A cell's replication to the fleet's PostgreSQL, and the fleet's page.",
+    ),
     "iso9283": (
         "cellcal.commands.iso9283:iso9283",
         "ISO 9283 pose accuracy (AP) and repeatability (RP) at the standard's five points of "

@@ -27,6 +27,7 @@ from cellcal.device_options import Positive, RobotOptions, Seed, SensorOptions, 
 from cellcal.errors import FileFormatError, UserError
 from cellcal.families import ROBOT, Role, default_driver, families, find, kinds
 from cellcal.files.text import read_toml
+from cellcal.fleet_config import FleetConfig
 from cellcal.simulation_config import SimulationConfig
 
 
@@ -165,6 +166,7 @@ class CellConfig(Strict):
     storage: StorageConfig = Field(default_factory=StorageConfig)
     simulation: SimulationConfig = Field(default_factory=SimulationConfig)
     check: CheckConfig = Field(default_factory=CheckConfig)
+    fleet: FleetConfig | None = None
 
     @model_validator(mode="after")
     def _sensors(self) -> CellConfig:

@@ -33,6 +33,7 @@ PROVIDERS: dict[str, tuple[str, str]] = {
     "pinocchio": ("pin", "urdf"),  # URDF models: export urdf, --model robot.urdf
     "aiohttp": ("aiohttp", "service"),  # the cell service and its clients
     "matplotlib": ("matplotlib", "report"),  # the campaign report's figures
+    "psycopg": ("psycopg", "fleet"),  # the fleet's central PostgreSQL
 }
 
 

@@ -245,10 +245,15 @@ def test_export_urdf_writes_without_pinocchio(blocker, tmp_path):
             "cellcal: error: cellcal mock cameras needs opencv-contrib-python-headless: "
             'pip install "cellcal[opencv]"',
         ),
+        (
+            ("psycopg",),
+            ("fleet", "report", "--database", "postgresql://u@127.0.0.210:1/f", "--out", "{tmp}/f"),
+            'cellcal: error: cellcal fleet report needs psycopg: pip install "cellcal[fleet]"',
+        ),
     ],
     ids=[
         "ur", "modbus", "cameras", "run-report", "report", "urdf", "daemon", "campaign",
-        "service-install", "rig", "mock-cameras",
+        "service-install", "rig", "mock-cameras", "fleet",
     ],
 )  # fmt: skip
 def test_a_missing_extra_is_one_line_naming_it(blocker, tmp_path, blocked, args, line):
@@ -338,5 +343,5 @@ def test_every_optional_library_is_in_its_extra_and_not_in_the_core():
 
 def test_all_is_every_feature_extra():
     extras = _extras()
-    features = ("ur", "modbus", "abb", "opencv", "cameras", "urdf", "service", "report")
+    features = ("ur", "modbus", "abb", "opencv", "cameras", "urdf", "service", "report", "fleet")
     assert sorted(extras["all"]) == sorted({r for e in features for r in extras[e]})

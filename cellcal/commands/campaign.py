@@ -172,6 +172,13 @@ def _status_lines(snap: dict[str, Any]) -> list[str]:
         )
     devices = ", ".join(f"{k} {v['state']}" for k, v in snap["devices"].items())
     lines.append(f"devices: {devices}")
+    fleet = snap.get("fleet")
+    if fleet:
+        error = f"; last error: {fleet['last_error']}" if fleet.get("last_error") else ""
+        lines.append(
+            f"fleet: {fleet['waiting']} waiting, last sent {fleet.get('last_sent') or 'never'}"
+            + error
+        )
     queue = snap.get("queue") or []
     lines.append(f"queue: {', '.join(map(str, queue)) if queue else 'empty'}")
     if snap.get("paused_campaign") is not None:

@@ -215,7 +215,22 @@ def _snapshot(svc: Service) -> dict[str, Any]:
     """The control object's snapshot with the queue from the database."""
     snap = _with_kind(svc, svc.control.snapshot(recent=True))
     snap["queue"] = _queue(svc.store)
+    if svc.config.fleet is not None:
+        snap["fleet"] = _fleet(svc)
     return snap
+
+
+def _fleet(svc: Service) -> dict[str, Any]:
+    """The replication's lag as the outbox says it (``cellcal fleet status``'s figures)."""
+    p = svc.store.fleet_progress()
+    error = p.state.get("last_error") or None
+    return {
+        "server": p.state.get("server"),
+        "waiting": p.waiting,
+        "oldest_waiting": p.oldest_waiting,
+        "last_sent": p.state.get("last_sent"),
+        "last_error": error,
+    }
 
 
 def _with_kind(svc: Service, snap: dict[str, Any]) -> dict[str, Any]:

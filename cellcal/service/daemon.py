@@ -312,6 +312,12 @@ async def serve(opts: DaemonOptions) -> int:
                 robot_address=claimed_address(claim),
             )
             worker.start()
+            sender = None
+            if opts.config.fleet is not None:  # its own thread and connections
+                from cellcal.fleet_sync import Sender
+
+                sender = Sender(opts.db_path, opts.config.fleet, log.info)
+                sender.start()
             stopped = asyncio.Event()
             for signum in (signal.SIGTERM, signal.SIGINT):
                 args = (signum, control, notifier, stopped)
@@ -348,6 +354,8 @@ async def serve(opts: DaemonOptions) -> int:
                 log.error("the engine did not stop within %.0f s", STOP_GRACE_S)
                 code = 1
             _note_stopped(store, control)
+            if sender is not None:
+                sender.stop()
             for t in tasks:
                 t.cancel()
             hub.close()

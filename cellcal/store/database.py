@@ -12,7 +12,8 @@ Rules that make a SIGKILL at any moment harmless:
 * ``UNIQUE(campaign_id, idx)`` makes storing a pose twice impossible;
 * WAL journal with ``synchronous=FULL``: a committed pose survives a crash of the
   process and of the machine;
-* nothing is updated in place but a campaign's ``status`` and ``finished`` time; a
+* nothing is updated in place but a campaign's ``status`` and ``finished`` time, a
+  model's end (``valid_until``, ``ended_by``) and the fleet's marks of what it sent; a
   rerun is a new campaign.
 
 sqlite-utils opens the file and runs the migrations; the pose write goes through the

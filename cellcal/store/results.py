@@ -17,6 +17,7 @@ import numpy as np
 from cellcal import __version__
 from cellcal.calib.geometry import Array
 from cellcal.store.connection import loads
+from cellcal.store.outbox import OutboxTables
 from cellcal.store.schema import COV_COLUMNS, UPPER, utc_now
 from cellcal.store.validity import ValidityTables
 
@@ -82,7 +83,7 @@ class AnalysisResults:
     summary: dict[str, Any]
 
 
-class AnalysisTables(ValidityTables):
+class AnalysisTables(ValidityTables, OutboxTables):
     """Writes and reads the analysis's results: one analysis in one transaction (stored
     whole or not at all), a report alone in its own."""
 

@@ -7,7 +7,9 @@ the covariance of each pose's mean, and the fused positions (``fused``), schema 
 cellcal version that created each campaign and made each calibration
 (``cellcal_version``; NULL in rows an older cellcal wrote), schema 5 each sample's air,
 schema 6 each campaign's ``kind``, the models with their validity (``models``) and the
-checks between calibrations (``checks``).
+checks between calibrations (``checks``), schema 7 the fleet's outbox (``outbox``,
+filled by triggers: a campaign that ended, a model made or ended) and what was sent
+(``fleet_sent``, ``fleet_state``).
 :data:`MIGRATIONS` [v] brings a file from version v to v + 1; ``cellcal.store.database``
 runs them when it opens an older file. The core tables
 and columns are public (``docs/database.md``) and are never renamed.
@@ -26,7 +28,7 @@ import sqlite_utils
 
 from cellcal.calib.geometry import Array
 
-SCHEMA_VERSION = 6
+SCHEMA_VERSION = 7
 
 #: A symmetric 3×3 covariance (mm²) as six columns.
 COV_COLUMNS = ("cov_xx", "cov_xy", "cov_xz", "cov_yy", "cov_yz", "cov_zz")
@@ -276,6 +278,60 @@ def _schema_6(db: sqlite_utils.Database) -> None:
         previous = cur.lastrowid
 
 
+#: a campaign in one of these states is finished: it goes to the fleet whole
+FINISHED = ("complete", "refused", "aborted", "failed")
+
+
+def _schema_7(db: sqlite_utils.Database) -> None:
+    # The fleet's outbox: what to send to the central PostgreSQL, in order. Triggers fill
+    # it in the transaction that makes the change, whatever code makes it: a campaign
+    # that finished (sent whole: its rows, its analysis, its check), a model made or
+    # ended. The sender marks an entry sent once the server committed it.
+    db.execute(
+        """CREATE TABLE outbox (
+            id INTEGER PRIMARY KEY AUTOINCREMENT,
+            kind TEXT NOT NULL,
+            ref INTEGER NOT NULL,
+            created TEXT NOT NULL,
+            sent TEXT
+        )"""
+    )
+    db.execute("CREATE INDEX outbox_unsent ON outbox (id) WHERE sent IS NULL")
+    finished = ", ".join(f"'{s}'" for s in FINISHED)
+    now = "strftime('%Y-%m-%dT%H:%M:%fZ', 'now')"
+    db.execute(
+        f"""CREATE TRIGGER outbox_campaign AFTER UPDATE OF status ON campaigns
+        WHEN NEW.status IN ({finished}) AND OLD.status IS NOT NEW.status
+        BEGIN INSERT INTO outbox (kind, ref, created) VALUES ('campaign', NEW.id, {now}); END"""
+    )
+    db.execute(
+        f"""CREATE TRIGGER outbox_model AFTER INSERT ON models
+        BEGIN INSERT INTO outbox (kind, ref, created) VALUES ('model', NEW.id, {now}); END"""
+    )
+    db.execute(
+        f"""CREATE TRIGGER outbox_model_ended AFTER UPDATE OF valid_until ON models
+        BEGIN INSERT INTO outbox (kind, ref, created) VALUES ('model', NEW.id, {now}); END"""
+    )
+    # what is already there goes too, in the order it was made
+    db.execute(
+        f"""INSERT INTO outbox (kind, ref, created)
+        SELECT kind, ref, created FROM (
+            SELECT 'campaign' AS kind, id AS ref, coalesce(finished, created) AS created
+            FROM campaigns WHERE status IN ({finished})
+            UNION ALL SELECT 'model', id, created FROM models)
+        ORDER BY created, kind, ref"""
+    )
+    # per table, the last row id sent and how many; the sender's last attempt and error
+    db.execute(
+        """CREATE TABLE fleet_sent (
+            table_name TEXT PRIMARY KEY,
+            last_id INTEGER,
+            rows INTEGER NOT NULL
+        )"""
+    )
+    db.execute("CREATE TABLE fleet_state (key TEXT PRIMARY KEY, value TEXT)")
+
+
 def model_digest(text: str) -> str:
     """A model's fingerprint: the SHA-256 of its text (hex, 16 digits), which a check, a
     compensation and a report name it by."""
@@ -289,6 +345,7 @@ MIGRATIONS: tuple[Callable[[sqlite_utils.Database], None], ...] = (
     _schema_4,
     _schema_5,
     _schema_6,
+    _schema_7,
 )
 
 
@@ -306,6 +363,22 @@ def expected_columns(version: int) -> dict[str, frozenset[str]]:
         for migrate in MIGRATIONS[:version]:
             migrate(db)
         return {t: frozenset(c.name for c in db[t].columns) for t in db.table_names()}
+    finally:
+        conn.close()
+
+
+@functools.cache
+def column_types(version: int) -> dict[str, dict[str, str]]:
+    """Each table's columns of schema ``version`` in order, with their declared types."""
+    conn = sqlite3.connect(":memory:")
+    try:
+        db = sqlite_utils.Database(conn)
+        for migrate in MIGRATIONS[:version]:
+            migrate(db)
+        return {
+            t: {str(r[1]): str(r[2]) for r in conn.execute(f"PRAGMA table_info({t})")}
+            for t in db.table_names()
+        }
     finally:
         conn.close()
 

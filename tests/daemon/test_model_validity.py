@@ -13,7 +13,7 @@ import sqlite_utils
 
 from cellcal.campaign.check_kind import CHECK_KIND
 from cellcal.errors import InputError
-from cellcal.store.database import MIGRATIONS, Store
+from cellcal.store.database import MIGRATIONS, SCHEMA_VERSION, Store
 from cellcal.store.schema import model_digest
 from tests.daemon.test_store import _campaign
 
@@ -80,7 +80,7 @@ def test_a_schema_5_file_gets_its_models_and_kinds(tmp_path):
     assert reader.models() == [] and reader.current_model() is None and reader.checks() == []
     reader.close()
     store = Store(path)
-    assert store.schema_version == 6
+    assert store.schema_version == SCHEMA_VERSION
     (model,) = store.models()  # the complete calibration's last model; not the refused one
     assert (model.campaign_id, model.model_toml, model.current) == (
         1, "first, analysed again", True,

@@ -1,0 +1,80 @@
+"""The fleet tests' PostgreSQL server (one per test module, a database per test) and
+cells' campaign databases to replicate (small mock campaigns, made once per module)."""
+
+from __future__ import annotations
+
+import itertools
+import os
+import shutil
+import tomllib
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+import tomli_w
+
+from tests.fleet.pg_server import PgServer
+from tests.inprocess import cellcal
+
+ROOT = Path(__file__).resolve().parents[2]
+_names = itertools.count()
+
+
+@pytest.fixture(scope="module")
+def pg(tmp_path_factory: pytest.TempPathFactory) -> Iterator[PgServer]:
+    """A running server, and libpq's password file for it in ``PGPASSFILE``."""
+    pytest.importorskip("psycopg")
+    server = PgServer()
+    server.start()
+    before = os.environ.get("PGPASSFILE")
+    os.environ["PGPASSFILE"] = str(server.passfile(tmp_path_factory.mktemp("pgpass")))
+    try:
+        yield server
+    finally:
+        if before is None:
+            os.environ.pop("PGPASSFILE", None)
+        else:
+            os.environ["PGPASSFILE"] = before
+        server.remove()
+
+
+@pytest.fixture
+def fleet_db(pg: PgServer) -> str:
+    """A fresh fleet database on the server; its URL."""
+    name = f"fleet_{next(_names)}"
+    pg.create_database(name)
+    return pg.url(name)
+
+
+def cell_config(folder: Path, name: str, url: str, line: str = "line3") -> Path:
+    """The small tracker cell with ``[fleet]`` to ``url`` and its database beside it."""
+    cell = tomllib.loads((ROOT / "config" / "mock-cell-tracker.toml").read_text())
+    cell["campaign"] |= {
+        "grid": [2, 2, 3],
+        "samples_per_pose": 4,
+        "validation_inside": 4,
+        "validation_per_region": 0,
+    }
+    cell["storage"] = {"database": f"{name}.db"}
+    cell["fleet"] = {"database": url, "cell": name, "line": line}
+    path = folder / f"{name}.toml"
+    path.write_text(tomli_w.dumps(cell))
+    return path
+
+
+@pytest.fixture(scope="module")
+def campaigns(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A cell's database with a calibration and a check (copied by each test)."""
+    folder = tmp_path_factory.mktemp("cell")
+    config = cell_config(folder, "template", "postgresql://nobody@127.0.0.210:1/none")
+    for args in (("run",), ("check",)):
+        done = cellcal(*args, "--mock", "--config", config)
+        assert done.returncode == 0, done.stderr[-2000:]
+    return folder / "template.db"
+
+
+def make_cell(folder: Path, campaigns: Path, name: str, url: str) -> Path:
+    """A cell of its own name: the template's campaigns, its config to ``url``."""
+    config = cell_config(folder, name, url)
+    shutil.copyfile(campaigns, folder / f"{name}.db")
+    return config
