@@ -83,7 +83,7 @@ UR_CLIENT := $(VENV)/ur-rtde-client/rtde/rtde.py
 $(UR_CLIENT): | $(STAMP)
 	@$(BIN)/python tests/mocks/ur_official_client.py $(VENV)/ur-rtde-client
 
-# Two workers per core (tests/conftest.py: a third of the time the tests wait); a test
+# Three workers per core (tests/conftest.py: a third of the time the tests wait); a test
 # file's tests on one worker (they share module fixtures), except the files conftest names in
 # SPREAD, whose tests go out one by one; README's examples, then the slow tests (marker slow)
 # first. The 20 slowest are listed at the end.
@@ -98,7 +98,7 @@ test: lint types unit
 check: lint types
 	$(BIN)/pytest -q $(PARALLEL) -m "not twin and not browser" --durations=10
 
-bench: $(STAMP)
+bench: $(STAMP) $(PG)
 	$(BIN)/python -m pip install --quiet -e '.[bench]'
 	$(BIN)/python benchmarks/registration.py
 	$(BIN)/python benchmarks/calibration.py
@@ -108,6 +108,7 @@ bench: $(STAMP)
 	$(BIN)/python benchmarks/rig_calibration.py
 	$(BIN)/python benchmarks/service.py
 	$(BIN)/python benchmarks/startup.py
+	$(BIN)/python benchmarks/fleet.py
 
 clean:
 	rm -rf $(VENV) .pytest_cache .mypy_cache .ruff_cache .hypothesis

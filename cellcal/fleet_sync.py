@@ -1,6 +1,7 @@
 """Replication of a cell's campaign database to the fleet's PostgreSQL: the outbox's
-entries (``store/outbox.py``) sent oldest first, each in one transaction on the server
-(``store/fleet_server.py``), marked sent here once committed. At least once, in order,
+entries (``store/outbox.py``) sent oldest first, consecutive ones together in one
+transaction on the server (``store/fleet_server.py``, up to :data:`BATCH_ROWS` rows),
+marked sent here once committed. At least once, in order,
 idempotent on the server: a lost network, a restarted server or a killed sender leave
 the rest waiting, and the next sync goes on from there.
 
@@ -19,10 +20,13 @@ from cellcal.errors import UserError
 from cellcal.extras import needs
 from cellcal.fleet_config import FleetConfig, redacted
 from cellcal.store.database import Store
+from cellcal.store.outbox import OutboxEntry, Rows
 from cellcal.store.schema import utc_now
 
 #: the service's sender: seconds between tries when there is nothing or it failed
 IDLE_S, RETRY_MIN_S, RETRY_MAX_S = 5.0, 2.0, 300.0
+#: entries go to the server in transactions of up to this many rows (or entries)
+BATCH_ROWS, BATCH_ENTRIES = 50_000, 200
 
 
 @dataclass(frozen=True)
@@ -47,7 +51,13 @@ def sync(
     the server's schema, so that bad settings show. A failure is recorded in the
     database (the status shows it) and raised as one line."""
     with needs("cellcal fleet"):
-        from cellcal.store.fleet_server import connected, ensure_schema, note_cell, write_rows
+        from cellcal.store.fleet_server import (
+            connected,
+            ensure_schema,
+            merged,
+            note_cell,
+            write_rows,
+        )
     server = redacted(fleet.database)
     entries = store.waiting(limit or 1_000_000)
     sent = rows = 0
@@ -56,16 +66,24 @@ def sync(
     try:
         with connected(fleet.database, f"cellcal {fleet.cell}") as conn:
             ensure_schema(conn, fleet.database)
-            for entry in entries:
-                if stop is not None and stop.is_set():
-                    break
-                batches = store.entry_rows(entry)
+            at = 0
+            while at < len(entries) and not (stop is not None and stop.is_set()):
+                group: list[OutboxEntry] = []  # consecutive entries, one transaction
+                batches: list[Rows] = []
+                n = 0
+                while at < len(entries) and n < BATCH_ROWS and len(group) < BATCH_ENTRIES:
+                    entry = entries[at]
+                    read = store.entry_rows(entry)
+                    group.append(entry)
+                    batches += read
+                    n += sum(len(b.rows) for b in read)
+                    at += 1
                 with conn.transaction():
                     note_cell(conn, fleet.cell, fleet.line, identity)
-                    write_rows(conn, fleet.cell, batches)
-                store.mark_sent(entry, batches)
-                sent += 1
-                rows += sum(len(b.rows) for b in batches)
+                    write_rows(conn, fleet.cell, merged(batches))
+                store.mark_sent(group, batches)
+                sent += len(group)
+                rows += n
     except UserError as exc:
         store.note_fleet({"last_error": str(exc), "last_error_at": utc_now()})
         raise

@@ -8,11 +8,18 @@ from typing import Any
 import click
 
 from cellcal.commands.output import print_json
+from cellcal.commands.service import DEFAULT_CONFIG as SERVICE_CONFIG
 from cellcal.config import CellConfig, load_config
 from cellcal.errors import InputError
 from cellcal.fleet_config import FleetConfig, redacted
 
-CONFIG = click.option("--config", "config_path", required=True, help="Cell configuration (TOML).")
+CONFIG = click.option(
+    "--config",
+    "config_path",
+    default=SERVICE_CONFIG,
+    show_default=True,
+    help="Cell configuration (TOML) with its [fleet] table.",
+)
 JSON = click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout.")
 
 
@@ -22,6 +29,10 @@ def fleet() -> None:
 
 
 def _fleet_of(config_path: str) -> tuple[CellConfig, FleetConfig]:
+    from pathlib import Path
+
+    if config_path == SERVICE_CONFIG and not Path(config_path).is_file():
+        raise InputError(f"{SERVICE_CONFIG}: no such file (the service's); give --config FILE")
     config = load_config(config_path)
     if config.fleet is None:
         raise InputError(f"{config_path}: no [fleet] table (database, cell): nothing to replicate")

@@ -138,16 +138,31 @@ def ensure_schema(conn: psycopg.Connection[Any], url: str) -> None:
             )
 
 
+def merged(batches: Sequence[Rows]) -> list[Rows]:
+    """Several entries' rows as one batch per table, in order; a row that comes twice
+    (a model made and ended, a campaign refused then complete) once, as it came last."""
+    out: dict[str, tuple[tuple[str, ...], dict[tuple[object, ...], tuple[object, ...]]]] = {}
+    for b in batches:
+        columns, rows = out.setdefault(b.table, (b.columns, {}))
+        at = [columns.index(k) for k in key_columns(b.table)[1:]]
+        for row in b.rows:
+            key = tuple(row[i] for i in at)
+            rows.pop(key, None)
+            rows[key] = row
+    return [Rows(t, columns, list(rows.values())) for t, (columns, rows) in out.items()]
+
+
 def write_rows(conn: psycopg.Connection[Any], cell: str, batches: Sequence[Rows]) -> None:
     """Rows of one cell into their tables, idempotently (inside the caller's
-    transaction): COPY into a temporary table, then INSERT … ON CONFLICT."""
+    transaction): COPY into a temporary table, then INSERT … ON CONFLICT. Give each
+    table once (:func:`merged`): a key twice in one statement is an error."""
     for b in batches:
         if not b.rows:
             continue
         columns = ("cell", *b.columns)
         stage = sql.Identifier(f"stage_{b.table}")
-        conn.execute(
-            sql.SQL("CREATE TEMP TABLE IF NOT EXISTS {} (LIKE {}) ON COMMIT DROP").format(
+        conn.execute(  # once per connection: emptied at each commit
+            sql.SQL("CREATE TEMP TABLE IF NOT EXISTS {} (LIKE {}) ON COMMIT DELETE ROWS").format(
                 stage, sql.Identifier(b.table)
             )
         )
@@ -174,7 +189,6 @@ def write_rows(conn: psycopg.Connection[Any], cell: str, batches: Sequence[Rows]
                 a=action,
             )
         )
-        conn.execute(sql.SQL("TRUNCATE {}").format(stage))
 
 
 def note_cell(conn: psycopg.Connection[Any], cell: str, line: str | None, database_id: str) -> None:

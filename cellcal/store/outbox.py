@@ -107,12 +107,14 @@ class OutboxTables:
             out.append(Rows(table, columns, rows))
         return out
 
-    def mark_sent(self, entry: OutboxEntry, sent: Sequence[Rows]) -> None:
-        """An entry the server committed: marked sent, with each table's last row id and
+    def mark_sent(self, entries: Sequence[OutboxEntry], sent: Sequence[Rows]) -> None:
+        """Entries the server committed: marked sent, with each table's last row id and
         count, in one transaction."""
         now = utc_now()
         with self.transaction():
-            self.conn.execute("UPDATE outbox SET sent = ? WHERE id = ?", (now, entry.id))
+            self.conn.executemany(
+                "UPDATE outbox SET sent = ? WHERE id = ?", [(now, e.id) for e in entries]
+            )
             for r in sent:
                 if not r.rows:
                     continue

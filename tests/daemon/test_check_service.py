@@ -42,7 +42,12 @@ def test_the_service_runs_a_queued_check_against_the_current_model(
     assert run.returncode == 0, run.stderr
     cid = json.loads(run.stdout)["campaign_id"]
     assert json.loads(run.stdout)["n_poses"] == 12
-    s = d.until(lambda s: (s.get("campaign") or {}).get("status") == "complete", 120)
+    s = d.until(
+        lambda s: (
+            (s.get("campaign") or {}).get("id") == cid and s["campaign"].get("status") == "complete"
+        ),
+        120,
+    )
     assert s["campaign"]["id"] == cid and s["campaign"]["kind"] == "check"
     ((verdict, model_id),) = d.rows(
         f"SELECT verdict, model_id FROM checks WHERE campaign_id = {cid}"

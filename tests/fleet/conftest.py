@@ -1,5 +1,6 @@
-"""The fleet tests' PostgreSQL server (one per test module, a database per test) and
-cells' campaign databases to replicate (small mock campaigns, made once per module)."""
+"""The fleet tests' PostgreSQL server (one per worker of the parallel run, a database per
+test) and cells' campaign databases to replicate (small mock campaigns, made once per
+worker)."""
 
 from __future__ import annotations
 
@@ -20,7 +21,7 @@ ROOT = Path(__file__).resolve().parents[2]
 _names = itertools.count()
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def pg(tmp_path_factory: pytest.TempPathFactory) -> Iterator[PgServer]:
     """A running server, and libpq's password file for it in ``PGPASSFILE``."""
     pytest.importorskip("psycopg")
@@ -62,7 +63,7 @@ def cell_config(folder: Path, name: str, url: str, line: str = "line3") -> Path:
     return path
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def campaigns(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A cell's database with a calibration and a check (copied by each test)."""
     folder = tmp_path_factory.mktemp("cell")

@@ -114,3 +114,22 @@ def test_a_replay_changes_nothing_and_later_changes_follow(
         line = pgc.execute("SELECT line FROM cells WHERE cell = 'd'").fetchone()
     assert row is not None and row[0] is not None and row[1].startswith("check campaign 3")
     assert kinds == [("calibration", 1), ("check", 2)] and line == ("line3",)
+
+
+def test_a_batch_sends_a_row_that_came_twice_once_as_it_came_last() -> None:
+    from cellcal.store.fleet_server import merged
+    from cellcal.store.outbox import Rows
+
+    cols = ("id", "valid_until")
+    stats = ("pose_id", "sensor", "n")
+    out = merged(
+        [
+            Rows("models", cols, [(1, None), (2, None)]),
+            Rows("pose_stats", stats, [(7, "tracker", 20), (7, "rig", 20)]),
+            Rows("models", cols, [(1, "2026-11-28")]),
+        ]
+    )
+    assert [(b.table, b.rows) for b in out] == [
+        ("models", [(2, None), (1, "2026-11-28")]),
+        ("pose_stats", [(7, "tracker", 20), (7, "rig", 20)]),
+    ]
