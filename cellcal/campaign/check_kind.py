@@ -25,12 +25,17 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from cellcal.campaign.kinds import Acquired, Analysis, KindOption
+from cellcal.campaign.kinds import (
+    Acquired,
+    Analysis,
+    KindOption,
+    model_label,
+    refuse_other_options,
+)
 from cellcal.check_config import MAX_POSES, MIN_POSES
 from cellcal.config import CellConfig
 from cellcal.errors import CampaignError, InputError
@@ -119,11 +124,6 @@ class CheckOutcome:
             ],
             "errors_mm": list(self.errors_mm),
         }
-
-
-def _label(spec: str) -> str:
-    path = Path(spec)
-    return str(path.resolve()) if path.is_file() else spec
 
 
 def check_model(options: Mapping[str, Any]) -> LoadedModel:
@@ -223,17 +223,12 @@ class CheckKind:
         return options
 
     def read_options(self, given: Mapping[str, Any]) -> dict[str, Any]:
-        own = [o.name for o in self.command_options]
-        other = sorted(k for k, v in given.items() if v is not None and k not in own)
-        if other:
-            raise InputError(
-                f"a check takes no option --{other[0][:40]} (it takes "
-                f"{', '.join('--' + o for o in own)}); it is for another --kind"
-            )
+        refuse_other_options("a check", self.command_options, given)
         out: dict[str, Any] = {"poses": given.get(POSES.name)}
         spec = given.get(MODEL.name)
         if spec is not None:
-            out |= {"model": _label(str(spec)), "model_toml": read_text(str(spec), "a model")}
+            text = read_text(str(spec), "a model")
+            out |= {"model": model_label(str(spec)), "model_toml": text}
         return out
 
     def from_database(self, options: Mapping[str, Any], store: Store | None) -> dict[str, Any]:

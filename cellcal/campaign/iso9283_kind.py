@@ -19,7 +19,6 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -27,7 +26,14 @@ import numpy as np
 from cellcal.calib.geometry import Array, apply, invert
 from cellcal.calib.iso9283 import CYCLES, PointResult, iso_points, pose_characteristics
 from cellcal.calib.kinematics import target_kinematics
-from cellcal.campaign.kinds import ISO_EVENT, Acquired, Analysis, KindOption
+from cellcal.campaign.kinds import (
+    ISO_EVENT,
+    Acquired,
+    Analysis,
+    KindOption,
+    model_label,
+    refuse_other_options,
+)
 from cellcal.config import CellConfig
 from cellcal.errors import CampaignError, InputError
 from cellcal.files.text import read_text
@@ -136,7 +142,7 @@ def iso_options(model_spec: str, cycles: int) -> dict[str, Any]:
     if not calibrated.calibrated or calibrated.T_sensor_base is None:
         raise InputError(f"--model {model_spec}: the test compares against a calibrated model")
     text = read_text(model_spec, "a calibrated model")
-    return {"cycles": cycles, "model": _spec_text(model_spec), "model_toml": text}
+    return {"cycles": cycles, "model": model_label(model_spec), "model_toml": text}
 
 
 #: The options of an ISO 9283 test (``--cycles``, ``--model``): the calibrated model's
@@ -195,13 +201,7 @@ class Iso9283Kind:
         return options
 
     def read_options(self, given: Mapping[str, Any]) -> dict[str, Any]:
-        own = [o.name for o in self.command_options]
-        other = sorted(k for k, v in given.items() if v is not None and k not in own)
-        if other:
-            raise InputError(
-                f"an ISO 9283 test takes no option --{other[0][:40]} (it takes "
-                f"{', '.join('--' + o for o in own)}); it is for another --kind"
-            )
+        refuse_other_options("an ISO 9283 test", self.command_options, given)
         spec = given.get(MODEL.name)
         if spec is None:
             raise InputError("an ISO 9283 test needs the calibrated model: give --model FILE")
@@ -243,12 +243,6 @@ class Iso9283Kind:
 
 
 ISO9283_KIND = Iso9283Kind()
-
-
-def _spec_text(spec: str) -> str:
-    """A model given as a file, by its absolute path (the report says which)."""
-    path = Path(spec)
-    return str(path.resolve()) if path.is_file() else spec
 
 
 def _results(

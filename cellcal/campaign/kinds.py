@@ -141,6 +141,26 @@ def all_kinds() -> dict[str, CampaignKind]:
     return {k.name: k for k in (CALIBRATION_KIND, CHECK_KIND, ISO9283_KIND)}
 
 
+def refuse_other_options(title: str, own: Sequence[KindOption], given: Mapping[str, Any]) -> None:
+    """A command line's options of another kind (given, not None) refused in one line,
+    naming the kind's own (``title``: ``a check``, ``an ISO 9283 test``)."""
+    names = [o.name for o in own]
+    other = sorted(k for k, v in given.items() if v is not None and k not in names)
+    if other:
+        raise InputError(
+            f"{title} takes no option --{other[0][:40]} (it takes "
+            f"{', '.join('--' + o for o in names)}); it is for another --kind"
+        )
+
+
+def model_label(spec: str) -> str:
+    """A model given as a file, by its absolute path (what a report says it used)."""
+    from pathlib import Path
+
+    path = Path(spec)
+    return str(path.resolve()) if path.is_file() else spec
+
+
 def kind_named(name: str) -> CampaignKind:
     kinds = all_kinds()
     if name not in kinds:

@@ -249,12 +249,19 @@ def fleet_html(rows: list[CellRow], data: FleetData, server: str, every: timedel
         body = "".join("<tr>" + "".join(_cells(r)) + "</tr>" for r in mine)
         heads = "".join(f"<th>{esc(h)}</th>" for h in head)
         parts.append(f"<table><tr>{heads}</tr>{body}</table>")
-    parts.append(
+    calibrations = [
+        [r.cell, c, (f or "")[:16].replace("T", " "), mm_text(b), mm_text(a)]
+        for r in rows
+        for c, f, b, a in r.calibrations
+    ]
+    parts += [
+        "<h2>Calibrations: validation RMS before and after (mm)</h2>",
         table(
-            ["", ""],
-            [["cells", len(rows)], ["checks shown", sum(len(r.checks) for r in rows)]],
-        )
-    )
+            ["cell", "campaign", "finished (UTC)", "before", "after"],
+            calibrations,
+            ident="calibrations",
+        ),
+    ]
     return (
         '<!doctype html><html lang="en"><head><meta charset="utf-8">'
         '<meta name="viewport" content="width=device-width"><title>cellcal fleet</title>'

@@ -44,6 +44,8 @@ def test_the_fleet_page_across_lines_and_cells(
     page = (out / "index.html").read_text()
     assert "<h2>line2</h2>" in page and "<h2>line3</h2>" in page and "<script" not in page
     assert page.count("<svg") >= 2  # the overview and a cell's drift
+    listed = page[page.index('id="calibrations"') :]
+    assert listed[: listed.index("</table>")].count("<tr>") == 3  # header, a calibration each
 
     # a check overdue at a shorter period
     done = cellcal("fleet", "report", "--database", fleet_db, "--out", out, "--json",
