@@ -194,5 +194,6 @@ def report(
         print_json(doc)
         return
     due = sum(r.due in ("due", "overdue", "no model") for r in rows)
-    click.echo(f"fleet of {len(rows)} cells: {due} need a check or a calibration")
+    needs_ = "needs" if due == 1 else "need"
+    click.echo(f"fleet of {len(rows)} cells: {due} {needs_} a check or a calibration now")
     click.echo(f"report: {folder / 'index.html'}")

@@ -29,7 +29,7 @@ body{font-family:system-ui,sans-serif;margin:2em auto;max-width:80em;color:#222;
 h2{border-bottom:1px solid #ccc;padding-bottom:.2em;margin-top:2em}
 table{border-collapse:collapse;margin:.6em 0}td,th{padding:.2em .6em;border-bottom:1px solid #eee;
 text-align:right;font-variant-numeric:tabular-nums;white-space:nowrap}th{background:#f4f4f4;
-white-space:normal}td.l,th.l{text-align:left}
+white-space:normal}td.l,th.l{text-align:left}td.w{white-space:normal}
 .overdue,.recalibrate,.no-model{color:#b00;font-weight:600}.due,.warning{color:#a60}
 svg{max-width:100%;height:auto}
 """
@@ -205,14 +205,14 @@ def _cells(r: CellRow) -> list[str]:
     """One cell's row of the table, as HTML cells."""
     out = [_td(esc(r.cell), "l")]
     if r.model is not None and r.model_age_days is not None:
-        out += [_td(f"{r.model.id} ({esc(r.model.digest)})"), _td(f"{r.model_age_days:.1f}")]
+        out += [_td(f"{r.model.id} ({esc(r.model.digest)})", "w"), _td(f"{r.model_age_days:.1f}")]
     else:
         out += [_td("none", "no-model"), _td("—")]
     out.append(_td(str(len(r.checks))))
     last = r.checks[-1] if r.checks else None
     if last is not None:
         out += [
-            _td(esc(last.created[:16])),
+            _td(esc(last.created[:16].replace("T", " "))),
             _td(esc(last.verdict), _cls(last.verdict)),
             _td(f"{mm_text(last.rms_mm)} / {mm_text(last.limit_mm)}"),
         ]
@@ -223,7 +223,7 @@ def _cells(r: CellRow) -> list[str]:
     out.append(_td(esc(when), _cls(r.due)))
     cal = r.calibrations[-1] if r.calibrations else None
     out.append(
-        _td(f"{mm_text(cal[2])} → {mm_text(cal[3])} (campaign {cal[0]})") if cal else _td("—")
+        _td(f"{mm_text(cal[2])} → {mm_text(cal[3])} (campaign {cal[0]})", "w") if cal else _td("—")
     )
     return out
 
@@ -236,7 +236,7 @@ def fleet_html(rows: list[CellRow], data: FleetData, server: str, every: timedel
         "<h1>cellcal fleet</h1>",
         f"<p>{len(rows)} cells on {esc(server)}, {data.now:%Y-%m-%d %H:%M} UTC; a check is due "
         f"every {every.days:g} days after the last one (or the model's calibration); "
-        f"{due} cells need one now or a calibration.</p>",
+        f"{due} of them need{'s' if due == 1 else ''} a check or a calibration now.</p>",
         overview_svg(rows),
     ]
     head = [
