@@ -56,9 +56,15 @@ SPREAD = frozenset(
 )
 
 
+#: Folders whose files go to one worker together: they share session fixtures (the
+#: fleet's PostgreSQL server and cells, made once instead of once per file).
+TOGETHER = ("tests/fleet/",)
+
+
 def pytest_xdist_make_scheduler(config: pytest.Config, log: Any) -> Any:
-    """``--dist loadfile``: by file, except the SPREAD files' tests one by one. Work goes
-    out in collection order with ``--no-loadscope-reorder`` (see below)."""
+    """``--dist loadfile``: by file, except the SPREAD files' tests one by one and the
+    TOGETHER folders' files as one. Work goes out in collection order with
+    ``--no-loadscope-reorder`` (see below)."""
     if config.getvalue("dist") != "loadfile":
         return None
     from xdist.scheduler import LoadScopeScheduling
@@ -66,17 +72,18 @@ def pytest_xdist_make_scheduler(config: pytest.Config, log: Any) -> Any:
     class FileOrTest(LoadScopeScheduling):  # type: ignore[misc]
         def _split_scope(self, nodeid: str) -> str:
             path = nodeid.split("::", 1)[0]
-            return nodeid if path in SPREAD else path
+            folder = next((f for f in TOGETHER if path.startswith(f)), None)
+            return nodeid if path in SPREAD else folder or path
 
     return FileOrTest(config, log)
 
 
 def pytest_xdist_auto_num_workers(config: pytest.Config) -> int:
-    """``-n auto``: three workers per core. A third of the suite's time is spent waiting
-    (simulated dwell on a scaled clock, sockets, the service, Chromium, PostgreSQL), in
-    which another worker on the core computes: on 2 cores 4 workers took 300 s where 2
-    took 360 s, and 6 took 280 s where 4 took 299 s (the same suite, back to back)."""
-    return 3 * len(os.sched_getaffinity(0))
+    """``-n auto``: two workers per core. A third of the suite's time is spent waiting
+    (simulated dwell on a scaled clock, sockets, the service, Chromium), in which a second
+    worker on the core computes: on 2 cores 4 workers take 300 s where 2 took 360 s; 6
+    took as long as 4 from a fresh clone (299 s each), every test slower."""
+    return 2 * len(os.sched_getaffinity(0))
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
