@@ -304,6 +304,14 @@ def _schema_7(db: sqlite_utils.Database) -> None:
         WHEN NEW.status IN ({finished}) AND OLD.status IS NOT NEW.status
         BEGIN INSERT INTO outbox (kind, ref, created) VALUES ('campaign', NEW.id, {now}); END"""
     )
+    # an event written after its campaign finished (an operator's abort, noted after the
+    # status): the campaign goes again, whole (its rows are keyed: nothing twice)
+    db.execute(
+        f"""CREATE TRIGGER outbox_late_event AFTER INSERT ON events
+        WHEN (SELECT status FROM campaigns WHERE id = NEW.campaign_id) IN ({finished})
+        BEGIN INSERT INTO outbox (kind, ref, created) VALUES ('campaign', NEW.campaign_id, {now});
+        END"""
+    )
     db.execute(
         f"""CREATE TRIGGER outbox_model AFTER INSERT ON models
         BEGIN INSERT INTO outbox (kind, ref, created) VALUES ('model', NEW.id, {now}); END"""

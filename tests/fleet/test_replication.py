@@ -13,6 +13,7 @@ from pathlib import Path
 import psycopg
 import pytest
 
+from cellcal.store.database import Store
 from cellcal.store.outbox import FLEET_TABLES
 from tests.fleet.conftest import make_cell
 from tests.fleet.pg_server import HOST, PROXY_HOST, PgServer
@@ -114,6 +115,13 @@ def test_a_replay_changes_nothing_and_later_changes_follow(
         line = pgc.execute("SELECT line FROM cells WHERE cell = 'd'").fetchone()
     assert row is not None and row[0] is not None and row[1].startswith("check campaign 3")
     assert kinds == [("calibration", 1), ("check", 2)] and line == ("line3",)
+
+    # an event noted after its campaign finished (as an operator's abort is) follows too
+    store = Store(db)
+    store.add_event(1, "operator", "noted after the end", None)
+    store.close()
+    assert _sync(config)[0] == 0
+    assert _fleet_counts(fleet_db, "d") == _local_counts(db)
 
 
 def test_a_batch_sends_a_row_that_came_twice_once_as_it_came_last() -> None:
