@@ -92,8 +92,9 @@ def sync(
 
 class Sender:
     """The service's replication: a thread with its own connection to the campaign
-    database, which syncs whenever there is something waiting, and after a failure
-    tries again later (2 s, doubling up to 5 min); ``stop()`` ends it."""
+    database (opened once: opening a database checks every page of it), which syncs
+    whenever there is something waiting, and after a failure tries again later (2 s,
+    doubling up to 5 min); ``stop()`` ends it."""
 
     def __init__(
         self, db_path: str, fleet: FleetConfig, log: Callable[[str], None] = print
@@ -113,17 +114,17 @@ class Sender:
 
     def _loop(self) -> None:
         wait, failing = IDLE_S, False
+        store: Store | None = None  # kept open: opening checks the whole file
         while not self._stop.is_set():
             try:
-                store = Store(self.db_path)
-                try:  # the server is asked only when something waits
-                    result = (
-                        sync(store, self.fleet, stop=self._stop)
-                        if store.waiting(1)
-                        else SyncResult(redacted(self.fleet.database), 0, 0, 0)
-                    )
-                finally:
-                    store.close()
+                if store is None:
+                    store = Store(self.db_path)
+                # the server is asked only when something waits
+                result = (
+                    sync(store, self.fleet, stop=self._stop)
+                    if store.waiting(1)
+                    else SyncResult(redacted(self.fleet.database), 0, 0, 0)
+                )
                 if failing or result.sent:
                     self.log(
                         f"fleet: {result.sent} sent to {result.server}, {result.waiting} waiting"
@@ -135,3 +136,5 @@ class Sender:
                 wait = RETRY_MIN_S if not failing else min(wait * 2, RETRY_MAX_S)
                 failing = True
             self._stop.wait(wait)
+        if store is not None:
+            store.close()

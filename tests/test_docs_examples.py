@@ -55,8 +55,9 @@ BLOCK = re.compile(r"^```(\w*)\n(.*?)^```", re.S | re.M)
 #: Commands (their words, without a comment) that several documents run, whose every
 #: input is in the checkout (config, examples, tests/data, the bundled cell) save the
 #: files they write: the tracker cell's campaigns (README, compensation.md, iso9283.md;
-#: campaign.md, database.md) and the few that only print (README and planning.md,
-#: urdf.md, calibration.md, acceptance.md, paper-errata.md). Run once per session; a
+#: campaign.md, database.md, checks.md), the rig's capture and calibration (README,
+#: photogrammetry.md) and the few that only print (README and planning.md, urdf.md,
+#: calibration.md, acceptance.md, paper-errata.md). Run once per session; a
 #: document in whose folder one of the files that run wrote already exists runs it
 #: itself.
 SHARED = frozenset(
@@ -69,6 +70,10 @@ SHARED = frozenset(
         "cellcal calibrate --model kuka-kr5-arc --data examples/metres.csv --out robot.toml",
         "cellcal register --src cellcal/data/paper_table4_station1.csv --dst "
         "cellcal/data/paper_table4_station2.csv --method line --line-a P1,P2 --line-b P2,P3",
+        # README and photogrammetry.md: the rig from rendered views (the calibration reads
+        # the views the capture wrote, handed over with it)
+        "cellcal rig capture --mock --board config/mock-board.toml --sets 20 --out views",
+        "cellcal rig calibrate --board config/mock-board.toml --views views --out my-rig.toml",
     }
 )
 #: A check's verdict that exits 4, shown under the command in a transcript.

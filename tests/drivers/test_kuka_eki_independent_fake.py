@@ -50,6 +50,10 @@ def test_faults_of_the_other_fake_are_one_line():
         fake.mode = "#T1"
         with pytest.raises(DeviceError, match="connect refused: controller in T1"):
             _robot(host, port).connect()
+        deadline = time.monotonic() + 5  # the channel is free once the fake saw the close
+        while fake.busy:
+            assert time.monotonic() < deadline
+            time.sleep(0.005)
         fake.mode = "#AUT"
         with _robot(host, port) as r:
             fake.guard_stop = True

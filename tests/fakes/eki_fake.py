@@ -160,6 +160,12 @@ class EkiFake:
             self._program = "#P_ACTIVE"
             self._lock.notify_all()
 
+    @property
+    def busy(self) -> bool:
+        """Whether a client holds the channel (it takes one at a time)."""
+        with self._lock:
+            return self._client is not None
+
     def q_deg(self) -> list[float]:
         with self._lock:
             return list(self._q)
@@ -265,10 +271,10 @@ class EkiFake:
                 busy = self._client is not None
                 if not busy:
                     self._client = conn
-            if busy:
-                conn.close()
+            if busy:  # counted before the close, which the client may see at once
                 with self._lock:
                     self.refused += 1
+                conn.close()
                 continue
             t = threading.Thread(target=self._serve, args=(conn,), daemon=True)
             t.start()

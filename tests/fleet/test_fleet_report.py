@@ -49,7 +49,7 @@ def test_the_fleet_page_across_lines_and_cells(
 
     # a check overdue at a shorter period
     done = cellcal("fleet", "report", "--database", fleet_db, "--out", out, "--json",
-                   "--check-every", "0.00001")  # fmt: skip
+                   "--check-every", "1e-9")  # fmt: skip
     assert {c["cell"]: c["due"] for c in json.loads(done.stdout)["cells"]}["l1-a"] == "overdue"
     done = cellcal("fleet", "report", "--database", fleet_db, "--out", out, "--line", "line2",
                    "--json")  # fmt: skip
