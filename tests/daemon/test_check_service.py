@@ -15,7 +15,7 @@ import pytest
 from tests.daemon.conftest import small_cell
 from tests.inprocess import cellcal
 
-pytestmark = [pytest.mark.twin, pytest.mark.timeout(240)]
+pytestmark = [pytest.mark.twin, pytest.mark.slow, pytest.mark.timeout(240)]
 
 
 def test_the_service_runs_a_queued_check_against_the_current_model(

@@ -15,7 +15,7 @@ from cellcal.drivers.emscon import EmsconOptions, EmsconTracker
 from cellcal.errors import DeviceError
 from tests.independent.emscon_server import PlainEmscon
 
-pytestmark = pytest.mark.timeout(60)
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(60)]
 
 POSITION = [3120.5, -410.25, 655.0]
 COV = [[9e-4, 2e-4, -1e-4], [2e-4, 4e-4, 5e-5], [-1e-4, 5e-5, 2.5e-4]]

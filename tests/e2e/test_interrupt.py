@@ -17,7 +17,7 @@ import pytest
 from tests.e2e.rig_cell import FAULT_KINDS, count, gige_or_skip, kinds, small_rig_cell
 from tests.inprocess import cellcal
 
-pytestmark = [pytest.mark.twin, pytest.mark.timeout(300)]
+pytestmark = [pytest.mark.twin, pytest.mark.slow, pytest.mark.timeout(300)]
 
 
 def _wait_for_a_pose(db: Path, proc: subprocess.Popen[str], timeout: float = 120.0) -> None:

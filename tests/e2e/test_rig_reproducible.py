@@ -16,7 +16,7 @@ from cellcal.families import find
 from cellcal.mocks import netns
 from tests.drivers.families import cell_for
 
-pytestmark = [pytest.mark.twin, pytest.mark.timeout(180)]
+pytestmark = [pytest.mark.twin, pytest.mark.slow, pytest.mark.timeout(180)]
 
 SAMPLES = 8
 ROWS = """SELECT p.idx, s.sensor, s.host_time, s.device_time, s.x, s.y, s.z, s.cov_xx, s.cov_xy,

@@ -15,7 +15,7 @@ from tests.fleet.conftest import cell_config, make_cell
 from tests.fleet.pg_server import PgServer
 from tests.inprocess import cellcal
 
-pytestmark = [pytest.mark.twin, pytest.mark.timeout(180)]
+pytestmark = [pytest.mark.twin, pytest.mark.slow, pytest.mark.timeout(180)]
 
 
 def test_the_fleet_page_across_lines_and_cells(

@@ -20,7 +20,7 @@ from tests.fleet.pg_server import HOST, PROXY_HOST, PgServer
 from tests.fleet.proxy import CuttingProxy
 from tests.inprocess import cellcal
 
-pytestmark = [pytest.mark.twin, pytest.mark.timeout(240)]
+pytestmark = [pytest.mark.twin, pytest.mark.slow, pytest.mark.timeout(240)]
 
 
 def _local_counts(db: Path) -> dict[str, int]:

@@ -19,7 +19,7 @@ from tests.fleet.conftest import cell_config
 from tests.fleet.pg_server import PgServer
 from tests.inprocess import cellcal
 
-pytestmark = [pytest.mark.twin, pytest.mark.timeout(240)]
+pytestmark = [pytest.mark.twin, pytest.mark.slow, pytest.mark.timeout(240)]
 
 
 def test_the_service_sends_by_itself_and_waits_out_a_stopped_server(

@@ -17,7 +17,7 @@ from tests.fleet.conftest import cell_config, make_cell
 from tests.fleet.pg_server import HOST, PgServer, free_port
 from tests.inprocess import cellcal
 
-pytestmark = [pytest.mark.twin, pytest.mark.timeout(120)]
+pytestmark = [pytest.mark.twin, pytest.mark.slow, pytest.mark.timeout(120)]
 
 
 def _refused(config: Path, *words: str) -> str:
