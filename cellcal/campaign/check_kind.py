@@ -30,6 +30,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from cellcal.campaign.kinds import (
+    CALIBRATED_MODEL,
     Acquired,
     Analysis,
     KindOption,
@@ -61,11 +62,7 @@ POSES = KindOption(
     low=MIN_POSES,
     high=MAX_POSES,
 )
-MODEL = KindOption(
-    "model",
-    "the calibrated model (model.toml).",
-    sent="the calibrated model (its text is sent).",
-)
+MODEL = CALIBRATED_MODEL
 
 
 @dataclass(frozen=True)

@@ -27,6 +27,7 @@ from cellcal.calib.geometry import Array, apply, invert
 from cellcal.calib.iso9283 import CYCLES, PointResult, iso_points, pose_characteristics
 from cellcal.calib.kinematics import target_kinematics
 from cellcal.campaign.kinds import (
+    CALIBRATED_MODEL,
     ISO_EVENT,
     Acquired,
     Analysis,
@@ -150,11 +151,7 @@ def iso_options(model_spec: str, cycles: int) -> dict[str, Any]:
 OPTIONS = ("cycles", "model", "model_toml")
 #: ... as the command line gives them: the calibrated model's file, read there (its text
 #: is sent to the service), and the cycles.
-MODEL = KindOption(
-    "model",
-    "the calibrated model (model.toml).",
-    sent="the calibrated model (its text is sent).",
-)
+MODEL = CALIBRATED_MODEL
 CYCLE_COUNT = KindOption(
     "cycles", f"cycles (the standard: {CYCLES}).", low=2, high=1000, default=CYCLES
 )

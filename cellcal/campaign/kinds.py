@@ -141,6 +141,15 @@ def all_kinds() -> dict[str, CampaignKind]:
     return {k.name: k for k in (CALIBRATION_KIND, CHECK_KIND, ISO9283_KIND)}
 
 
+#: ``--model FILE``, as the kinds that compare with a calibrated model take it (the ISO 9283
+#: test, the check): read on the command line, its text sent and stored
+CALIBRATED_MODEL = KindOption(
+    "model",
+    "the calibrated model (model.toml).",
+    sent="the calibrated model (its text is sent).",
+)
+
+
 def refuse_other_options(title: str, own: Sequence[KindOption], given: Mapping[str, Any]) -> None:
     """A command line's options of another kind (given, not None) refused in one line,
     naming the kind's own (``title``: ``a check``, ``an ISO 9283 test``)."""
