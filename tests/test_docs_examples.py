@@ -72,7 +72,7 @@ SHARED = frozenset(
         "cellcal/data/paper_table4_station2.csv --method line --line-a P1,P2 --line-b P2,P3",
         # README and photogrammetry.md: the rig from rendered views (the calibration reads
         # the views the capture wrote, handed over with it)
-        "cellcal rig capture --mock --board config/mock-board.toml --sets 20 --out views",
+        "cellcal rig capture --mock --board config/mock-board.toml --sets 12 --out views",
         "cellcal rig calibrate --board config/mock-board.toml --views views --out my-rig.toml",
     }
 )
