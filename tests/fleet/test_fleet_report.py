@@ -54,6 +54,12 @@ def test_the_fleet_page_across_lines_and_cells(
     done = cellcal("fleet", "report", "--database", fleet_db, "--out", out, "--line", "line2",
                    "--json")  # fmt: skip
     assert [c["cell"] for c in json.loads(done.stdout)["cells"]] == ["l2-b"]
+    # the fleet's tables read by another program: docs/fleet.md's query through psql
+    doc_text = (Path(__file__).resolve().parents[2] / "docs" / "fleet.md").read_text()
+    query = doc_text[doc_text.index("SELECT m.cell") : doc_text.index("m.valid_from;") + 13]
+    rows = pg.psql(query.replace("\n", " "), fleet_db.rsplit("/", 1)[1]).split()
+    assert len(rows) == 1 and rows[0].startswith("l1-a|1|")  # l2-b's model was ended
+
     done = cellcal("fleet", "report", "--database", fleet_db, "--out", out, "--cell", "zz")
     assert done.returncode == 2 and "no cell of the fleet matches --cell zz" in done.stderr
     done = cellcal("fleet", "report", "--database", fleet_db.replace("@", ":pw@"), "--out", out)
