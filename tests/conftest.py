@@ -13,11 +13,13 @@ skip without it."""
 from __future__ import annotations
 
 import os
+import tomllib
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
+import tomli_w
 from scipy.spatial.transform import Rotation
 from threadpoolctl import threadpool_limits  # type: ignore[import-untyped]
 
@@ -91,6 +93,26 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
     tests/bundled_campaign.py), then the slow tests, so that the workers of the parallel
     run finish together."""
     items.sort(key=lambda item: (item.nodeid != PRODUCER, item.get_closest_marker("slow") is None))
+
+
+def small_tracker_file(
+    folder: Path, name: str, grid: list[int], samples: int, inside: int, **tables: Any
+) -> Path:
+    """The tracker cell (``config/mock-cell-tracker.toml``) on a smaller plan — ``grid``,
+    ``samples`` per pose, ``inside`` validation poses, none outside the cube — with more
+    ``tables`` (merged into a table of the same name), written as ``folder/name.toml``."""
+    cell = tomllib.loads(TRACKER_CELL.read_text())
+    cell["campaign"] |= {
+        "grid": grid,
+        "samples_per_pose": samples,
+        "validation_inside": inside,
+        "validation_per_region": 0,
+    }
+    for key, value in tables.items():
+        cell[key] = {**cell.get(key, {}), **value}
+    path = folder / f"{name}.toml"
+    path.write_text(tomli_w.dumps(cell))
+    return path
 
 
 def tracker_cell() -> CellConfig:

@@ -60,6 +60,7 @@ class CalibrationKind:
     name: str = "calibration"
     title: str = "campaign"
     command_options: tuple[KindOption, ...] = ()
+    reads_database: bool = False
 
     def options(self, raw: Mapping[str, Any]) -> dict[str, Any]:
         if raw:

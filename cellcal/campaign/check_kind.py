@@ -190,6 +190,7 @@ class CheckKind:
     name: str = CHECK
     title: str = "check"
     command_options: tuple[KindOption, ...] = (MODEL, POSES)
+    reads_database: bool = True
 
     def options(self, raw: Mapping[str, Any]) -> dict[str, Any]:
         unknown = sorted(set(raw) - set(OPTIONS))
@@ -212,9 +213,9 @@ class CheckKind:
             raise InputError("model must be one line of text (the model's name)")
         if mid is not None and (isinstance(mid, bool) or not isinstance(mid, int)):
             raise InputError("model_id must be a whole number (the database's model id)")
-        options = {"poses": poses, "model": label, "model_toml": text, "model_id": mid}
         from cellcal.files.models import model_uncertainty
 
+        options = {"poses": poses, "model": label, "model_toml": text, "model_id": mid}
         check_model(options)  # it must read as a calibrated model, before any motion,
         model_uncertainty(text, label)  # with what the limits are computed from
         return options

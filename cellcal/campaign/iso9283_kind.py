@@ -174,6 +174,7 @@ class Iso9283Kind:
     name: str = "iso9283"
     title: str = "ISO 9283 test"
     command_options: tuple[KindOption, ...] = (MODEL, CYCLE_COUNT)
+    reads_database: bool = False
 
     def options(self, raw: Mapping[str, Any]) -> dict[str, Any]:
         unknown = sorted(set(raw) - set(OPTIONS))

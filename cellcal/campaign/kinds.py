@@ -112,6 +112,12 @@ class CampaignKind(Protocol):
         with the files they name read here: what is sent to the service and stored."""
         ...
 
+    @property
+    def reads_database(self) -> bool:
+        """Whether :meth:`from_database` reads the database (else it is not opened for it:
+        opening checks every page of the file)."""
+        ...
+
     def from_database(self, options: Mapping[str, Any], store: Store | None) -> dict[str, Any]:
         """Its options completed from the database the campaign goes into (``store``;
         None: there is none yet) before they are checked: a check's current model when

@@ -288,9 +288,10 @@ def start_campaign(
 
 def _completed(k: CampaignKind, options: Mapping[str, Any], db_path: str) -> dict[str, Any]:
     """The kind's options completed from the database the campaign goes into (a check's
-    current model), read-only; without a file yet (or the empty one a run lock leaves),
-    from none."""
-    if not Path(db_path).is_file() or Path(db_path).stat().st_size == 0:
+    current model), read-only; from none for a kind that reads none, and without a file
+    yet (or the empty one a run lock leaves)."""
+    file = Path(db_path)
+    if not k.reads_database or not file.is_file() or file.stat().st_size == 0:
         return k.from_database(options, None)
     store = Store(db_path, readonly=True)
     try:

@@ -15,6 +15,7 @@ from typing import Any
 import pytest
 import tomli_w
 
+from tests.conftest import small_tracker_file
 from tests.inprocess import cellcal
 
 pytestmark = [pytest.mark.twin, pytest.mark.slow, pytest.mark.timeout(300)]
@@ -23,18 +24,16 @@ ROOT = Path(__file__).resolve().parents[2]
 
 
 def _cell(folder: Path, name: str, change: dict[str, Any] | None = None) -> Path:
-    cell = tomllib.loads((ROOT / "config" / "mock-cell-tracker.toml").read_text())
-    cell["campaign"] |= {
-        "grid": [3, 3, 4],
-        "samples_per_pose": 5,
-        "validation_inside": 8,
-        "validation_per_region": 0,
-    }
-    if change:
-        cell["simulation"]["change"] = change
-    path = folder / f"{name}.toml"
-    path.write_text(tomli_w.dumps(cell))
-    return path
+    more = {"simulation": {"change": change}} if change else {}
+    return small_tracker_file(folder, name, [3, 3, 4], 5, 8, **more)
+
+
+def _copy(calibrated: tuple[Path, Path], folder: Path) -> tuple[Path, Path]:
+    """The calibrated cell's configuration, and a copy of its database in ``folder``."""
+    config, source = calibrated
+    db = folder / "cell.db"
+    db.write_bytes(source.read_bytes())
+    return config, db
 
 
 def _check(config: Path, db: Path, *more: object) -> tuple[int, dict[str, Any]]:
@@ -56,9 +55,7 @@ def calibrated(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
 def test_calibrate_check_change_check_recalibrate_check(
     calibrated: tuple[Path, Path], tmp_path: Path
 ) -> None:
-    config, source = calibrated
-    db = tmp_path / "cell.db"
-    db.write_bytes(source.read_bytes())
+    config, db = _copy(calibrated, tmp_path)
     code, ok = _check(config, db)
     assert code == 0 and ok["verdict"] == "ok" and ok["cause"] is None
     for key in ("campaign_id", "kind", "model", "n_poses", "rms_mm", "max_mm", "limit_mm"):
@@ -158,11 +155,9 @@ def test_each_change_is_named(
     name: str,
     values: dict[str, float],
 ) -> None:
-    _, source = calibrated
-    db = tmp_path / "cell.db"
-    db.write_bytes(source.read_bytes())
+    _, db = _copy(calibrated, tmp_path)
     model = tmp_path / "model.toml"
-    conn = sqlite3.connect(source)
+    conn = sqlite3.connect(db)
     (text,) = conn.execute("SELECT model_toml FROM models WHERE id = 1").fetchone()
     conn.close()
     model.write_text(text)
@@ -178,9 +173,7 @@ def test_each_change_is_named(
 def test_run_kind_check_exits_4_and_a_model_without_covariance_is_refused(
     calibrated: tuple[Path, Path], tmp_path: Path
 ) -> None:
-    config, source = calibrated
-    db = tmp_path / "cell.db"
-    db.write_bytes(source.read_bytes())
+    config, db = _copy(calibrated, tmp_path)
     changed = _cell(tmp_path, "changed", {"joint_offset_deg": [0.02, 0, 0, 0, 0, 0]})
     done = cellcal("run", "--mock", "--config", changed, "--db", db, "--kind", "check")
     assert done.returncode == 4, done.stderr[-2000:]

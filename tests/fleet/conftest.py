@@ -7,17 +7,15 @@ from __future__ import annotations
 import itertools
 import os
 import shutil
-import tomllib
 from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-import tomli_w
 
+from tests.conftest import small_tracker_file
 from tests.fleet.pg_server import PgServer
 from tests.inprocess import cellcal
 
-ROOT = Path(__file__).resolve().parents[2]
 _names = itertools.count()
 
 
@@ -49,18 +47,9 @@ def fleet_db(pg: PgServer) -> str:
 
 def cell_config(folder: Path, name: str, url: str, line: str = "line3") -> Path:
     """The small tracker cell with ``[fleet]`` to ``url`` and its database beside it."""
-    cell = tomllib.loads((ROOT / "config" / "mock-cell-tracker.toml").read_text())
-    cell["campaign"] |= {
-        "grid": [2, 2, 3],
-        "samples_per_pose": 4,
-        "validation_inside": 4,
-        "validation_per_region": 0,
-    }
-    cell["storage"] = {"database": f"{name}.db"}
-    cell["fleet"] = {"database": url, "cell": name, "line": line}
-    path = folder / f"{name}.toml"
-    path.write_text(tomli_w.dumps(cell))
-    return path
+    fleet = {"database": url, "cell": name, "line": line}
+    storage = {"database": f"{name}.db"}
+    return small_tracker_file(folder, name, [2, 2, 3], 4, 4, storage=storage, fleet=fleet)
 
 
 @pytest.fixture(scope="session")

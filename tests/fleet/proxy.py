@@ -72,20 +72,16 @@ class CuttingProxy:
 
     def _pipe(self, src: socket.socket, dst: socket.socket, from_cell: bool) -> None:
         try:
-            while True:
-                data = src.recv(65536)
-                if not data:
-                    break
-                if from_cell and self.cut_after is not None:
-                    with self._lock:
-                        self._sent += len(data)
-                        over = self._sent > self.cut_after
-                    if over:
-                        self.cut()
-                        return
-                dst.sendall(data)
-        except OSError:
-            pass
+            with contextlib.suppress(OSError):  # a cut link ends this direction
+                while data := src.recv(65536):
+                    if from_cell and self.cut_after is not None:
+                        with self._lock:
+                            self._sent += len(data)
+                            over = self._sent > self.cut_after
+                        if over:
+                            self.cut()
+                            return
+                    dst.sendall(data)
         finally:
             for s in (src, dst):
                 with contextlib.suppress(OSError):
