@@ -11,10 +11,12 @@ from dataclasses import dataclass
 import numpy as np
 
 from cellcal.calib.error_model import Groups, ParameterSpec, State, predict
+from cellcal.calib.error_terms import Conditions
 from cellcal.calib.geometry import Array
 from cellcal.calib.identifiability import Identifiability
 from cellcal.calib.parameter_choice import Choice
 from cellcal.calib.robot_model import RobotModel
+from cellcal.calib.term_choice import TermChoice
 
 
 @dataclass(frozen=True)
@@ -88,6 +90,8 @@ class CalibrationResult:
     #: how the k-fold held-out error chose among the noise-hidden parameters (None: none
     #: were hidden, or the fit was robust)
     parameter_choice: Choice | None = None
+    #: the error terms beyond geometry tried, accepted or not (None: ``--terms geometric``)
+    term_choice: TermChoice | None = None
 
     @property
     def targets(self) -> tuple[str, ...]:
@@ -136,10 +140,13 @@ class CalibrationResult:
             self.target_rotations,
         )
 
-    def predict(self, q: Array, groups: Groups | None = None) -> Array:
+    def predict(
+        self, q: Array, groups: Groups | None = None, conditions: Conditions | None = None
+    ) -> Array:
         """Target positions in the sensor frame (mm) for joint readings ``q`` (rad)
-        (of the first target and session, unless ``groups`` says otherwise)."""
-        return predict(self.state, q, groups)
+        (of the first target and session, unless ``groups`` says otherwise), at the
+        ``conditions`` the model's error terms read."""
+        return predict(self.state, q, groups, conditions)
 
 
 def rms(r: Array) -> float:

@@ -27,15 +27,16 @@ this order:
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
+from cellcal.calib.error_terms import Conditions, drift_parts, drift_variable, joint_regressors
 from cellcal.calib.geometry import Array, so3_exp
-from cellcal.calib.kinematics import ROW_PARAMS, target_kinematics
+from cellcal.calib.kinematics import ROW_PARAMS, TargetKinematics, chain_frames, target_kinematics
 from cellcal.calib.robot_model import Joint, RobotModel
 
 KINEMATIC_KINDS = ("theta", "d", "a", "alpha", "beta")
@@ -52,6 +53,8 @@ class ParameterSpec:
     joint: int
     unit: str
     group: int = 0
+    #: an error term's regressor (``group`` is the term's index in the model's terms)
+    index: int = 0
 
     @property
     def is_angle(self) -> bool:
@@ -155,6 +158,7 @@ def parameter_specs(
                 )
                 for c in "xyz"
             ]
+    specs += term_specs(model)
     if frame:
         for g in range(len(sessions)):
             specs += [
@@ -166,6 +170,19 @@ def parameter_specs(
                 for c in "xyz"
             ]
     return tuple(specs)
+
+
+def term_specs(model: RobotModel) -> list[ParameterSpec]:
+    """One parameter per coefficient of the model's error terms, named
+    ``harmonics2_sin1``, ``gravity3_R4x``, ``drift_scale``."""
+    out = []
+    for g, t in enumerate(model.terms):
+        stem = t.name if t.name == "drift" else f"{t.name}{t.joint}"
+        out += [
+            ParameterSpec(f"{stem}_{r}", "term", t.joint, t.display_unit(k), g, k)
+            for k, r in enumerate(t.regressors)
+        ]
+    return out
 
 
 def _stack(a: Array, shape: tuple[int, ...]) -> Array:
@@ -235,11 +252,14 @@ def _per_point(state: State, groups: Groups | None, n: int) -> tuple[Array, Arra
     return state.Rs[g.session], state.ts[g.session], state.target_offsets[g.target]
 
 
-def predict(state: State, q: Array, groups: Groups | None = None) -> Array:
-    """Target positions in the sensor frame (N×3, mm) for joint readings q (rad)."""
+def predict(
+    state: State, q: Array, groups: Groups | None = None, conditions: Conditions | None = None
+) -> Array:
+    """Target positions in the sensor frame (N×3, mm) for joint readings q (rad), at the
+    measurements' ``conditions`` (for a model's error terms)."""
     q = np.atleast_2d(q)
     Rp, tp, target_offset = _per_point(state, groups, len(q))
-    k = target_kinematics(state.model, q, target_offset, jacobian=False)
+    k = target_kinematics(state.model, q, target_offset, jacobian=False, conditions=conditions)
     out: Array = np.einsum("nij,nj->ni", Rp, k.p) + tp
     return out
 
@@ -266,13 +286,22 @@ def jacobian(
     specs: tuple[ParameterSpec, ...],
     groups: Groups | None = None,
     orientation: bool = False,
+    conditions: Conditions | None = None,
 ) -> tuple[Array, Array]:
     """Predicted positions (N×3) and ∂m/∂parameters (N×3×P, sensor frame); with
     ``orientation`` N×6×P, rows 3–5 the angular velocity of the target's orientation."""
     g = groups if groups is not None else Groups.single(len(q))
     Rp, tp, target_offset = _per_point(state, g, len(q))
     kin = [col for col, sp in enumerate(specs) if sp.kind in KINEMATIC_KINDS]
-    k = target_kinematics(state.model, q, target_offset, jacobian=bool(kin), angular=orientation)
+    terms = [col for col, sp in enumerate(specs) if sp.kind == "term"]
+    k = target_kinematics(
+        state.model,
+        q,
+        target_offset,
+        jacobian=bool(kin or terms),
+        angular=orientation,
+        conditions=conditions,
+    )
     one = len(state.Rs) == 1  # one session: one rotation for every row
     R0 = state.Rs[0]
     m = (k.p @ R0.T if one else np.einsum("nij,nj->ni", Rp, k.p)) + tp
@@ -289,9 +318,11 @@ def jacobian(
         if orientation:
             assert k.W_rows is not None
             J[:, 3:, kin] = turn(k.W_rows[:, :, c])
+    if terms:
+        _term_columns(state, q, specs, terms, k, turn, J, orientation, conditions)
     flange = turn(k.R_flange)  # columns: the flange axes in the sensor frame
     for col, sp in enumerate(specs):
-        if sp.kind in KINEMATIC_KINDS:
+        if sp.kind in KINEMATIC_KINDS or sp.kind == "term":
             continue
         if sp.kind in ("target_offset", "target_rotation"):
             rows = g.target == sp.group
@@ -316,6 +347,52 @@ def jacobian(
     return m, J
 
 
+def _term_columns(
+    state: State,
+    q: Array,
+    specs: tuple[ParameterSpec, ...],
+    cols: list[int],
+    k: TargetKinematics,
+    turn: Callable[[Array], Array],
+    J: Array,
+    orientation: bool,
+    conditions: Conditions | None,
+) -> None:
+    """The error terms' columns of J: a joint term's coefficient turns its joint by its
+    regressor (∂m/∂θᵢ · r); a drift's moves the position by its variable × (direction, or
+    the position itself for the growth)."""
+    model = state.model
+    chain = (
+        chain_frames(model, q)
+        if any(model.terms[specs[c].group].name in ("gravity", "compliance") for c in cols)
+        else None
+    )
+    regressors: dict[int, Array] = {}
+    for col in cols:
+        sp = specs[col]
+        term = model.terms[sp.group]
+        if term.is_joint_term:
+            if sp.group not in regressors:
+                regressors[sp.group] = joint_regressors(term, q, chain)
+            r = regressors[sp.group][:, sp.index]
+            J[:, :3, col] = turn(k.J_rows[:, :, 5 * (sp.joint - 1), None])[:, :, 0] * r[:, None]
+            if orientation:
+                assert k.W_rows is not None
+                W = turn(k.W_rows[:, :, 5 * (sp.joint - 1), None])[:, :, 0]
+                J[:, 3:, col] = W * r[:, None]
+            continue
+        x = drift_variable(term, conditions, len(q))
+        v, scale = drift_parts(term)
+        which = term.regressors[sp.index]
+        if which != "scale":
+            e = np.zeros((len(q), 3, 1))
+            e[:, "xyz".index(which), 0] = x
+            J[:, :3, col] = turn(e)[:, :, 0]
+        else:
+            p_geometry = (k.p - np.outer(x, v)) / (1.0 + scale * x)[:, None]
+            J[:, :3, col] = turn((p_geometry * x[:, None])[:, :, None])[:, :, 0]
+
+
 def apply(state: State, specs: tuple[ParameterSpec, ...], delta: Array) -> State:
     """The state moved by ``delta`` (internal units) along ``specs``."""
     joints = list(state.model.joints)
@@ -324,8 +401,11 @@ def apply(state: State, specs: tuple[ParameterSpec, ...], delta: Array) -> State
     omega = np.zeros((S, 3))
     dt = np.zeros((S, 3))
     target_omega = np.zeros((T, 3))
+    coefficients = [np.array(t.coefficients) for t in state.model.terms]
     for sp, v in zip(specs, delta, strict=True):
-        if sp.kind in KINEMATIC_KINDS:
+        if sp.kind == "term":
+            coefficients[sp.group][sp.index] += v
+        elif sp.kind in KINEMATIC_KINDS:
             j = joints[sp.joint - 1]
             joints[sp.joint - 1] = replace(j, **{sp.kind: getattr(j, sp.kind) + float(v)})
         elif sp.kind == "target_offset":
@@ -343,8 +423,13 @@ def apply(state: State, specs: tuple[ParameterSpec, ...], delta: Array) -> State
     target_rotations = state.target_rotations
     if target_rotations is not None:
         target_rotations = np.stack([so3_exp(w) for w in target_omega]) @ target_rotations
+    model = state.model.with_joints(tuple(joints))
+    if coefficients:
+        model = model.with_terms(
+            tuple(t.with_coefficients(c) for t, c in zip(model.terms, coefficients, strict=True))
+        )
     return State(
-        state.model.with_joints(tuple(joints)),
+        model,
         target_offsets,
         Rs,
         ts,

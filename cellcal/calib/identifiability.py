@@ -3,11 +3,12 @@
 The identification Jacobian (measurement weights applied) has its columns scaled to
 unit length, so that millimetres and radians compare. Parameters are then chosen group
 by group, in order of priority — the sensor frame, then the target offset, then
-the kinematic corrections — each group by a column-pivoted QR of its columns with the
-directions already chosen projected out. A column whose remaining length is below
-``tol`` adds nothing the chosen ones cannot explain: it is not identifiable from these
-poses and stays at nominal. This is the "base parameter" selection of FIGAROH and of
-Khalil & Dombre, computed from the actual poses rather than assumed.
+the kinematic corrections, then any error terms — each group by a column-pivoted QR of
+its columns with the directions already chosen projected out. A column whose remaining
+length is below ``tol`` adds nothing the chosen ones cannot explain: it is not
+identifiable from these poses and stays at nominal. This is the "base parameter"
+selection of FIGAROH and of Khalil & Dombre, computed from the actual poses rather than
+assumed.
 
 That test is exact rank, and rank is not enough: a column that is *nearly* a
 combination of others passes it, and the fit then "identifies" an absurd value that
@@ -81,7 +82,8 @@ def _groups(specs: Sequence[ParameterSpec]) -> list[list[int]]:
         i for i, s in enumerate(specs) if s.kind in ("target_offset", "target_rotation")
     ]
     kin = [i for i, s in enumerate(specs) if s.kind in KINEMATIC_KINDS]
-    return [g for g in (frame, target_offset, kin) if g]
+    terms = [i for i, s in enumerate(specs) if s.kind == "term"]
+    return [g for g in (frame, target_offset, kin, terms) if g]
 
 
 #: A column shorter than this fraction of the longest is rounding noise (a parameter with
@@ -184,7 +186,10 @@ def _conditioned(
 
 
 def _limit(spec: ParameterSpec) -> float:
-    """The uncertainty (internal units: mm, rad) beyond which a parameter is weak."""
+    """The uncertainty (internal units: mm, rad) beyond which a parameter is weak; an
+    error term's joint turn (rad per regressor unit) as an angle, a drift never."""
+    if spec.kind == "term":
+        return math.radians(DETERMINED_DEG) if spec.unit.startswith("deg") else math.inf
     return math.radians(DETERMINED_DEG) if spec.is_angle else DETERMINED_MM
 
 

@@ -1,6 +1,7 @@
-"""(Size: about 550 lines — calibrate() is one pipeline (start, baseline, identifiability,
-the fits, the parameter choice, the result); the fit itself is in levenberg.py, the
-choice in parameter_choice.py, the data in observations.py.)
+"""(Size: about 440 lines — calibrate() is one pipeline (start, baseline, identifiability,
+the fits, the parameter choice, the error terms, the result); the fit itself is in
+levenberg.py, the choices in parameter_choice.py and term_choice.py, the data in
+observations.py, the result's estimates in estimates.py.)
 
 Identification of kinematic errors from target positions measured by a sensor.
 
@@ -22,7 +23,6 @@ import math
 from collections.abc import Collection, Sequence
 
 import numpy as np
-from scipy.optimize import least_squares
 
 from cellcal.calib import levenberg
 from cellcal.calib.acceptance import (
@@ -38,11 +38,19 @@ from cellcal.calib.error_model import (
     Groups,
     ParameterSpec,
     State,
-    apply,
     parameter_specs,
     predict,
 )
-from cellcal.calib.geometry import Array, skew, so3_log, wrap_deg
+from cellcal.calib.error_terms import Conditions
+from cellcal.calib.estimates import (
+    current_name,
+    estimates,
+    estimates_preview,
+    expand_fix,
+    frame_std,
+    with_term_sigma,
+)
+from cellcal.calib.geometry import Array
 from cellcal.calib.identifiability import analyse, condition_number, weakly_determined
 from cellcal.calib.kinematics import target_kinematics
 from cellcal.calib.observations import (
@@ -57,7 +65,10 @@ from cellcal.calib.observations import (
     weights,
 )
 from cellcal.calib.parameter_choice import FOLDS, Choice, choose
+from cellcal.calib.pose_warnings import on_a_surface, pose_warnings
 from cellcal.calib.robot_model import RobotModel
+from cellcal.calib.robust_fit import ROBUST_LOSSES, robust_fit
+from cellcal.calib.term_choice import TermChoice, TermRequest, choose_terms, parse_terms
 from cellcal.errors import (
     AcceptanceError,
     ConvergenceError,
@@ -66,62 +77,27 @@ from cellcal.errors import (
     MirroredCorrespondenceError,
 )
 
-__all__ = ["CalibrationResult", "Groups", "ParameterEstimate", "calibrate", "fit_frames"]
+__all__ = [
+    "ROBUST_LOSSES",
+    "CalibrationResult",
+    "Groups",
+    "ParameterEstimate",
+    "calibrate",
+    "fit_frames",
+    "on_a_surface",
+]
 
-ROBUST_LOSSES = ("huber", "soft_l1", "cauchy")
 #: Above this condition number of the (unit-scaled) identification Jacobian a warning
 #: says the poses are poorly chosen; well-spread poses with varied wrist orientation
 #: give tens to a few hundred, the paper's fixed-orientation cube about 5e3.
 ILL_CONDITIONED = 1e3
 
 
-# --------------------------------------------------------------------------- input checks
-
-
 # --------------------------------------------------------------------------- the fit
 
 
-def _robust_fit(
-    state: State,
-    specs: tuple[ParameterSpec, ...],
-    data: Data,
-    w: Array,
-    robust: str,
-    f_scale: float,
-) -> levenberg.Fit:
-    """TRF with a robust loss over ``specs`` from ``state`` (scipy: the loss's
-    reweighting is what it is made for)."""
-
-    def fun(x: Array) -> Array:
-        out: Array = (data.residuals(apply(state, specs, x)) * w).ravel()
-        return out
-
-    def jac(x: Array) -> Array:
-        J = data.jacobian(apply(state, specs, x), specs)
-        out: Array = -(J * w[:, :, None]).reshape(-1, len(specs))
-        return out
-
-    res = least_squares(
-        fun,
-        np.zeros(len(specs)),
-        jac=jac,
-        method="trf",
-        loss=robust,
-        f_scale=f_scale,
-        x_scale="jac",
-        xtol=1e-12,
-        ftol=1e-12,
-        gtol=1e-12,
-    )
-    if not res.success or not np.all(np.isfinite(res.x)):
-        raise ConvergenceError(f"identification did not converge: {res.message}")
-    J = np.asarray(res.jac)
-    lin = levenberg.Linearisation(J.T @ J, np.zeros(len(specs)), float(2.0 * res.cost))
-    return levenberg.Fit(apply(state, specs, res.x), lin, int(res.nfev))
-
-
 def _frame_target_specs(specs: tuple[ParameterSpec, ...]) -> tuple[ParameterSpec, ...]:
-    return tuple(s for s in specs if s.kind not in KINEMATIC_KINDS)
+    return tuple(s for s in specs if s.kind not in KINEMATIC_KINDS and s.kind != "term")
 
 
 @levenberg.one_blas_thread
@@ -190,41 +166,6 @@ def frames_rms(model: RobotModel, q: Array, measured: Array, groups: Groups | No
     return rms(measured - predict(st, q, data.groups))
 
 
-#: Earlier spellings ``--fix`` still takes: the group ``tool`` and the names ``tool_x`` …
-#: ``tool_rz`` (``:A`` for a target's group kept), now ``target_offset``, ``target_offset_x``,
-#: ``target_rotation_x``.
-_OLD_PREFIXES = (("tool_r", "target_rotation_"), ("tool_", "target_offset_"))
-
-
-def _current_name(item: str) -> str:
-    if item == "tool":
-        return "target_offset"
-    for old, new in _OLD_PREFIXES:
-        if item.startswith(old) and item[len(old) : len(old) + 1] in ("x", "y", "z"):
-            return new + item[len(old) :]
-    return item
-
-
-def _expand_fix(specs: tuple[ParameterSpec, ...], fix: Collection[str]) -> frozenset[str]:
-    """Parameter names to pin: names, or the groups ``kinematics``, ``target_offset``
-    (earlier spellings read: :data:`_OLD_PREFIXES`)."""
-    names = {s.name for s in specs}
-    out: set[str] = set()
-    for item in map(_current_name, fix):
-        if item == "kinematics":
-            out |= {s.name for s in specs if s.kind in KINEMATIC_KINDS}
-        elif item == "target_offset":
-            out |= {s.name for s in specs if s.kind in ("target_offset", "target_rotation")}
-        elif item in names:
-            out.add(item)
-        else:
-            raise InputError(
-                f"--fix {item}: no such parameter; choose from kinematics, target_offset, or "
-                f"{', '.join(s.name for s in specs if not s.kind.startswith('frame'))}"
-            )
-    return frozenset(out)
-
-
 def _refuse_or_note(
     findings: list[Finding], accept: bool, notes: list[str], accepted: list[str]
 ) -> None:
@@ -234,29 +175,6 @@ def _refuse_or_note(
         raise findings[0].refusal()
     notes += [f"accepted despite the check '{f.check}': {f.message}" for f in findings]
     accepted += [f.check for f in findings]
-
-
-#: Targets whose spread off their best-fit plane is below this fraction of their spread
-#: along it lie on a surface.
-SURFACE_RATIO = 0.05
-
-
-def on_a_surface(points: Array) -> str | None:
-    """A warning when the targets (N×3, one frame) lie near one plane, else None: a model
-    fitted to a surface may predict worse than nominal away from it (a real UR5's
-    surface session: 3.0 mm held-out against the nominal model's 1.3 mm)."""
-    if len(points) < 4:
-        return None
-    centred = points - points.mean(axis=0)
-    s = np.linalg.svd(centred, compute_uv=False) / math.sqrt(len(points))
-    if not s[2] < SURFACE_RATIO * s[0]:
-        return None
-    return (
-        f"the targets lie near one surface ({s[2]:.2g} mm RMS off a plane, "
-        f"{s[0]:.0f} × {s[1]:.0f} mm RMS along it): the model is fitted to that surface and "
-        "may predict worse than nominal away from it — validate off it (--validate) or "
-        "spread the poses over a volume"
-    )
 
 
 def _sigma0(residuals: Array, w: Array, dof: int) -> float:
@@ -277,6 +195,8 @@ def calibrate(
     alternatives: Sequence[RobotModel] = (),
     groups: Groups | None = None,
     orientations: Array | None = None,
+    terms: TermRequest | str = "geometric",
+    conditions: Conditions | None = None,
 ) -> CalibrationResult:
     """Identify kinematic errors, target offsets and sensor frames together.
 
@@ -289,8 +209,18 @@ def calibrate(
     ``orientations``: measured target orientations (N×3×3) of a 6-DOF sensor. A
     result that fails an acceptance check raises :class:`AcceptanceError` unless
     ``accept`` (then the failures are among the warnings); ``alternatives``: other models
-    to try when diagnosing data that do not fit.
+    to try when diagnosing data that do not fit; ``terms``: error terms beyond geometry
+    (``auto``, ``geometric`` or a comma list, :mod:`cellcal.calib.term_choice`), read
+    with the measurements' ``conditions`` (time, temperature, payload).
     """
+    request = parse_terms(terms) if isinstance(terms, str) else terms
+    if nominal.terms:
+        # a calibrated model as the start: --fix kinematics keeps its terms as they are;
+        # otherwise they are chosen afresh with the geometry
+        if "kinematics" in {current_name(f) for f in fix}:
+            request = TermRequest("geometric")
+        else:
+            nominal = nominal.geometry
     q, measured, sigma = check_measurements(nominal, q, measured, sigma)
     orientations = check_orientations(orientations, len(q))
     if robust is not None and robust not in ROBUST_LOSSES:
@@ -303,13 +233,13 @@ def calibrate(
     g = groups if groups is not None else Groups.single(N)
     if len(g.target) != N or len(g.session) != N:
         raise InputError(f"groups: expected {N} target and session labels")
-    data = Data(q, measured, g, orientations)
+    data = Data(q, measured, g, orientations, conditions)
     six = orientations is not None
     w = weights(sigma, N, six)
     warnings: list[str] = []
     accepted: list[str] = []
     specs = parameter_specs(nominal, paper_parameters=paper_parameters, groups=g, orientation=six)
-    pinned = _expand_fix(specs, fix)
+    pinned = expand_fix(specs, fix)
     findings: list[Finding] = []
     still = False  # a session whose target did not move at all
     for s in range(len(g.sessions)):
@@ -414,31 +344,23 @@ def calibrate(
                     "a correction beyond manufacturing tolerance: left at nominal (an "
                     "unmodelled error, or the wrong model?)"
                 )
+    term_choice: TermChoice | None = None
+    if request.mode != "geometric":
+        state_t, sel, term_choice = choose_terms(final.state, sel, data, w, request)
+        if state_t is not final.state:
+            final = levenberg.fit(state_t, sel, data, w)
+            nfev += final.passes
     P = len(sel)
     if robust is not None:
         r = np.linalg.norm(data.residuals(final.state) * w, axis=1)
         f_scale = 2.5 * max(float(np.median(r)) / 1.5382, 1e-12)
         try:
-            final = _robust_fit(final.state, sel, data, w, robust, f_scale)
+            final = robust_fit(final.state, sel, data, w, robust, f_scale)
         except ConvergenceError:
             raise diagnosis(f"the robust ({robust}) identification did not converge") from None
         nfev += final.passes
     state = final.state
-    lost = [i for i, s in enumerate(specs) if s.kind == "target_offset" and s not in sel]
-    rank = [specs[i].name for i in lost if ident.reason(i) == "rank"]
-    hidden = [specs[i].name for i in lost if ident.reason(i) == "weak"]
-    if rank:
-        warnings.append(
-            f"the target offset ({', '.join(rank)}) is not identifiable from these poses "
-            "(does the flange orientation never change?); it stays at its nominal value and "
-            "the model holds only at the measured orientations"
-        )
-    if hidden:
-        warnings.append(
-            f"the target offset ({', '.join(hidden)}) is hidden by the noise at these poses "
-            "(its uncertainty exceeds 1 mm: the flange orientation varies too little); it "
-            "stays at its nominal value — vary the wrist orientation more"
-        )
+    warnings += pose_warnings(ident, specs, sel)
     flat = on_a_surface(
         target_kinematics(nominal, q, baseline.target_offsets[g.target], jacobian=False).p
     )
@@ -477,48 +399,20 @@ def calibrate(
         std = np.full(P, np.nan)
         warnings.append("the normal matrix is singular at the solution: no uncertainties")
 
-    sel_index = {s.name: k for k, s in enumerate(sel)}
-    estimates = []
-    for i, sp in enumerate(specs):
-        if sp.kind.startswith("frame"):
-            continue
-        k = sel_index.get(sp.name)
-        if sp.kind == "target_offset":
-            value = float(state.target_offsets[sp.group, sp.axis])
-        elif sp.kind == "target_rotation":
-            assert state.target_rotations is not None
-            value = math.degrees(float(so3_log(state.target_rotations[sp.group])[sp.axis]))
-        else:
-            value = sp.to_display(
-                getattr(state.model.joints[sp.joint - 1], sp.kind)
-                - getattr(nominal.joints[sp.joint - 1], sp.kind)
-            )
-            value = wrap_deg(value) if sp.is_angle else value
-        sd = 0.0 if k is None else sp.to_display(float(std[k]))
-        estimates.append(
-            ParameterEstimate(
-                sp.name,
-                sp.kind,
-                sp.joint,
-                sp.unit,
-                k is not None,
-                value,
-                sd,
-                "" if k is not None else ident.reason(i),
-            )
-        )
-    target_offset_std = np.array([e.std for e in estimates if e.kind == "target_offset"]).reshape(
+    state = with_term_sigma(state, sel, std)
+    estimated = estimates(state, nominal, specs, sel, std, ident)
+    target_offset_std = np.array([e.std for e in estimated if e.kind == "target_offset"]).reshape(
         -1, 3
     )
-    frame_std = np.stack([_frame_std(state, sel, cov, s) for s in range(len(g.sessions))])
+    frames_std = np.stack([frame_std(state, sel, cov, s) for s in range(len(g.sessions))])
     return CalibrationResult(
         nominal=nominal,
         calibrated=state.model,
         target_offset=state.target_offset,
         target_offset_std=target_offset_std[0],
         T_sensor_base=state.T_sensor_base,
-        frame_std=frame_std[0],
-        parameters=tuple(estimates),
+        frame_std=frames_std[0],
+        parameters=estimated,
         identifiability=ident,
         n_points=N,
         dof=dof,
@@ -534,7 +428,7 @@ def calibrate(
         target_offsets=state.target_offsets,
         target_offsets_std=target_offset_std,
         frames=np.stack([state.frame(s) for s in range(len(g.sessions))]),
-        frames_std=frame_std,
+        frames_std=frames_std,
         target_rotations=state.target_rotations,
         orientation_residuals=None if not six else full[:, 3:],
         covariance=cov,
@@ -542,32 +436,5 @@ def calibrate(
         pivots=state.pivots,
         condition_number_equal_weights=cond_equal,
         parameter_choice=choice,
+        term_choice=term_choice,
     )
-
-
-def _frame_std(state: State, sel: tuple[ParameterSpec, ...], cov: Array, session: int = 0) -> Array:
-    """Standard uncertainty of a session's T_sensor_base rotation vector and
-    translation (at the sensor origin), from the covariance of the pivot
-    parameterisation."""
-    idx = [k for k, s in enumerate(sel) if s.kind.startswith("frame") and s.group == session]
-    if len(idx) != 6:
-        return np.full(6, np.nan)
-    C = cov[np.ix_(idx, idx)]
-    # t = E(ω)(t₀ − pivot) + pivot + δt  ⇒  ∂t/∂ω = −[t₀ − pivot]×, ∂t/∂δt = I.
-    G = np.eye(6)
-    G[3:6, 0:3] = -skew(state.ts[session] - state.pivots[session])
-    out: Array = np.sqrt(np.clip(np.diag(G @ C @ G.T), 0.0, None))
-    return out
-
-
-def estimates_preview(
-    state: State, nominal: RobotModel, sel: tuple[ParameterSpec, ...]
-) -> list[tuple[str, str, float]]:
-    """(name, unit, correction) of the identified kinematic parameters, display units."""
-    out = []
-    for sp in sel:
-        if sp.kind in KINEMATIC_KINDS:
-            j = sp.joint - 1
-            delta = getattr(state.model.joints[j], sp.kind) - getattr(nominal.joints[j], sp.kind)
-            out.append((sp.name, sp.unit, sp.to_display(delta)))
-    return out

@@ -17,6 +17,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from cellcal.calib.error_terms import (
+    ChainFrames,
+    Conditions,
+    apply_drift,
+    drift_of,
+    drift_parts,
+    drift_variable,
+    joint_deltas,
+    needs_frames,
+)
 from cellcal.calib.geometry import Array
 from cellcal.calib.robot_model import RobotModel
 
@@ -38,6 +48,15 @@ class TargetKinematics:
     #: ∂(flange orientation)/∂(θ, d, a, α, β) of every row as angular velocities (N×3×5n,
     #: base frame, rad/rad; zero for d and a)
     W_rows: Array | None = None
+    #: every link's frame and joint axis (with ``frames=True``)
+    frames: ChainFrames | None = None
+
+
+def chain_frames(model: RobotModel, q: Array) -> ChainFrames:
+    """Every link's frame and joint axis at readings ``q``, of the geometry alone."""
+    k = target_kinematics(model.geometry, q, np.zeros(3), jacobian=False, frames=True)
+    assert k.frames is not None
+    return k.frames
 
 
 def target_kinematics(
@@ -47,14 +66,23 @@ def target_kinematics(
     *,
     jacobian: bool = True,
     angular: bool = False,
+    conditions: Conditions | None = None,
+    frames: bool = False,
 ) -> TargetKinematics:
     """Target positions for joint readings ``q`` (N×n, rad) and target offset ``target_offset`` (mm;
     one offset, or one per pose: N×3); with ``jacobian`` their derivatives, and with
-    ``angular`` also those of the flange orientation (``W_rows``)."""
+    ``angular`` also those of the flange orientation (``W_rows``). A model's error terms
+    are included, at ``conditions`` (None: the calibration's payload, the campaign's
+    start); ``frames``: also return every link's frame (``frames``)."""
     q = np.atleast_2d(np.asarray(q, dtype=np.float64))
     N, n = q.shape
     if n != model.dof:
         raise ValueError(f"q has {n} joints, the model {model.dof}")
+    angles = model.joint_angles(q)
+    if model.terms:
+        chain = chain_frames(model, q) if needs_frames(model.terms) else None
+        angles = angles + joint_deltas(model.terms, q, chain)
+    collected: list[tuple[Array, ...]] = []
     x = np.zeros((N, 3))
     y = np.zeros((N, 3))
     z = np.zeros((N, 3))
@@ -63,7 +91,6 @@ def target_kinematics(
     # Per row: (axis, origin) pairs for θ, α, β and directions for d, a.
     rec: list[tuple[Array, ...]] = []
     dh = model.convention == "dh"
-    angles = model.joint_angles(q)
     for i, jt in enumerate(model.joints):
         ang = jt.theta + angles[:, i]
         c, s = np.cos(ang)[:, None], np.sin(ang)[:, None]
@@ -100,20 +127,35 @@ def target_kinematics(
             o = oc + jt.d * zb
         if jacobian:
             rec.append((z_th, o_th, d_dir, a_dir, al_axis, al_org, be_axis, be_org))
+        if frames:
+            collected.append((np.stack([x, y, z], axis=2), o, z_th, o_th))
     R = np.stack([x, y, z], axis=2)
     target_offset = np.asarray(target_offset, dtype=np.float64)
     p = o + (
         R @ target_offset if target_offset.ndim == 1 else np.einsum("nij,nj->ni", R, target_offset)
     )
+    chained = None
+    if frames:
+        chained = ChainFrames(*(np.stack([c[k] for c in collected], axis=1) for k in range(4)))
+    drift = drift_of(model.terms)
+    grow = None
+    p_geometry = p
+    if drift is not None:
+        grow = 1.0 + drift_parts(drift)[1] * drift_variable(drift, conditions, N)
+        p = apply_drift(p, drift, conditions)
     if not jacobian:
         return TargetKinematics(
-            p=p, R_flange=R, J_rows=np.zeros((N, 3, 0)), axes=np.zeros((N, 3, 0))
+            p=p,
+            R_flange=R,
+            J_rows=np.zeros((N, 3, 0)),
+            axes=np.zeros((N, 3, 0)),
+            frames=chained,
         )
     # θ, α and β turn about an axis through a point: ∂p = axis × (p − point), all rows at
     # once; d and a move along a direction.
     turns = [(0, 0, 1), (3, 4, 5), (4, 6, 7)]  # (column in the row, axis, point) of rec
     axis = np.stack([r[a] for r in rec for _, a, _ in turns], axis=2)  # N×3×3n
-    arm = p[:, :, None] - np.stack([r[o] for r in rec for _, _, o in turns], axis=2)
+    arm = p_geometry[:, :, None] - np.stack([r[o] for r in rec for _, _, o in turns], axis=2)
     cross = np.empty_like(axis)
     cross[:, 0] = axis[:, 1] * arm[:, 2] - axis[:, 2] * arm[:, 1]
     cross[:, 1] = axis[:, 2] * arm[:, 0] - axis[:, 0] * arm[:, 2]
@@ -129,7 +171,9 @@ def target_kinematics(
     J[:, :, 5 * rows + 1] = np.stack([r[2] for r in rec], axis=2)
     J[:, :, 5 * rows + 2] = np.stack([r[3] for r in rec], axis=2)
     axes = np.ascontiguousarray(axis[:, :, 0::3])
-    return TargetKinematics(p=p, R_flange=R, J_rows=J, axes=axes, W_rows=W)
+    if grow is not None:
+        J *= grow[:, None, None]
+    return TargetKinematics(p=p, R_flange=R, J_rows=J, axes=axes, W_rows=W, frames=chained)
 
 
 def flange_transforms(model: RobotModel, q: Array) -> Array:

@@ -30,6 +30,7 @@ from dataclasses import dataclass
 from typing import ParamSpec, TypeVar
 
 import numpy as np
+from numpy.typing import NDArray
 from threadpoolctl import ThreadpoolController  # type: ignore[import-untyped]
 
 from cellcal.calib.error_model import ParameterSpec, State, apply
@@ -127,9 +128,10 @@ def linearise_folds(
     w: Array,
     folds: int,
     chunk: int = CHUNK,
+    labels: NDArray[np.intp] | None = None,
 ) -> list[Linearisation]:
-    """One pass over the poses, its sums kept apart per fold (pose i in fold i mod
-    ``folds``): the whole problem's are their sums."""
+    """One pass over the poses, its sums kept apart per fold (pose i in fold
+    ``labels[i]``, or i mod ``folds``): the whole problem's are their sums."""
     P = len(specs)
     N = len(data.q)
     G = np.zeros((folds, P, P))
@@ -144,7 +146,10 @@ def linearise_folds(
         r *= ww
         J *= ww[:, :, None]
         for k in range(folds):
-            mine = slice(None) if folds == 1 else (rows % folds) == k
+            if folds == 1:
+                mine: slice | NDArray[np.bool_] = slice(None)
+            else:
+                mine = (rows % folds if labels is None else labels[rows]) == k
             Jw = J[mine].reshape(-1, P)
             rw = r[mine].reshape(-1)
             G[k] += Jw.T @ Jw

@@ -22,6 +22,7 @@ from cellcal.calib.error_model import (
     predict,
     predict_orientation,
 )
+from cellcal.calib.error_terms import Conditions
 from cellcal.calib.geometry import Array
 from cellcal.calib.kinematics import target_kinematics
 from cellcal.calib.registration import fit_rigid
@@ -196,10 +197,12 @@ class Data:
     measured: Array
     groups: Groups
     orientations: Array | None = None
+    #: time, temperature and payload per measurement, for error terms (None: not given)
+    conditions: Conditions | None = None
 
     def residuals(self, state: State) -> Array:
         """Measured − predicted: N×3 (mm), or N×6 with the orientations' (rad)."""
-        r = self.measured - predict(state, self.q, self.groups)
+        r = self.measured - predict(state, self.q, self.groups, self.conditions)
         if self.orientations is None:
             return r
         o = orientation_residuals(
@@ -215,11 +218,14 @@ class Data:
         self, state: State, specs: tuple[ParameterSpec, ...]
     ) -> tuple[Array, Array]:
         """Predicted positions (N×3) and the Jacobian (N×3×P or N×6×P), from one pass."""
-        return jacobian(state, self.q, specs, self.groups, self.orientations is not None)
+        return jacobian(
+            state, self.q, specs, self.groups, self.orientations is not None, self.conditions
+        )
 
     def subset(self, rows: Index) -> Data:
         o = None if self.orientations is None else self.orientations[rows]
-        return Data(self.q[rows], self.measured[rows], self.groups.subset(rows), o)
+        c = None if self.conditions is None else self.conditions.subset(rows)
+        return Data(self.q[rows], self.measured[rows], self.groups.subset(rows), o, c)
 
 
 def check_orientations(orientations: Array | None, n: int) -> Array | None:

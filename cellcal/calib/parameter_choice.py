@@ -21,7 +21,11 @@ import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
+import numpy as np
+from numpy.typing import NDArray
+
 from cellcal.calib import levenberg
+from cellcal.calib.blocked_cv import region_folds
 from cellcal.calib.error_model import ParameterSpec, State
 from cellcal.calib.geometry import Array
 from cellcal.calib.identifiability import Identifiability, weakly_determined
@@ -62,13 +66,14 @@ def kfold_rms(
     data: Data,
     w: Array,
     folds: int = FOLDS,
+    labels: NDArray[np.intp] | None = None,
 ) -> float:
     """RMS (per pose, weighted) of each fold's residuals predicted by a fit of ``sel`` to
     the other folds. The fits are Gauss–Newton steps from ``state`` (a fit to all the
     poses) on the other folds' normal equations — one pass over the poses for all folds,
     exact to first order: removing a fifth of the poses moves the solution by about its
     uncertainty, where the model is linear to far below the noise."""
-    parts = levenberg.linearise_folds(state, sel, data, w, folds)
+    parts = levenberg.linearise_folds(state, sel, data, w, folds, labels=labels)
     G = sum(p.G for p in parts)
     g = sum(p.g for p in parts)
     total = 0.0
@@ -102,8 +107,14 @@ def choose(
     def chosen_specs(i: Identifiability) -> tuple[ParameterSpec, ...]:
         return tuple(specs[k] for k in i.identified)
 
+    regions = region_folds(state, data)
+    folds, labels = len(regions.train), regions.label
+
+    def cv(st: State, sel: tuple[ParameterSpec, ...]) -> float:
+        return kfold_rms(st, sel, data, w, folds, labels)
+
     current = ident
-    best = kfold_rms(state, chosen_specs(current), data, w)
+    best = cv(state, chosen_specs(current))
     rule = best
     kept: tuple[int, ...] = ()
     tried: list[tuple[str, float, bool]] = []
@@ -118,12 +129,12 @@ def choose(
             try:
                 full = levenberg.fit(state, sel, data, w, tol=levenberg.COARSE).state
                 ok = plausible(full, sel)
-                cv = kfold_rms(full, sel, data, w)
+                err = cv(full, sel)
             except CellcalError:
-                ok, cv = False, math.nan
-            tried.append((specs[cand].name, cv, ok))
-            if ok and cv < best * (1.0 - GAIN) and (step is None or cv < step[0]):
-                step = (cv, trial, full, cand)
+                ok, err = False, math.nan
+            tried.append((specs[cand].name, err, ok))
+            if ok and err < best * (1.0 - GAIN) and (step is None or err < step[0]):
+                step = (err, trial, full, cand)
         if step is None:
             break
         best, current, state, cand = step

@@ -27,6 +27,7 @@ from typing import Literal
 
 import numpy as np
 
+from cellcal.calib.error_terms import Term, term_from_dict, term_to_dict
 from cellcal.calib.geometry import Array, wrap_deg
 from cellcal.errors import InputError
 
@@ -47,7 +48,7 @@ LIMITS_HOW = (
 )
 
 _JOINT_KEYS = {"a", "alpha", "d", "theta", "beta", "min", "max", "scale", "couple"}
-_TOP_KEYS = {"name", "convention", "joint", "tool", "description"}
+_TOP_KEYS = {"name", "convention", "joint", "tool", "description", "term"}
 
 
 class ModelError(InputError):
@@ -83,6 +84,8 @@ class RobotModel:
     joints: tuple[Joint, ...]
     target_offset_xyz: tuple[float, float, float] = (0.0, 0.0, 0.0)
     parallel: tuple[bool, ...] = ()
+    #: error terms beyond geometry (cellcal.calib.error_terms), in TERM_NAMES order
+    terms: tuple[Term, ...] = ()
 
     def __post_init__(self) -> None:
         if not self.parallel:
@@ -137,7 +140,20 @@ class RobotModel:
 
     def with_joints(self, joints: tuple[Joint, ...]) -> RobotModel:
         """The same model with other geometry (same β rows)."""
-        return RobotModel(self.name, self.convention, joints, self.target_offset_xyz, self.parallel)
+        return RobotModel(
+            self.name, self.convention, joints, self.target_offset_xyz, self.parallel, self.terms
+        )
+
+    def with_terms(self, terms: tuple[Term, ...]) -> RobotModel:
+        """The same geometry with other error terms."""
+        return RobotModel(
+            self.name, self.convention, self.joints, self.target_offset_xyz, self.parallel, terms
+        )
+
+    @property
+    def geometry(self) -> RobotModel:
+        """The model without its error terms."""
+        return self if not self.terms else self.with_terms(())
 
 
 def detect_parallel(convention: str, joints: tuple[Joint, ...]) -> tuple[bool, ...]:
@@ -222,8 +238,13 @@ def model_from_dict(data: Mapping[str, object], source: str = "model") -> RobotM
         x, y, z = (_number(v, f"{source}: tool.xyz") for v in xyz)
         target_offset = (x, y, z)
     conv: Convention = "dh" if convention == "dh" else "mdh"
+    terms = _terms(data.get("term", []), source, len(joints))
     model = RobotModel(
-        name=name, convention=conv, joints=tuple(joints), target_offset_xyz=target_offset
+        name=name,
+        convention=conv,
+        joints=tuple(joints),
+        target_offset_xyz=target_offset,
+        terms=terms,
     )
     if model.maps_readings and abs(np.linalg.det(model.reading_matrix)) < 1e-9:
         raise ModelError(
@@ -277,6 +298,22 @@ def _couple(value: object, where: str, i: int, n: int) -> tuple[int, float]:
     return joint, _number(value["factor"], f"{where}.couple.factor")
 
 
+def _terms(value: object, source: str, n: int) -> tuple[Term, ...]:
+    """``[[term]]`` tables: error terms beyond geometry (cellcal.calib.error_terms)."""
+    if not isinstance(value, list):
+        raise ModelError(f"{source}: [[term]] must be an array of tables")
+    out: list[Term] = []
+    for i, row in enumerate(value, start=1):
+        try:
+            t = term_from_dict(row, f"{source}: term {i}", n)
+        except ValueError as e:
+            raise ModelError(str(e)) from None
+        if any(o.name == t.name and o.joint == t.joint for o in out):
+            raise ModelError(f"{source}: term {i}: a second {t.name} term of joint {t.joint}")
+        out.append(t)
+    return tuple(out)
+
+
 def _deg(rad: float) -> float:
     """Degrees, rounded at 1e-12° so that 15° read and written stays 15°."""
     return round(math.degrees(rad), 12) + 0.0
@@ -313,4 +350,6 @@ def model_to_dict(model: RobotModel) -> dict[str, object]:
     out: dict[str, object] = {"name": model.name, "convention": model.convention, "joint": rows}
     if any(model.target_offset_xyz):
         out["tool"] = {"xyz": list(model.target_offset_xyz)}
+    if model.terms:
+        out["term"] = [term_to_dict(t) for t in model.terms]
     return out

@@ -14,6 +14,7 @@ import numpy as np
 
 from cellcal.calib.acceptance import ACCURACY_CLASS_MM
 from cellcal.calib.error_model import Groups, Index, label_index, predict
+from cellcal.calib.error_terms import Conditions
 from cellcal.calib.geometry import Array
 from cellcal.calib.identification import (
     CalibrationResult,
@@ -106,16 +107,17 @@ def validate_on(
     measured: Array,
     sigma_calibration: Array | None = None,
     groups: Groups | None = None,
+    conditions: Conditions | None = None,
 ) -> Validation:
     """Errors of the calibrated model and of the baseline on separately measured points;
     ``groups``: their targets and sessions among the calibration's (see
-    :func:`held_out_groups`)."""
+    :func:`held_out_groups`); ``conditions``: their time, temperature and payload."""
     q, measured, _ = check_measurements(result.nominal, q, measured, None)
     baseline = fit_frames(
         result.nominal, q_calibration, measured_calibration, sigma_calibration, result.groups
     )
     eb = measured - predict(baseline, q, groups)
-    ea = measured - result.predict(q, groups)
+    ea = measured - result.predict(q, groups, conditions)
     off = ErrorStats.of(ea).rms
     if off > ACCURACY_CLASS_MM and len(q) >= 4:
         # Far off: is it the model, or were these points measured from somewhere else?
@@ -170,6 +172,8 @@ def cross_validate(
     fix: Collection[str] = (),
     groups: Groups | None = None,
     orientations: Array | None = None,
+    terms: str = "geometric",
+    conditions: Conditions | None = None,
 ) -> Validation:
     """k-fold cross-validation: every point is predicted by a calibration without it,
     made with the same options as the calibration it validates (a fold is not refused by
@@ -197,8 +201,11 @@ def cross_validate(
             accept=True,
             groups=g.subset(train),
             orientations=None if orientations is None else orientations[train],
+            terms=terms,
+            conditions=None if conditions is None else conditions.subset(train),
         )
         base = fit_frames(nominal, q[train], measured[train], s, g.subset(train))
         eb[held] = measured[held] - predict(base, q[held], g.subset(held))
-        ea[held] = measured[held] - res.predict(q[held], g.subset(held))
+        at = None if conditions is None else conditions.subset(held)
+        ea[held] = measured[held] - res.predict(q[held], g.subset(held), at)
     return Validation(f"k-fold k={folds}", ErrorStats.of(eb), ErrorStats.of(ea), eb, ea)

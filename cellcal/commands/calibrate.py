@@ -8,6 +8,7 @@ from typing import Any
 import click
 import numpy as np
 
+from cellcal.calib.error_terms import term_to_dict
 from cellcal.calib.geometry import so3_log
 from cellcal.calib.identification import (
     ROBUST_LOSSES,
@@ -19,6 +20,7 @@ from cellcal.calib.identification import (
 from cellcal.calib.observations import on_a_line
 from cellcal.calib.outliers import OUTLIER_Z, PointResidual, point_residuals
 from cellcal.calib.parameter_choice import FOLDS
+from cellcal.calib.term_choice import parse_terms
 from cellcal.calib.validation import (
     Validation,
     cross_validate,
@@ -26,6 +28,7 @@ from cellcal.calib.validation import (
     validate_on,
 )
 from cellcal.commands.output import SEED, print_json, warn
+from cellcal.commands.terms_output import terms_lines
 from cellcal.errors import AcceptanceError, InputError, UserError
 from cellcal.files.measurements import Measurements, read_measurements
 from cellcal.files.models import builtin_models, load_model, write_calibrated
@@ -138,6 +141,8 @@ def _report(
     for p in res.parameters:
         if p.identified:
             click.echo(f"  {p.name:<{width}}{p.value:+13.5f} ± {p.std:.5f} {p.unit}")
+    for text in terms_lines(res):
+        click.echo(text)
     echo_points(points, "per-point residuals after the fit")
     frames = res.frames if res.frames is not None else res.T_sensor_base[None]
     stds = res.frames_std if res.frames_std is not None else res.frame_std[None]
@@ -188,6 +193,9 @@ def _sessions_off_a_line(data: Measurements) -> Measurements:
         targets=rows_of(data.targets),
         sessions=rows_of(data.sessions),
         orientations=None if data.orientations is None else data.orientations[keep],
+        conditions=None
+        if data.conditions is None
+        else data.conditions.subset(np.flatnonzero(keep)),
     )
 
 
@@ -203,7 +211,8 @@ def _sessions_off_a_line(data: Measurements) -> Measurements:
     "data_path",
     required=True,
     help="CSV q1..qN,x,y,z (deg, mm); optional columns name, sx,sy,sz (1σ), target (one "
-    "offset per target), session (one sensor frame per set-up), ori_w..ori_z (6-DOF).",
+    "offset per target), session (one sensor frame per set-up), ori_w..ori_z (6-DOF), "
+    "time_s, temperature_c, payload_kg (for error terms beyond geometry).",
 )
 @click.option("--out", "out_path", help="Write the calibrated model (TOML) here.")
 @click.option(
@@ -234,6 +243,14 @@ def _sessions_off_a_line(data: Measurements) -> Measurements:
     is_flag=True,
     help="Write the model even if an acceptance check fails (the failures are recorded).",
 )
+@click.option(
+    "--terms",
+    default="auto",
+    show_default=True,
+    help="Error terms beyond geometry: auto (each added only when blocked cross-validation "
+    "accepts it), geometric (none), or a comma list of gravity, compliance, harmonics, "
+    "drift (fitted without the gate; the cross-validation still reported).",
+)
 @click.option("--seed", type=SEED, default=0, show_default=True, help="Seed of the k-fold split.")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout.")
 def calibrate(
@@ -246,6 +263,7 @@ def calibrate(
     paper_parameters: bool,
     fix: str | None,
     accept: bool,
+    terms: str,
     seed: int,
     as_json: bool,
 ) -> None:
@@ -270,6 +288,7 @@ def calibrate(
     x, y, z = (float(v) for v in loaded.target_offset)
     nominal = replace(loaded.model, target_offset_xyz=(x, y, z))
     pinned = tuple(n.strip() for n in (fix or "").split(",") if n.strip())
+    parse_terms(terms)  # a misspelt term is refused before the data are read
     data = _sessions_off_a_line(read_measurements(data_path, nominal.dof))
     alternatives = builtin_models()
     # The calibration and its k-fold folds are made with the same options.
@@ -279,6 +298,8 @@ def calibrate(
         "fix": pinned,
         "groups": data.groups,
         "orientations": data.orientations,
+        "terms": terms,
+        "conditions": data.conditions,
     }
     res = run_calibration(
         nominal, data.q, data.xyz, data.sigma, accept=accept, alternatives=alternatives, **options
@@ -287,7 +308,9 @@ def calibrate(
     if validate_path is not None:
         val = read_measurements(validate_path, nominal.dof)
         held = held_out_groups(res, len(val.q), val.targets, val.sessions)
-        validation = validate_on(res, data.q, data.xyz, val.q, val.xyz, data.sigma, held)
+        validation = validate_on(
+            res, data.q, data.xyz, val.q, val.xyz, data.sigma, held, val.conditions
+        )
     elif folds:
         try:
             validation = cross_validate(
@@ -369,6 +392,16 @@ def calibrate(
                     for n, cv, ok in res.parameter_choice.tried
                 ],
             },
+            "terms": None
+            if res.term_choice is None
+            else {"accepted": list(res.term_choice.accepted), "rejected": res.term_choice.rejected},
+            "blocked_cv_mm": None
+            if res.term_choice is None
+            else {
+                "geometric": res.term_choice.geometric_cv_mm,
+                "final": res.term_choice.final_cv_mm,
+            },
+            "error_terms": [term_to_dict(t) for t in res.calibrated.terms],
             "points": [p.as_dict() for p in points],
             "outliers": [p.name for p in points if p.outlier],
             "warnings": list(res.warnings),

@@ -45,7 +45,9 @@ def _pick(
     "joints_path",
     required=True,
     help="CSV q1..qn in degrees; optional target and session columns pick a calibrated "
-    "model's target offset and sensor frame by name.",
+    "model's target offset and sensor frame by name; time_s, temperature_c and payload_kg "
+    "are read by a model's error terms (absent: the campaign's start and the calibration's "
+    "payload).",
 )
 @click.option("--out", "out_path", help="Write the CSV here instead of stdout.")
 def predict(model_spec: str, joints_path: str, out_path: str | None) -> None:
@@ -59,14 +61,15 @@ def predict(model_spec: str, joints_path: str, out_path: str | None) -> None:
     if out_path is not None:
         check_output_file(out_path)
     loaded = load_model(model_spec)
-    q, targets, sessions = read_joints_labelled(joints_path, loaded.model.dof)
+    rows = read_joints_labelled(joints_path, loaded.model.dof)
+    q, targets, sessions = rows.q, rows.targets, rows.sessions
     check_measurements(loaded.model, q, np.zeros((len(q), 3)), None)
     T0 = np.eye(4) if loaded.T_sensor_base is None else loaded.T_sensor_base
     target_offsets, t_idx = _pick(len(q), targets, loaded.targets, loaded.target_offset, "target")
     frames, s_idx = _pick(len(q), sessions, loaded.sessions, T0, "session")
     groups = Groups(t_idx, s_idx)
     state = State(loaded.model, target_offsets, frames[:, :3, :3], frames[:, :3, 3], np.zeros(3))
-    text = format_positions(q, predict_positions(state, q, groups))
+    text = format_positions(q, predict_positions(state, q, groups, rows.conditions))
     if out_path is None:
         click.echo(text, nl=False)
     else:

@@ -5,8 +5,9 @@ them, target position in mm in the sensor frame — with optional columns ``name
 ``sx,sy,sz`` (1σ, mm), ``target`` (which target, when several are measured: each gets
 its own offset), ``session`` (which sensor set-up: each gets its own frame) and
 ``ori_w,ori_x,ori_y,ori_z`` (the target's orientation in the sensor frame, a unit
-quaternion, from a 6-DOF sensor). Joints: ``q1..qn`` (deg), with optional
-``target`` and ``session``. Angles become radians here.
+quaternion, from a 6-DOF sensor), and, for error terms beyond geometry, ``time_s``
+(seconds since the campaign's start), ``temperature_c`` and ``payload_kg``. Joints:
+``q1..qn`` (deg), with optional ``target`` and ``session``. Angles become radians here.
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from cellcal.calib.error_model import Groups
+from cellcal.calib.error_terms import Conditions
 from cellcal.calib.geometry import Array
 from cellcal.errors import FileFormatError
 from cellcal.files.csvtable import Table, read_table
@@ -41,6 +43,8 @@ class Measurements:
     targets: tuple[str, ...] | None = None
     sessions: tuple[str, ...] | None = None
     orientations: Array | None = None
+    #: time, temperature and payload per row (None: none of the columns)
+    conditions: Conditions | None = None
 
     @property
     def groups(self) -> Groups:
@@ -96,7 +100,32 @@ def read_measurements(path: str | Path, dof: int = 6) -> Measurements:
         _labels(t, "target"),
         _labels(t, "session"),
         read_orientations(t),
+        read_conditions(t),
     )
+
+
+#: Plausible ranges of the condition columns: a value outside is a unit slip (ms for s,
+#: °F or K for °C, g for kg) or a typo, refused with the row.
+CONDITION_RANGES = {
+    "time_s": (0.0, 366 * 86400.0, "seconds since the campaign's start, 0 or more"),
+    "temperature_c": (-40.0, 80.0, "°C, between −40 and 80 (°F or K?)"),
+    "payload_kg": (0.0, 5000.0, "kg, 0 or more (grams?)"),
+}
+
+
+def read_conditions(t: Table) -> Conditions | None:
+    """The ``time_s``, ``temperature_c``, ``payload_kg`` columns, or None when absent."""
+    found: dict[str, Array] = {}
+    for column, (lo, hi, what) in CONDITION_RANGES.items():
+        if not t.has(column):
+            continue
+        values = np.array([t.number(k, column) for k in range(len(t.rows))])
+        bad = np.flatnonzero((values < lo) | (values > hi))
+        if len(bad):
+            k = int(bad[0])
+            raise FileFormatError(f"{t.where(k)}: {column} {values[k]:g} is not {what}")
+        found[column] = values
+    return Conditions(**found) if found else None
 
 
 def _labels(t: Table, column: str) -> tuple[str, ...] | None:
@@ -135,16 +164,28 @@ def read_orientations(t: Table) -> Array | None:
 
 def read_joints(path: str | Path, dof: int = 6) -> Array:
     """Joint readings (N×n, rad) from a ``q1..qn`` CSV in degrees."""
-    return read_joints_labelled(path, dof)[0]
+    return read_joints_labelled(path, dof).q
 
 
-def read_joints_labelled(
-    path: str | Path, dof: int = 6
-) -> tuple[Array, tuple[str, ...] | None, tuple[str, ...] | None]:
-    """Joint readings (N×n, rad) and the optional ``target`` and ``session`` labels."""
+@dataclass(frozen=True)
+class JointRows:
+    """A joints file: readings ``q`` (N×n, rad), the optional ``target`` and ``session``
+    labels, and the time, temperature and payload columns (or None)."""
+
+    q: Array
+    targets: tuple[str, ...] | None
+    sessions: tuple[str, ...] | None
+    conditions: Conditions | None
+
+
+def read_joints_labelled(path: str | Path, dof: int = 6) -> JointRows:
+    """Joint readings (N×n, rad), the optional ``target`` and ``session`` labels and the
+    ``time_s``, ``temperature_c``, ``payload_kg`` columns."""
     cols = joint_columns(dof)
     t = read_table(path, cols, ",".join(cols))
-    return read_joint_columns(t, dof), _labels(t, "target"), _labels(t, "session")
+    return JointRows(
+        read_joint_columns(t, dof), _labels(t, "target"), _labels(t, "session"), read_conditions(t)
+    )
 
 
 def format_positions(q: Array, xyz: Array) -> str:

@@ -113,7 +113,8 @@ def _from_data(data: dict[str, Any], spec: str) -> LoadedModel:
         if version != FORMAT_VERSION:
             raise FileFormatError(f"{spec}: calibrated-model format_version {version!r} unknown")
         try:
-            geometry = {k: data[k] for k in ("name", "convention", "joint")}
+            keys = ("name", "convention", "joint", "term")
+            geometry: dict[str, Any] = {k: data[k] for k in keys if k in data}
             # [instrument]: what earlier versions called the sensor frame's table.
             frame = data["sensor"] if "sensor" in data else data["instrument"]
             matrix = np.array(frame["matrix"], dtype=np.float64)
@@ -207,6 +208,20 @@ def _covariance_document(result: CalibrationResult) -> dict[str, Any] | None:
     }
 
 
+def terms_document(result: CalibrationResult) -> dict[str, Any] | None:
+    """What the calibration tried beyond geometry: the terms accepted, those rejected and
+    why, and the blocked cross-validation RMS of the geometric and final models (mm)."""
+    c = result.term_choice
+    if c is None:
+        return None
+    return {
+        "mode": c.mode,
+        "accepted": list(c.accepted),
+        "rejected": c.rejected,
+        "blocked_cv_mm": {"geometric": c.geometric_cv_mm, "final": c.final_cv_mm},
+    }
+
+
 def calibrated_document(
     result: CalibrationResult,
     validation: Validation | None,
@@ -226,6 +241,7 @@ def calibrated_document(
         "name": geometry["name"],
         "convention": geometry["convention"],
         "joint": geometry["joint"],
+        **({"term": geometry["term"]} if "term" in geometry else {}),
         "tool": {"xyz": result.target_offset, "std_mm": result.target_offset_std},
         "sensor": {
             "matrix": T,
@@ -266,6 +282,7 @@ def calibrated_document(
             "warnings": list(result.warnings),
             "accepted_despite": list(result.accepted_despite),
             "covariance": _covariance_document(result),
+            "terms": terms_document(result),
         },
         "point": [
             p.as_dict()

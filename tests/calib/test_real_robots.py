@@ -73,3 +73,30 @@ def test_barrett_wam_seven_axes():
     assert res.nominal.dof == 7
     assert v.after.rms < v.before.rms * 0.9
     _plausible(res, TOLERANCE_MM, TOLERANCE_DEG)
+
+
+@cache
+def _with_terms(robot: str) -> tuple[CalibrationResult, Validation]:
+    nominal = load_model(str(REAL / robot / "model.toml")).model
+    data = read_measurements(REAL / robot / "measurements.csv", nominal.dof)
+    val = read_measurements(REAL / robot / "validation.csv", nominal.dof)
+    res = calibrate(nominal, data.q, data.xyz, terms="auto", accept=True)
+    return res, validate_on(res, data.q, data.xyz, val.q, val.xyz)
+
+
+def test_ur5_harmonics_pass_blocked_cross_validation_and_beat_geometry():
+    """The issue's goal: held-out mean ≤ 0.088 mm (geometric 0.101) on the source's own
+    test poses, with only terms blocked cross-validation accepts."""
+    res, v = _with_terms("ur5")
+    _, geometric = _calibrated("ur5")
+    assert res.term_choice is not None and res.term_choice.accepted == ("harmonics",)
+    assert res.term_choice.final_cv_mm < 0.85 * res.term_choice.geometric_cv_mm
+    assert v.after.mean <= 0.088 < geometric.after.mean
+
+
+def test_wam_takes_gravity_and_predicts_better_than_geometry():
+    res, v = _with_terms("barrett-wam")
+    _, geometric = _calibrated("barrett-wam")
+    assert res.term_choice is not None and res.term_choice.accepted == ("gravity",)
+    assert v.after.mean < geometric.after.mean - 0.3
+    assert {t.name for t in res.calibrated.terms} == {"gravity"}

@@ -1,0 +1,354 @@
+"""Which error terms beyond geometry a calibration adds: only those that held-out data
+say improve its predictions.
+
+``--terms auto`` starts from the geometric fit and adds, greedily, the term that most
+lowers the blocked cross-validation error (:mod:`cellcal.calib.blocked_cv`: whole
+regions of the workspace left out; for ``drift``, later stretches of the campaign) —
+only while the gain, pose by pose, is more than :data:`Z_ACCEPT` standard errors from
+zero and more than :data:`GAIN` of the error. ``--terms LIST`` fits the listed terms
+without the gate and reports each one's cross-validation all the same (the listed set
+against the set without it). Every term not added says why.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from cellcal.calib import levenberg
+from cellcal.calib.blocked_cv import (
+    Comparison,
+    Folds,
+    compare,
+    held_out_errors,
+    region_folds,
+    stretch_folds,
+)
+from cellcal.calib.error_model import ParameterSpec, State, term_specs
+from cellcal.calib.error_terms import (
+    DRIFT,
+    HARMONICS,
+    TERM_NAMES,
+    Term,
+    gravity_regressors,
+    joint_deltas,
+)
+from cellcal.calib.geometry import Array
+from cellcal.calib.identifiability import analyse, weakly_determined
+from cellcal.calib.kinematics import chain_frames
+from cellcal.calib.observations import Data
+from cellcal.errors import CellcalError, InputError
+
+#: A term is accepted when its pose-by-pose gain is this many standard errors from zero …
+Z_ACCEPT = 2.0
+#: … and lowers the held-out RMS by more than this fraction.
+GAIN = 0.01
+#: A joint term that turns its joint farther than this (deg) at any measured pose is no
+#: transmission's or deflection's error: refused as implausible.
+TERM_LIMIT_DEG = 2.0
+
+
+@dataclass(frozen=True)
+class TermRequest:
+    """``auto``, ``geometric``, or ``list`` with the listed names."""
+
+    mode: str
+    names: tuple[str, ...] = ()
+
+
+def parse_terms(text: str) -> TermRequest:
+    """``auto``, ``geometric`` or a comma list of :data:`TERM_NAMES`."""
+    t = text.strip()
+    if t in ("auto", "geometric"):
+        return TermRequest(t)
+    names = tuple(dict.fromkeys(n.strip() for n in t.split(",") if n.strip()))
+    bad = [n for n in names if n not in TERM_NAMES]
+    if bad or not names:
+        raise InputError(
+            f"--terms {text!r}: choose auto, geometric, or a comma list of {', '.join(TERM_NAMES)}"
+        )
+    return TermRequest("list", tuple(n for n in TERM_NAMES if n in names))
+
+
+@dataclass(frozen=True)
+class TermVerdict:
+    """A term's outcome: accepted or not, why, and its blocked cross-validation (the
+    model without it against the model with it; None when it could not be fitted)."""
+
+    name: str
+    accepted: bool
+    reason: str
+    comparison: Comparison | None = None
+
+
+@dataclass(frozen=True)
+class TermChoice:
+    """The request's mode, each term's verdict (in :data:`TERM_NAMES` order), and the
+    blocked cross-validation RMS (mm, over regions) of the geometric and final models."""
+
+    mode: str
+    verdicts: tuple[TermVerdict, ...]
+    geometric_cv_mm: float
+    final_cv_mm: float
+
+    @property
+    def accepted(self) -> tuple[str, ...]:
+        return tuple(v.name for v in self.verdicts if v.accepted)
+
+    @property
+    def rejected(self) -> dict[str, str]:
+        return {v.name: v.reason for v in self.verdicts if not v.accepted}
+
+
+def candidates(name: str, state: State, data: Data) -> tuple[Term, ...] | str:
+    """The terms (zero coefficients) ``name`` adds to the model, or why it cannot be
+    fitted to these data."""
+    n = state.model.dof
+    c = data.conditions
+    if name == "harmonics":
+        return tuple(Term("harmonics", j, HARMONICS, (0.0,) * 4) for j in range(1, n + 1))
+    if name == "gravity":
+        return tuple(
+            Term("gravity", j, regs, (0.0,) * len(regs))
+            for j in range(1, n + 1)
+            for regs in [gravity_regressors(j, n)]
+        )
+    if name == "drift":
+        for column in ("temperature_c", "time_s"):
+            x = None if c is None else c.column(column)
+            if x is not None and float(np.ptp(x)) > 0:
+                first = int(np.argmin(c.time_s)) if c is not None and c.time_s is not None else 0
+                reference = float(x[first]) if column == "temperature_c" else 0.0
+                return (Term("drift", 0, DRIFT, (0.0,) * 4, variable=column, reference=reference),)
+        return "needs a time_s or temperature_c column that changes during the measurements"
+    # compliance
+    payloads = None if c is None or c.payload_kg is None else np.unique(c.payload_kg)
+    if payloads is None or len(payloads) < 2:
+        return (
+            "needs measurements at two or more payloads (payload_kg), without which a "
+            "stiffness cannot be told from the arm's own mass moments: gravity models "
+            "the deflection at this payload"
+        )
+    return "needs a mass model (mass_kg and com_mm in each [[joint]]), which this model has not"
+
+
+@dataclass(frozen=True)
+class _Fitted:
+    state: State
+    sel: tuple[ParameterSpec, ...]
+
+
+def _identifiable(
+    st: State, specs: tuple[ParameterSpec, ...], data: Data, w: Array
+) -> dict[int, list[int]]:
+    """Each term's regressors (by index) the poses determine: by exact rank, then, after a
+    fit, those whose uncertainty stays within a transmission's plausible error (as
+    geometric parameters are judged: :func:`weakly_determined`)."""
+    ident = analyse(levenberg.linearise(st, specs, data, w).R, specs)
+    chosen = tuple(specs[i] for i in ident.identified)
+    if not any(s.kind == "term" for s in chosen):
+        return {}
+    try:
+        fit = levenberg.fit(
+            st, chosen, data, w, tol=levenberg.COARSE, limit=levenberg.COARSE_PASSES
+        )
+    except CellcalError:
+        return {}
+    sigma0 = math.sqrt(fit.lin.cost / max(w.size - len(chosen), 1))
+    geometric = [i for i in ident.identified if specs[i].kind != "term"]
+    ident = weakly_determined(fit.lin.R, sigma0, ident, spare=geometric)
+    keep: dict[int, list[int]] = {}
+    for i in ident.identified:
+        if specs[i].kind == "term":
+            keep.setdefault(specs[i].group, []).append(specs[i].index)
+    return keep
+
+
+def _fit(base: _Fitted, terms: tuple[Term, ...], data: Data, w: Array) -> _Fitted | str:
+    """The geometric selection of ``base`` and ``terms`` fitted together, the terms cut
+    to their identifiable regressors; or why they could not be."""
+    geometric = tuple(s for s in base.sel if s.kind != "term")
+    st = replace(base.state, model=base.state.model.with_terms(terms))
+    keep = _identifiable(st, geometric + tuple(term_specs(st.model)), data, w)
+    if not keep:
+        return "not identifiable from these poses (or hidden by their noise)"
+    pruned = tuple(
+        replace(
+            t,
+            regressors=tuple(t.regressors[k] for k in sorted(keep[g])),
+            coefficients=(0.0,) * len(keep[g]),
+            sigma=(),
+        )
+        for g, t in enumerate(terms)
+        if g in keep
+    )
+    st = replace(base.state, model=base.state.model.with_terms(pruned))
+    sel = geometric + tuple(term_specs(st.model))
+    try:
+        fitted = levenberg.fit(st, sel, data, w).state
+    except CellcalError as e:
+        return f"its fit failed: {e}"
+    worst = _largest_turn(fitted, data)
+    if worst is not None:
+        return worst
+    return _Fitted(fitted, sel)
+
+
+def _largest_turn(state: State, data: Data) -> str | None:
+    """Why the joint terms of ``state`` are implausible, or None."""
+    joint_terms = tuple(t for t in state.model.terms if t.is_joint_term)
+    if not joint_terms:
+        return None
+    frames = chain_frames(state.model, data.q)
+    turn = np.degrees(np.abs(joint_deltas(joint_terms, data.q, frames)))
+    pose, joint = np.unravel_index(int(np.argmax(turn)), turn.shape)
+    if turn[pose, joint] <= TERM_LIMIT_DEG:
+        return None
+    return (
+        f"implausible: it turns joint {joint + 1} by {turn[pose, joint]:.2f}° at a measured "
+        f"pose, beyond any transmission's error ({TERM_LIMIT_DEG}°)"
+    )
+
+
+def _describe(c: Comparison, folds: Folds, accepted: bool) -> str:
+    where = f"{len(folds.train)} regions" if folds.kind == "regions" else "later stretches"
+    figures = f"blocked cross-validation over {where}: {c.before_mm:.4g} → {c.after_mm:.4g} mm"
+    if accepted:
+        return f"{figures} ({-100 * c.gain:+.1f} %, z {c.z:.1f})"
+    if c.after_mm >= c.before_mm:
+        return f"{figures} (no better)"
+    return f"{figures}, a gain within its uncertainty (z {c.z:.1f}, needs {Z_ACCEPT:g})"
+
+
+def _passes(c: Comparison) -> bool:
+    return c.z > Z_ACCEPT and c.gain > GAIN
+
+
+def choose_terms(
+    state: State, sel: tuple[ParameterSpec, ...], data: Data, w: Array, request: TermRequest
+) -> tuple[State, tuple[ParameterSpec, ...], TermChoice]:
+    """The geometric fit ``state`` over ``sel`` with the terms the request and the data
+    accept, its parameters, and each term's verdict."""
+    regions = region_folds(state, data)
+    c = data.conditions
+    order = None if c is None else (c.time_s if c.time_s is not None else c.temperature_c)
+    stretches = None if order is None else stretch_folds(order)
+
+    def folds_for(name: str) -> Folds:
+        return stretches if name == "drift" and stretches is not None else regions
+
+    def errors(f: _Fitted, folds: Folds) -> Array:
+        return held_out_errors(f.state, f.sel, data, w, folds)
+
+    names = TERM_NAMES if request.mode == "auto" else request.names
+    current = _Fitted(state, sel)
+    geometric_cv = errors(current, regions)
+    verdicts: dict[str, TermVerdict] = {}
+    possible: dict[str, tuple[Term, ...]] = {}
+    for name in names:
+        found = candidates(name, state, data)
+        if isinstance(found, str):
+            verdicts[name] = TermVerdict(name, False, found)
+        else:
+            possible[name] = found
+    if request.mode == "list":
+        current = _listed(current, possible, data, w, verdicts, folds_for, errors)
+    else:
+        current = _greedy(current, possible, data, w, verdicts, folds_for, errors)
+    final_cv = errors(current, regions)
+    return (
+        current.state,
+        current.sel,
+        TermChoice(
+            request.mode,
+            tuple(verdicts[n] for n in TERM_NAMES if n in verdicts),
+            _rms(geometric_cv),
+            _rms(final_cv),
+        ),
+    )
+
+
+def _rms(e: Array) -> float:
+    ok = np.isfinite(e)
+    return math.sqrt(float(np.mean(e[ok] ** 2))) if ok.any() else math.nan
+
+
+FoldsFor = Callable[[str], Folds]
+Errors = Callable[[_Fitted, Folds], Array]
+
+
+def _listed(
+    current: _Fitted,
+    possible: dict[str, tuple[Term, ...]],
+    data: Data,
+    w: Array,
+    verdicts: dict[str, TermVerdict],
+    folds_for: FoldsFor,
+    errors: Errors,
+) -> _Fitted:
+    """Fit every listed term; judge each by the listed set without it."""
+    every = tuple(t for cand in possible.values() for t in cand)
+    if not every:
+        return current
+    fitted = _fit(current, every, data, w)
+    if isinstance(fitted, str):
+        for name in possible:
+            verdicts[name] = TermVerdict(name, False, fitted)
+        return current
+    present = {t.name for t in fitted.state.model.terms}
+    for name in possible:
+        if name not in present:
+            verdicts[name] = TermVerdict(name, False, "not identifiable from these poses")
+            continue
+        others = tuple(t for n, cand in possible.items() if n != name for t in cand)
+        without = _fit(current, others, data, w) if others else current
+        folds = folds_for(name)
+        if isinstance(without, str):
+            verdicts[name] = TermVerdict(name, True, "fitted as listed")
+            continue
+        cmp = compare(errors(without, folds), errors(fitted, folds))
+        ok = _passes(cmp)
+        note = "" if ok else " — fitted as listed, though the gate would not accept it"
+        verdicts[name] = TermVerdict(name, True, _describe(cmp, folds, ok) + note, cmp)
+    return fitted
+
+
+def _greedy(
+    current: _Fitted,
+    possible: dict[str, tuple[Term, ...]],
+    data: Data,
+    w: Array,
+    verdicts: dict[str, TermVerdict],
+    folds_for: FoldsFor,
+    errors: Errors,
+) -> _Fitted:
+    """Add, one at a time, the term that lowers the blocked error most, while one does."""
+    terms: tuple[Term, ...] = ()
+    last: dict[str, tuple[Comparison, Folds]] = {}
+    while possible:
+        best: tuple[float, str, _Fitted, Comparison] | None = None
+        for name, cand in possible.items():
+            fitted = _fit(current, terms + cand, data, w)
+            if isinstance(fitted, str):
+                verdicts[name] = TermVerdict(name, False, fitted)
+                continue
+            folds = folds_for(name)
+            cmp = compare(errors(current, folds), errors(fitted, folds))
+            last[name] = (cmp, folds)
+            if _passes(cmp) and (best is None or cmp.after_mm < best[0]):
+                best = (cmp.after_mm, name, fitted, cmp)
+        for name in [n for n in possible if n in verdicts]:
+            del possible[name]
+        if best is None:
+            break
+        _, name, current, cmp = best
+        terms = current.state.model.terms
+        verdicts[name] = TermVerdict(name, True, _describe(cmp, folds_for(name), True), cmp)
+        del possible[name]
+    for name, (cmp, folds) in last.items():
+        if name not in verdicts:
+            verdicts[name] = TermVerdict(name, False, _describe(cmp, folds, False), cmp)
+    return current
