@@ -22,9 +22,10 @@ from typing import Annotated, Any, Literal
 from pydantic import Field, PlainValidator, SerializeAsAny, ValidationError, model_validator
 from pydantic_core import PydanticCustomError
 
+from cellcal.calib.term_choice import parse_terms
 from cellcal.check_config import CheckConfig
 from cellcal.device_options import Positive, RobotOptions, Seed, SensorOptions, Strict, Vec3
-from cellcal.errors import FileFormatError, UserError
+from cellcal.errors import FileFormatError, InputError, UserError
 from cellcal.families import ROBOT, Role, default_driver, families, find, kinds
 from cellcal.files.text import read_toml
 from cellcal.fleet_config import FleetConfig
@@ -114,9 +115,16 @@ class CampaignConfig(Strict):
     workspace_min_mm: Vec3 = Field(default_factory=lambda: [-1500.0, -1500.0, 0.0])
     workspace_max_mm: Vec3 = Field(default_factory=lambda: [1500.0, 1500.0, 2000.0])
     seed: Seed = 0
+    # error terms beyond geometry the calibration may add: auto (each only when blocked
+    # cross-validation accepts it), geometric, or a comma list (cellcal.calib.term_choice)
+    terms: str = "auto"
 
     @model_validator(mode="after")
     def _box(self) -> CampaignConfig:
+        try:
+            parse_terms(self.terms)
+        except InputError as e:
+            raise ValueError(str(e).replace("--terms", "terms")) from None
         if any(
             lo >= hi for lo, hi in zip(self.workspace_min_mm, self.workspace_max_mm, strict=True)
         ):

@@ -10,7 +10,9 @@ useful. Here a fold is either
   predicted by a fit to the others; or
 * a **later stretch**: the poses sorted by their time (or temperature) are cut into
   :data:`STRETCHES` equal stretches, and each of the later ones is predicted by a fit
-  to the stretches before it — what a drift term claims to do.
+  to all the others — a region of time, the last one beyond every pose the fit saw,
+  which is what a drift term claims to predict. (Fitting each stretch from only those
+  before it leaves a campaign of a few dozen poses too few to fit the geometry.)
 
 Each fold's fit is a Gauss–Newton step from the fit to all the poses on the other
 poses' normal equations (as :func:`cellcal.calib.parameter_choice.kfold_rms` does):
@@ -73,12 +75,14 @@ def region_folds(state: State, data: Data, regions: int = REGIONS) -> Folds:
 
 def stretch_folds(order: Array, stretches: int = STRETCHES) -> Folds:
     """Poses sorted by ``order`` (time or temperature) into stretches; each stretch after
-    the second is predicted by the stretches before it."""
+    the second is predicted by all the others."""
     n = len(order)
     rank = np.empty(n, dtype=np.intp)
     rank[np.argsort(order, kind="stable")] = np.arange(n)
     label = ((rank * stretches) // max(n, 1)).astype(np.intp)
-    train = tuple(tuple(range(f)) if f >= 2 else () for f in range(stretches))
+    train = tuple(
+        tuple(k for k in range(stretches) if k != f) if f >= 2 else () for f in range(stretches)
+    )
     return Folds(label, train, "stretches")
 
 

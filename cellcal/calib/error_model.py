@@ -373,7 +373,9 @@ def _term_columns(
         term = model.terms[sp.group]
         if term.is_joint_term:
             if sp.group not in regressors:
-                regressors[sp.group] = joint_regressors(term, q, chain)
+                regressors[sp.group] = joint_regressors(
+                    term, q, chain, model.mass_model, conditions
+                )
             r = regressors[sp.group][:, sp.index]
             J[:, :3, col] = turn(k.J_rows[:, :, 5 * (sp.joint - 1), None])[:, :, 0] * r[:, None]
             if orientation:

@@ -15,6 +15,12 @@ A term is a small, named correction a model carries besides its geometry:
   - ``harmonics``: ``sin1``, ``cos1``, ``sin2``, ``cos2`` of the joint's reading
     (eccentricity and ellipticity of its transmission).
 
+  - ``compliance``: a joint's physical compliance (deg per kN·m) times the gravity
+    torque about it (``tau``, kN·m) of the links it carries and the payload, from the
+    model's mass model (each link's ``mass_kg`` and ``com_mm``, the payload's mass per
+    measurement and ``payload_com_mm``); a joint driven together with another (a
+    ``couple``) also yields to that joint's torque (``tau{j}``).
+
 * ``drift`` (joint 0): a slow change with the measurement's time (hours since the
   campaign's start) or temperature (°C above the campaign's first): the positions grow
   about the base origin by ``scale`` (ppm per hour or per °C) and shift by ``x``,
@@ -71,7 +77,8 @@ class Term:
     (1-based; 0 for ``drift``), its regressors' names, the coefficients (internal units:
     rad per regressor unit; for drift mm per unit and a fraction per unit) and their
     standard uncertainties (same units; NaN where unknown). ``variable``/``reference``: a
-    drift's column and the value at which it is zero."""
+    drift's column and the value at which it is zero; a compliance's ``reference`` is the
+    payload (kg) of measurements that give none."""
 
     name: str
     joint: int
@@ -96,6 +103,8 @@ class Term:
             return f"ppm/{per}" if self.regressors[k] == "scale" else f"mm/{per}"
         if self.name == "gravity" and self.regressors[k].startswith("o"):
             return "deg/m"
+        if self.name == "compliance":
+            return "deg/kN·m"
         return "deg"
 
     def to_display(self, k: int, value: float) -> float:
@@ -111,6 +120,20 @@ class Term:
     def with_coefficients(self, coefficients: Array, sigma: Array | None = None) -> Term:
         s = self.sigma if sigma is None else tuple(float(v) for v in sigma)
         return replace(self, coefficients=tuple(float(v) for v in coefficients), sigma=s)
+
+
+#: Standard gravity (m/s²).
+G_N_PER_KG = 9.80665
+
+
+@dataclass(frozen=True)
+class MassModel:
+    """Every link's mass (kg, n) and centre of mass (mm, n×3, in its link frame), and the
+    payload's centre of mass (mm, in the flange frame)."""
+
+    mass_kg: Array
+    com_mm: Array
+    payload_com_mm: Array
 
 
 @dataclass(frozen=True)
@@ -133,10 +156,51 @@ def gravity_regressors(joint: int, n: int) -> tuple[str, ...]:
     )
 
 
-def joint_regressors(term: Term, q: Array, frames: ChainFrames | None) -> Array:
+def joint_torques(frames: ChainFrames, mass: MassModel, payload_kg: Array) -> Array:
+    """The gravity torque about every joint (N×n, kN·m) of the links it carries and a
+    payload of ``payload_kg`` (N) at the flange."""
+    N, n = frames.o.shape[:2]
+    com = frames.o + np.einsum("nkij,kj->nki", frames.R, mass.com_mm)  # N×n×3, mm
+    payload = frames.o[:, -1] + frames.R[:, -1] @ mass.payload_com_mm
+    force = G_N_PER_KG * GRAVITY_DIRECTION  # per kg
+    out = np.zeros((N, n))
+    for i in range(n):
+        lever = (com[:, i:] - frames.point[:, i, None]) / 1000.0  # m
+        moment = np.cross(lever, force) * mass.mass_kg[i:, None]
+        total = moment.sum(axis=1)
+        total += np.cross((payload - frames.point[:, i]) / 1000.0, force) * payload_kg[:, None]
+        out[:, i] = np.einsum("ni,ni->n", frames.axis[:, i], total)
+    result: Array = out / 1000.0
+    return result
+
+
+def compliance_regressors(joint: int, coupled: tuple[int, ...]) -> tuple[str, ...]:
+    """A compliance term's regressors: its own torque and its coupled joints'."""
+    return ("tau", *(f"tau{j}" for j in coupled))
+
+
+def payload_of(term: Term, conditions: Conditions | None, n: int) -> Array:
+    """Each measurement's payload (kg): its column, else the calibration's."""
+    col = None if conditions is None else conditions.payload_kg
+    return np.full(n, term.reference) if col is None else col
+
+
+def joint_regressors(
+    term: Term,
+    q: Array,
+    frames: ChainFrames | None,
+    mass: MassModel | None = None,
+    conditions: Conditions | None = None,
+) -> Array:
     """The regressors (N×K) of a joint term at readings ``q`` (N×n, rad)."""
     i = term.joint - 1
     cols = []
+    if term.name == "compliance":
+        assert frames is not None and mass is not None, "compliance needs frames and masses"
+        tau = joint_torques(frames, mass, payload_of(term, conditions, len(q)))
+        for name in term.regressors:
+            cols.append(tau[:, i if name == "tau" else int(name[3:]) - 1])
+        return np.stack(cols, axis=1)
     for name in term.regressors:
         if term.name == "harmonics":
             order = int(name[-1])
@@ -157,12 +221,19 @@ def needs_frames(terms: tuple[Term, ...]) -> bool:
     return any(t.name in ("gravity", "compliance") for t in terms)
 
 
-def joint_deltas(terms: tuple[Term, ...], q: Array, frames: ChainFrames | None) -> Array:
+def joint_deltas(
+    terms: tuple[Term, ...],
+    q: Array,
+    frames: ChainFrames | None,
+    mass: MassModel | None = None,
+    conditions: Conditions | None = None,
+) -> Array:
     """Δθ (N×n, rad) the joint terms add to the joints' angles."""
     out = np.zeros(q.shape)
     for t in terms:
         if t.is_joint_term and t.coefficients:
-            out[:, t.joint - 1] += joint_regressors(t, q, frames) @ np.array(t.coefficients)
+            r = joint_regressors(t, q, frames, mass, conditions)
+            out[:, t.joint - 1] += r @ np.array(t.coefficients)
     return out
 
 
@@ -206,9 +277,8 @@ def term_from_dict(row: object, where: str, n: int) -> Term:
     if bad:
         raise ValueError(f"{where}: unknown key {bad[0]!r}")
     name, joint = row.get("name"), row.get("joint", 0)
-    if name not in TERM_NAMES or name == "compliance":
-        known = ", ".join(t for t in TERM_NAMES if t != "compliance")
-        raise ValueError(f"{where}: name must be one of {known}, got {name!r}")
+    if name not in TERM_NAMES:
+        raise ValueError(f"{where}: name must be one of {', '.join(TERM_NAMES)}, got {name!r}")
     if name == "drift":
         if joint != 0:
             raise ValueError(f"{where}: a drift has joint = 0")
@@ -216,7 +286,11 @@ def term_from_dict(row: object, where: str, n: int) -> Term:
     else:
         if isinstance(joint, bool) or not isinstance(joint, int) or not 1 <= joint <= n:
             raise ValueError(f"{where}: joint must be a joint number 1..{n}")
-        allowed = HARMONICS if name == "harmonics" else gravity_regressors(joint, n)
+        if name == "compliance":
+            others = tuple(j for j in range(1, n + 1) if j != joint)
+            allowed = compliance_regressors(joint, others)
+        else:
+            allowed = HARMONICS if name == "harmonics" else gravity_regressors(joint, n)
     regs = row.get("regressors")
     if not isinstance(regs, list) or not regs or any(r not in allowed for r in regs):
         raise ValueError(f"{where}: regressors must be a list of {', '.join(allowed)}")
@@ -271,4 +345,6 @@ def term_to_dict(term: Term) -> dict[str, object]:
     if term.name == "drift":
         out["variable"] = term.variable
         out["reference"] = term.reference
+    if term.name == "compliance":
+        out["reference"] = term.reference  # the payload (kg) where the data give none
     return out

@@ -81,7 +81,7 @@ def target_kinematics(
     angles = model.joint_angles(q)
     if model.terms:
         chain = chain_frames(model, q) if needs_frames(model.terms) else None
-        angles = angles + joint_deltas(model.terms, q, chain)
+        angles = angles + joint_deltas(model.terms, q, chain, model.mass_model, conditions)
     collected: list[tuple[Array, ...]] = []
     x = np.zeros((N, 3))
     y = np.zeros((N, 3))

@@ -22,12 +22,12 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Literal
 
 import numpy as np
 
-from cellcal.calib.error_terms import Term, term_from_dict, term_to_dict
+from cellcal.calib.error_terms import MassModel, Term, term_from_dict, term_to_dict
 from cellcal.calib.geometry import Array, wrap_deg
 from cellcal.errors import InputError
 
@@ -47,8 +47,20 @@ LIMITS_HOW = (
     '(rad; a "continuous" joint has none)'
 )
 
-_JOINT_KEYS = {"a", "alpha", "d", "theta", "beta", "min", "max", "scale", "couple"}
-_TOP_KEYS = {"name", "convention", "joint", "tool", "description", "term"}
+_JOINT_KEYS = {
+    "a",
+    "alpha",
+    "d",
+    "theta",
+    "beta",
+    "min",
+    "max",
+    "scale",
+    "couple",
+    "mass_kg",
+    "com_mm",
+}
+_TOP_KEYS = {"name", "convention", "joint", "tool", "description", "term", "payload_com_mm"}
 
 
 class ModelError(InputError):
@@ -71,6 +83,10 @@ class Joint:
     scale: float = 1.0
     couple_joint: int = 0
     couple_factor: float = 0.0
+    #: the link's mass (kg) and centre of mass (mm, in the joint's link frame — the frame
+    #: after its row); None: not given (no mass model)
+    mass_kg: float | None = None
+    com_mm: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
 
 @dataclass(frozen=True)
@@ -86,6 +102,8 @@ class RobotModel:
     parallel: tuple[bool, ...] = ()
     #: error terms beyond geometry (cellcal.calib.error_terms), in TERM_NAMES order
     terms: tuple[Term, ...] = ()
+    #: the payload's centre of mass in the flange frame (mm)
+    payload_com_mm: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
     def __post_init__(self) -> None:
         if not self.parallel:
@@ -140,14 +158,23 @@ class RobotModel:
 
     def with_joints(self, joints: tuple[Joint, ...]) -> RobotModel:
         """The same model with other geometry (same β rows)."""
-        return RobotModel(
-            self.name, self.convention, joints, self.target_offset_xyz, self.parallel, self.terms
-        )
+        return replace(self, joints=joints)
 
     def with_terms(self, terms: tuple[Term, ...]) -> RobotModel:
         """The same geometry with other error terms."""
-        return RobotModel(
-            self.name, self.convention, self.joints, self.target_offset_xyz, self.parallel, terms
+        return replace(self, terms=terms)
+
+    @property
+    def mass_model(self) -> MassModel | None:
+        """Every link's mass and centre of mass and the payload's, or None when a joint
+        has no mass."""
+        masses = [j.mass_kg for j in self.joints]
+        if any(m is None for m in masses):
+            return None
+        return MassModel(
+            np.array(masses, dtype=np.float64),
+            np.array([j.com_mm for j in self.joints], dtype=np.float64),
+            np.array(self.payload_com_mm, dtype=np.float64),
         )
 
     @property
@@ -225,6 +252,8 @@ def model_from_dict(data: Mapping[str, object], source: str = "model") -> RobotM
                 scale=scale,
                 couple_joint=couple_joint,
                 couple_factor=couple_factor,
+                mass_kg=_mass(row.get("mass_kg"), f"{where}.mass_kg"),
+                com_mm=_xyz(row.get("com_mm", [0.0, 0.0, 0.0]), f"{where}.com_mm"),
             )
         )
     target_offset = (0.0, 0.0, 0.0)
@@ -245,6 +274,9 @@ def model_from_dict(data: Mapping[str, object], source: str = "model") -> RobotM
         joints=tuple(joints),
         target_offset_xyz=target_offset,
         terms=terms,
+        payload_com_mm=_xyz(
+            data.get("payload_com_mm", [0.0, 0.0, 0.0]), f"{source}: payload_com_mm"
+        ),
     )
     if model.maps_readings and abs(np.linalg.det(model.reading_matrix)) < 1e-9:
         raise ModelError(
@@ -298,6 +330,22 @@ def _couple(value: object, where: str, i: int, n: int) -> tuple[int, float]:
     return joint, _number(value["factor"], f"{where}.couple.factor")
 
 
+def _mass(value: object, where: str) -> float | None:
+    if value is None:
+        return None
+    m = _number(value, where)
+    if not 0.0 <= m <= 10000.0:
+        raise ModelError(f"{where}: a link's mass in kg, 0 to 10000 (grams?)")
+    return m
+
+
+def _xyz(value: object, where: str) -> tuple[float, float, float]:
+    if not isinstance(value, list) or len(value) != 3:
+        raise ModelError(f"{where}: must be [x, y, z] in mm")
+    x, y, z = (_number(v, where) for v in value)
+    return (x, y, z)
+
+
 def _terms(value: object, source: str, n: int) -> tuple[Term, ...]:
     """``[[term]]`` tables: error terms beyond geometry (cellcal.calib.error_terms)."""
     if not isinstance(value, list):
@@ -346,10 +394,15 @@ def model_to_dict(model: RobotModel) -> dict[str, object]:
             row["scale"] = j.scale
         if j.couple_joint:
             row["couple"] = {"joint": j.couple_joint, "factor": j.couple_factor}
+        if j.mass_kg is not None:
+            row["mass_kg"] = j.mass_kg
+            row["com_mm"] = list(j.com_mm)
         rows.append(row)
     out: dict[str, object] = {"name": model.name, "convention": model.convention, "joint": rows}
     if any(model.target_offset_xyz):
         out["tool"] = {"xyz": list(model.target_offset_xyz)}
+    if any(model.payload_com_mm):
+        out["payload_com_mm"] = list(model.payload_com_mm)
     if model.terms:
         out["term"] = [term_to_dict(t) for t in model.terms]
     return out

@@ -33,6 +33,7 @@ from cellcal.calib.error_terms import (
     HARMONICS,
     TERM_NAMES,
     Term,
+    compliance_regressors,
     gravity_regressors,
     joint_deltas,
 )
@@ -125,14 +126,29 @@ def candidates(name: str, state: State, data: Data) -> tuple[Term, ...] | str:
                 return (Term("drift", 0, DRIFT, (0.0,) * 4, variable=column, reference=reference),)
         return "needs a time_s or temperature_c column that changes during the measurements"
     # compliance
-    payloads = None if c is None or c.payload_kg is None else np.unique(c.payload_kg)
-    if payloads is None or len(payloads) < 2:
+    payload = None if c is None else c.payload_kg
+    if payload is None or len(np.unique(payload)) < 2:
         return (
             "needs measurements at two or more payloads (payload_kg), without which a "
             "stiffness cannot be told from the arm's own mass moments: gravity models "
             "the deflection at this payload"
         )
-    return "needs a mass model (mass_kg and com_mm in each [[joint]]), which this model has not"
+    model = state.model
+    if model.mass_model is None:
+        return (
+            "needs a mass model: mass_kg and com_mm in every [[joint]] of the model (or a "
+            "URDF's inertials)"
+        )
+    start = 0 if c is None or c.time_s is None else int(np.argmin(c.time_s))
+    reference = float(payload[start])
+    out = []
+    for j in range(1, n + 1):
+        joint = model.joints[j - 1]
+        coupled = {joint.couple_joint} if joint.couple_joint else set()
+        coupled |= {k for k, o in enumerate(model.joints, start=1) if o.couple_joint == j}
+        regs = compliance_regressors(j, tuple(sorted(coupled)))
+        out.append(Term("compliance", j, regs, (0.0,) * len(regs), reference=reference))
+    return tuple(out)
 
 
 @dataclass(frozen=True)
@@ -203,7 +219,9 @@ def _largest_turn(state: State, data: Data) -> str | None:
     if not joint_terms:
         return None
     frames = chain_frames(state.model, data.q)
-    turn = np.degrees(np.abs(joint_deltas(joint_terms, data.q, frames)))
+    turn = np.degrees(
+        np.abs(joint_deltas(joint_terms, data.q, frames, state.model.mass_model, data.conditions))
+    )
     pose, joint = np.unravel_index(int(np.argmax(turn)), turn.shape)
     if turn[pose, joint] <= TERM_LIMIT_DEG:
         return None

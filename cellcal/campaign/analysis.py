@@ -21,6 +21,7 @@ import numpy as np
 from cellcal import __version__
 from cellcal.calib.acceptance import ACCURACY_CLASS_MM, CHECK_REGISTRATION, check_data
 from cellcal.calib.error_model import predict
+from cellcal.calib.error_terms import Conditions
 from cellcal.calib.fusion import Estimate, carried, fuse, in_base
 from cellcal.calib.geometry import Array
 from cellcal.calib.identification import CalibrationResult, calibrate, fit_frames
@@ -197,6 +198,22 @@ def mean_covariance(data: PoseData, sensor: str) -> Array:
     return out
 
 
+def pose_conditions(data: PoseData, rows: Array) -> Conditions | None:
+    """The time and air temperature of some poses, for error terms (a column only where
+    every one of those poses has it)."""
+
+    def column(values: Array | None) -> Array | None:
+        if values is None or not np.isfinite(values[rows]).all():
+            return None
+        out: Array = values[rows]
+        return out
+
+    time_s, temperature_c = column(data.time_s), column(data.temperature_c)
+    if time_s is None and temperature_c is None:
+        return None
+    return Conditions(time_s=time_s, temperature_c=temperature_c)
+
+
 def _rms(e: Array) -> float:
     return float(np.sqrt(np.mean(np.sum(e * e, axis=1)))) if len(e) else float("nan")
 
@@ -208,13 +225,16 @@ def analyse(
     reference: str,
     *,
     accept: bool = False,
+    terms: str = "geometric",
 ) -> CampaignSummary:
     """Register, calibrate, validate; store the results (all in one transaction: none or
     all of them); return the summary. A result that fails an acceptance check raises
     :class:`AcceptanceError` and stores nothing of the analysis (the samples stay), unless
-    ``accept``."""
+    ``accept``; ``terms``: the error terms beyond geometry the calibration may add."""
     data = store.pose_data(campaign_id)
-    summary, results = analysis_of(data, campaign_id, nominal, reference, accept=accept)
+    summary, results = analysis_of(
+        data, campaign_id, nominal, reference, accept=accept, terms=terms
+    )
     store.save_analysis(results)
     return summary
 
@@ -226,6 +246,7 @@ def analysis_of(
     reference: str,
     *,
     accept: bool = False,
+    terms: str = "geometric",
 ) -> tuple[CampaignSummary, AnalysisResults]:
     """The analysis of a campaign's stored poses (a function of ``data`` alone): its
     summary, and the rows the store keeps of it."""
@@ -262,6 +283,8 @@ def analysis_of(
         sigma(reference, cal),
         accept=accept,
         alternatives=alternatives,
+        terms=terms,
+        conditions=pose_conditions(data, cal),
     )
     registrations = []
     writes: list[RegistrationRow] = []
@@ -287,7 +310,7 @@ def analysis_of(
 
     baseline = fit_frames(nominal, q_cal, ref_m[cal], sigma(reference, cal))
     e_before = ref_m[val] - predict(baseline, data.q[val])
-    e_after = ref_m[val] - result.predict(data.q[val])
+    e_after = ref_m[val] - result.predict(data.q[val], None, pose_conditions(data, val))
     reg_val = region[val]
 
     def errors(mask: Array, name: str) -> RegionErrors | None:

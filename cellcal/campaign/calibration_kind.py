@@ -86,7 +86,14 @@ class CalibrationKind:
         from cellcal.campaign.analysis import analyse
 
         reference = done.config.reference_sensor.name
-        summary = analyse(done.store, done.campaign_id, done.nominal, reference, accept=done.accept)
+        summary = analyse(
+            done.store,
+            done.campaign_id,
+            done.nominal,
+            reference,
+            accept=done.accept,
+            terms=done.config.campaign.terms,
+        )
         return Analysis(summary, summary)
 
 

@@ -11,6 +11,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from cellcal.calib.error_terms import Conditions
 from cellcal.calib.geometry import Array, so3_exp
 from cellcal.calib.kinematics import target_kinematics
 from cellcal.calib.robot_model import RobotModel
@@ -28,9 +29,12 @@ class TrueCell:
     target_offset: Array
     T_sensor_base: Array
 
-    def positions(self, q: Array) -> Array:
-        """Noise-free target positions in the sensor frame (mm) for q (rad)."""
-        p = target_kinematics(self.model, q, self.target_offset, jacobian=False).p
+    def positions(self, q: Array, conditions: Conditions | None = None) -> Array:
+        """Noise-free target positions in the sensor frame (mm) for q (rad), at the
+        ``conditions`` (time, temperature, payload) the model's error terms read."""
+        p = target_kinematics(
+            self.model, q, self.target_offset, jacobian=False, conditions=conditions
+        ).p
         out: Array = p @ self.T_sensor_base[:3, :3].T + self.T_sensor_base[:3, 3]
         return out
 
@@ -124,8 +128,14 @@ def random_joints(
     return out
 
 
-def measure(cell: TrueCell, q: Array, rng: np.random.Generator, sigma_mm: float) -> Array:
+def measure(
+    cell: TrueCell,
+    q: Array,
+    rng: np.random.Generator,
+    sigma_mm: float,
+    conditions: Conditions | None = None,
+) -> Array:
     """Positions in the sensor frame with isotropic Gaussian noise (mm)."""
-    p = cell.positions(q)
+    p = cell.positions(q, conditions)
     out: Array = p + rng.normal(0.0, sigma_mm, p.shape)
     return out

@@ -122,6 +122,10 @@ class PoseData:
     cov: dict[str, Array]
     #: the poses' row ids
     pose_id: Array
+    #: each pose's time (s since the campaign's first sample; NaN for a pose without
+    #: samples) and the air temperature its tracker reported (°C; NaN where none did)
+    time_s: Array | None = None
+    temperature_c: Array | None = None
 
     def measured(self, sensor: str) -> Array:
         """Which poses this sensor measured (a boolean mask)."""
@@ -433,6 +437,18 @@ class Store(AnalysisTables, StatusReads, CampaignQueries, AirReads):
             std[sensor][k] = floats((sx, sy, sz))
             n[sensor][k] = cnt
             cov[sensor][k] = symmetric(floats(c))
+        time_s = np.full(len(ids), np.nan)
+        temperature_c = np.full(len(ids), np.nan)
+        air = "AVG(s.temperature_c)" if self.schema_version >= 5 else "NULL"
+        for pid, t, c in self.conn.execute(
+            f"""SELECT s.pose_id, AVG(s.host_time), {air} FROM samples s
+            JOIN poses p ON p.id = s.pose_id WHERE p.campaign_id = ? GROUP BY s.pose_id""",
+            (campaign_id,),
+        ):
+            time_s[pos[pid]] = t if t is not None else np.nan
+            temperature_c[pos[pid]] = c if c is not None else np.nan
+        if np.isfinite(time_s).any():
+            time_s -= np.nanmin(time_s)
         reached = [loads(self.path, p[4], f"pose {p[1]}'s joints") for p in poses]
         q = np.radians(np.array(reached, dtype=np.float64)) if poses else np.zeros((0, 0))
         return PoseData(
@@ -445,6 +461,8 @@ class Store(AnalysisTables, StatusReads, CampaignQueries, AirReads):
             n=n,
             cov=cov,
             pose_id=np.array(ids, dtype=int),
+            time_s=time_s,
+            temperature_c=temperature_c,
         )
 
     def _pose_stats_cov(self) -> str:

@@ -15,12 +15,11 @@ import pytest
 from cellcal.calib.error_model import Groups, State, jacobian, parameter_specs, predict
 from cellcal.calib.error_terms import HARMONICS, Conditions, Term
 from cellcal.calib.identification import CalibrationResult, calibrate
-from cellcal.calib.kinematics import target_kinematics
 from cellcal.calib.robot_model import ModelError, RobotModel, model_from_dict, model_to_dict
 from cellcal.calib.term_choice import parse_terms
 from cellcal.errors import InputError
 from cellcal.files.models import load_model
-from cellcal.mocks.robot_truth import TrueCell, random_cell, random_joints
+from cellcal.mocks.robot_truth import TrueCell, measure, random_cell, random_joints
 
 SIGMA_MM = 0.02
 HARMONIC_TRUTH = (
@@ -38,9 +37,7 @@ DRIFT_TRUTH = (
 
 
 def _measure(truth: RobotModel, cell: TrueCell, q, conditions, rng, noise=SIGMA_MM):
-    p = target_kinematics(truth, q, cell.target_offset, jacobian=False, conditions=conditions).p
-    p = p @ cell.T_sensor_base[:3, :3].T + cell.T_sensor_base[:3, 3]
-    return p + rng.normal(0.0, noise, p.shape) if noise else p
+    return measure(replace(cell, model=truth), q, rng, noise, conditions)
 
 
 @cache
@@ -108,7 +105,7 @@ def test_the_model_file_holds_terms_and_refuses_bad_ones():
     refused({"regressors": ["sin3", "cos1", "sin2", "cos2"]}, "regressors must be")
     refused({"units": ["rad"] * 4}, "units must be")
     refused({"joint": 9}, "joint must be")
-    refused({"name": "compliance"}, "name must be one of")
+    refused({"name": "stiffness"}, "name must be one of")
     refused({"coefficients": [0.1, 0.2]}, "one number per regressor")
     with pytest.raises(ModelError, match="a second harmonics term of joint 2"):
         model_from_dict({**doc, "term": [doc["term"][0], doc["term"][0]]})  # type: ignore[index]
@@ -200,3 +197,63 @@ def test_fix_kinematics_keeps_a_calibrated_models_terms():
     assert again.calibrated.terms == res.calibrated.terms
     assert again.term_choice is None
     assert np.allclose(again.T_sensor_base[:3, 3], T[:3, 3], atol=0.05)
+
+
+#: joints 2–5 yield to the gravity torque about them (deg per kN·m)
+COMPLIANCE_TRUTH = tuple(
+    Term("compliance", j, ("tau",), (math.radians(c),)) for j, c in ((2, 0.5), (3, 0.8), (4, 1.0))
+)
+
+
+@cache
+def _payload_case(payloads: tuple[float, ...], third: float, truth_terms: tuple[Term, ...]):
+    """A UR5e with its published mass model measured at ``payloads`` (150 poses each):
+    the calibration, its held-out RMS at the ``third`` payload against the noise-free
+    truth, and the same calibration's on a robot without the terms (the noise floor)."""
+    nominal = load_model("ur5e").model
+    rng = np.random.default_rng(4)
+    cell = random_cell(nominal, rng)
+    q = random_joints(nominal, rng, 150 * len(payloads))
+    conditions = Conditions(payload_kg=np.repeat(payloads, 150))
+    q_val = random_joints(nominal, rng, 100)
+    at_third = Conditions(payload_kg=np.full(len(q_val), third))
+
+    def held_out(truth: RobotModel, mode: str) -> tuple[CalibrationResult, float]:
+        measured = _measure(truth, cell, q, conditions, rng)
+        res = calibrate(nominal, q, measured, terms=mode, accept=True, conditions=conditions)
+        expected = _measure(truth, cell, q_val, at_third, rng, noise=0.0)
+        e = np.linalg.norm(expected - res.predict(q_val, None, at_third), axis=1)
+        return res, float(np.sqrt(np.mean(e**2)))
+
+    res, rms = held_out(cell.model.with_terms(truth_terms), "auto")
+    _, floor = held_out(cell.model, "geometric")
+    return res, rms, floor
+
+
+def test_compliance_from_two_payloads_transfers_to_a_third():
+    res, rms, floor = _payload_case((0.0, 5.0), 2.5, COMPLIANCE_TRUTH)
+    assert res.term_choice is not None and res.term_choice.accepted == ("compliance",)
+    _recovered(res, COMPLIANCE_TRUTH)
+    assert rms < 2.5 * floor  # the noise-limited geometric model of a robot without them
+    assert rms < 0.5 * SIGMA_MM
+
+
+def test_one_payload_refuses_compliance_and_uses_gravity():
+    res, rms, _ = _payload_case((5.0,), 5.0, COMPLIANCE_TRUTH)
+    assert res.term_choice is not None and res.term_choice.accepted == ("gravity",)
+    assert "two or more payloads" in res.term_choice.rejected["compliance"]
+    assert rms < SIGMA_MM
+
+
+def test_compliance_needs_a_mass_model():
+    nominal = load_model("kuka-kr5-arc").model
+    rng = np.random.default_rng(1)
+    q = random_joints(nominal, rng, 40)
+    cell = random_cell(nominal, rng)
+    conditions = Conditions(payload_kg=np.repeat([0.0, 3.0], 20))
+    res = calibrate(
+        nominal, q, cell.positions(q), terms="compliance", accept=True, conditions=conditions
+    )
+    assert res.term_choice is not None
+    assert "needs a mass model" in res.term_choice.rejected["compliance"]
+    assert res.calibrated.terms == ()

@@ -7,12 +7,13 @@ from __future__ import annotations
 import json
 import math
 import tomllib
+from dataclasses import replace
 
 import numpy as np
 
-from cellcal.calib.error_terms import Term
+from cellcal.calib.error_terms import Conditions, Term
 from cellcal.files.models import load_model
-from cellcal.mocks.robot_truth import random_cell, random_joints
+from cellcal.mocks.robot_truth import measure, random_cell, random_joints
 from tests.cli.test_calibrate_cli import run
 
 DRIFT = Term("drift", 0, ("x", "y", "z", "scale"), (0.02, -0.01, 0.03, 4e-6), variable="time_s")
@@ -25,15 +26,8 @@ def _drifting_csv(tmp_path, rows=240):
     cell = random_cell(nominal, rng)
     q = random_joints(nominal, rng, rows)
     time_s = np.sort(rng.uniform(0.0, 4 * 3600.0, rows))
-    from cellcal.calib.error_terms import Conditions
-    from cellcal.calib.kinematics import target_kinematics
-
-    truth = cell.model.with_terms((DRIFT,))
-    p = target_kinematics(
-        truth, q, cell.target_offset, jacobian=False, conditions=Conditions(time_s=time_s)
-    ).p
-    m = p @ cell.T_sensor_base[:3, :3].T + cell.T_sensor_base[:3, 3]
-    m += rng.normal(0.0, 0.02, m.shape)
+    truth = replace(cell, model=cell.model.with_terms((DRIFT,)))
+    m = measure(truth, q, rng, 0.02, Conditions(time_s=time_s))
     head = [f"q{i}" for i in range(1, 7)] + ["x", "y", "z", "time_s", "temperature_c"]
     lines = [",".join(head)]
     for qi, mi, t in zip(q, m, time_s, strict=True):
