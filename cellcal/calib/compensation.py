@@ -28,6 +28,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from cellcal.calib.error_terms import Conditions
 from cellcal.calib.geometry import Array
 from cellcal.calib.inverse_kinematics import solve, within_limits
 from cellcal.calib.kinematics import flange_transforms, target_kinematics
@@ -79,6 +80,7 @@ def _position_only(
     damping_mm: float = 1.0,
     max_iter: int = 300,
     tol_mm: float = 1e-8,
+    conditions: Conditions | None = None,
 ) -> tuple[Array, NDArray[np.bool_], Array]:
     """Damped least squares on the position alone (3 equations for n joints): each
     step is the least joint motion that reduces the error, so the answer stays near the
@@ -88,7 +90,7 @@ def _position_only(
     err = np.full(len(q), np.inf)
     done = np.zeros(len(q), dtype=bool)
     for _ in range(max_iter):
-        k = target_kinematics(model, q, target_offset)
+        k = target_kinematics(model, q, target_offset, conditions=conditions)
         e = p_target - k.p
         err = np.linalg.norm(e, axis=1)
         done = err < tol_mm
@@ -148,12 +150,17 @@ def inside_base(model: RobotModel, points: Array) -> NDArray[np.bool_]:
 
 
 def _solve(
-    model: RobotModel, target_offset: Array, p: Array, R: Array | None, seed: Array
+    model: RobotModel,
+    target_offset: Array,
+    p: Array,
+    R: Array | None,
+    seed: Array,
+    conditions: Conditions | None = None,
 ) -> tuple[Array, NDArray[np.bool_]]:
     if R is None:
-        q, converged, _ = _position_only(model, target_offset, p, seed)
+        q, converged, _ = _position_only(model, target_offset, p, seed, conditions=conditions)
         return q, converged
-    sol = solve(model, target_offset, p, R, seed, tol_mm=1e-8)
+    sol = solve(model, target_offset, p, R, seed, tol_mm=1e-8, conditions=conditions)
     return sol.q, sol.converged
 
 
@@ -218,6 +225,7 @@ def compensate(
     p_base: Array,
     R_base: Array | None,
     q_seed: Array,
+    conditions: Conditions | None = None,
 ) -> Compensation:
     """Joints that put the calibrated model's target (offset ``target_offset``, mm) at ``p_base``
     (N×3, mm, base frame) with the flange at ``R_base`` (N×3×3) when given, starting
@@ -225,12 +233,17 @@ def compensate(
     form, the correction (with the same target offset, so that the correction is the
     kinematic one alone) and the solution the answer must stay near. A target is ok
     when it is reached within the joint limits, outside the robot's base and near the
-    nominal solution (``kind``, ``why_not`` say otherwise)."""
+    nominal solution (``kind``, ``why_not`` say otherwise). A calibrated model's error
+    terms (gravity, compliance, harmonics, drift) are part of where it puts the target,
+    at ``conditions`` (the payload each target is reached with; None: the
+    calibration's payload, the campaign's start)."""
     p_base = np.atleast_2d(np.asarray(p_base, dtype=np.float64))
     seed = np.array(np.broadcast_to(q_seed, (len(p_base), calibrated.dof)), dtype=np.float64)
-    q, converged = _solve(calibrated, target_offset, p_base, R_base, seed)
+    q, converged = _solve(calibrated, target_offset, p_base, R_base, seed, conditions)
     q, _ = within_limits(calibrated, q)  # each joint within a turn of its range
-    reached = target_kinematics(calibrated, q, target_offset, jacobian=False).p
+    reached = target_kinematics(
+        calibrated, q, target_offset, jacobian=False, conditions=conditions
+    ).p
     residual = np.linalg.norm(reached - p_base, axis=1)
     got = converged & (residual <= REACHED_MM)
     # The nominal model's own solution from the same seed: the answer must stay near it.

@@ -37,6 +37,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from cellcal.calib.error_model import ParameterSpec, State, jacobian, parameter_specs, predict
+from cellcal.calib.error_terms import Conditions
 from cellcal.calib.geometry import Array
 from cellcal.calib.robot_model import RobotModel
 from cellcal.errors import InputError
@@ -122,9 +123,13 @@ def model_state(
     return State(model, np.asarray(target_offset, dtype=np.float64), T[:3, :3], T[:3, 3], pivot)
 
 
-def pose_errors(state: State, q: Array, measured: Array) -> Array:
-    """Measured minus predicted target positions (N×3, sensor frame, mm)."""
-    out: Array = np.asarray(measured, dtype=np.float64) - predict(state, q)
+def pose_errors(
+    state: State, q: Array, measured: Array, conditions: Conditions | None = None
+) -> Array:
+    """Measured minus predicted target positions (N×3, sensor frame, mm), the model's
+    error terms at the check's ``conditions`` (its temperatures: a drift with time ran
+    during the calibration's own campaign, not since)."""
+    out: Array = np.asarray(measured, dtype=np.float64) - predict(state, q, None, conditions)
     return out
 
 

@@ -65,9 +65,20 @@ class ParameterSpec:
         """0, 1, 2 for the x, y, z of a target or frame parameter."""
         return "xyz".index(self.name.split(":")[0][-1])
 
+    @property
+    def display_factor(self) -> float:
+        """Display units per internal unit: deg per rad (an angle, or an error term's
+        turn per regressor unit: deg, deg/m, deg/kN·m), ppm per fraction (a drift's
+        growth), 1 for mm."""
+        if self.unit.startswith("deg"):
+            return math.degrees(1.0)
+        return 1e6 if self.unit.startswith("ppm") else 1.0
+
     def to_display(self, value: float) -> float:
         """Internal (mm, rad) to display (mm, deg)."""
-        return math.degrees(value) if self.is_angle else value
+        if self.unit.startswith("deg"):
+            return math.degrees(value)
+        return value * self.display_factor
 
 
 #: Row indices (into a measurement set, or into a Groups' names).

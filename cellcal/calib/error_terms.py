@@ -13,7 +13,11 @@ A term is a small, named correction a model carries besides its geometry:
     of link k and ``p_i`` a point on joint i's axis. Each coefficient is a compliance ×
     a mass moment, not a stiffness; the fit keeps the identifiable combinations.
   - ``harmonics``: ``sin1``, ``cos1``, ``sin2``, ``cos2`` of the joint's reading
-    (eccentricity and ellipticity of its transmission).
+    (eccentricity and ellipticity of its transmission), within the range of readings
+    the calibration measured (``range_deg``; none: every reading) and held at its ends
+    beyond: over a range
+    much shorter than a turn, a harmonic fits an offset, a scale and a bend of the
+    reading, which no one may extrapolate.
 
   - ``compliance``: a joint's physical compliance (deg per kN·m) times the gravity
     torque about it (``tau``, kN·m) of the links it carries and the payload, from the
@@ -87,6 +91,12 @@ class Term:
     sigma: tuple[float, ...] = ()
     variable: str = ""
     reference: float = 0.0
+    #: a harmonic's range of readings (rad), beyond which it is held at its ends
+    bounds: tuple[float, float] = (-math.inf, math.inf)
+    #: each regressor's mean over the calibration's poses, taken off it (empty: none), so
+    #: that the term adds no mean turn to its joint: the geometry's θ holds that, and the
+    #: geometry alone (a URDF) is as near the model as it can be
+    centre: tuple[float, ...] = ()
 
     def __post_init__(self) -> None:
         if not self.sigma:
@@ -192,7 +202,21 @@ def joint_regressors(
     mass: MassModel | None = None,
     conditions: Conditions | None = None,
 ) -> Array:
-    """The regressors (N×K) of a joint term at readings ``q`` (N×n, rad)."""
+    """The regressors (N×K) of a joint term at readings ``q`` (N×n, rad), less their
+    ``centre``."""
+    raw = _raw_regressors(term, q, frames, mass, conditions)
+    if term.centre:
+        raw = raw - np.array(term.centre)
+    return raw
+
+
+def _raw_regressors(
+    term: Term,
+    q: Array,
+    frames: ChainFrames | None,
+    mass: MassModel | None,
+    conditions: Conditions | None,
+) -> Array:
     i = term.joint - 1
     cols = []
     if term.name == "compliance":
@@ -205,7 +229,7 @@ def joint_regressors(
         if term.name == "harmonics":
             order = int(name[-1])
             f = np.sin if name.startswith("sin") else np.cos
-            cols.append(f(order * q[:, i]))
+            cols.append(f(order * np.clip(q[:, i], *term.bounds)))
             continue
         assert frames is not None, "gravity regressors need the chain's frames"
         k = int(name[1:-1] if name.startswith("R") else name[1:]) - 1
@@ -272,7 +296,17 @@ def term_from_dict(row: object, where: str, n: int) -> Term:
     """A ``[[term]]`` table (display units) as a Term; ValueError with the reason."""
     if not isinstance(row, dict):
         raise ValueError(f"{where}: must be a table")
-    keys = {"name", "joint", "regressors", "coefficients", "units", "sigma", "variable"}
+    keys = {
+        "name",
+        "joint",
+        "regressors",
+        "coefficients",
+        "units",
+        "sigma",
+        "variable",
+        "range_deg",
+        "centre",
+    }
     bad = sorted(set(row) - keys - {"reference"})
     if bad:
         raise ValueError(f"{where}: unknown key {bad[0]!r}")
@@ -322,11 +356,26 @@ def term_from_dict(row: object, where: str, n: int) -> Term:
     reference = row.get("reference", 0.0)
     if isinstance(reference, bool) or not isinstance(reference, int | float):
         raise ValueError(f"{where}: reference must be a number")
+    bounds = (-math.inf, math.inf)
+    if name == "harmonics" and "range_deg" in row:
+        span = row.get("range_deg")
+        items: list[object] = span if isinstance(span, list) else []
+        values = [float(v) for v in items if not isinstance(v, bool) and isinstance(v, int | float)]
+        if len(items) != 2 or len(values) != 2 or not -720.0 <= values[0] < values[1] <= 720.0:
+            raise ValueError(f"{where}: range_deg must be [lo, hi], the readings it holds for")
+        bounds = (math.radians(values[0]), math.radians(values[1]))
+    centre: tuple[float, ...] = ()
+    if "centre" in row:
+        if name not in ("harmonics", "gravity"):
+            raise ValueError(f"{where}: only harmonics and gravity terms have a centre")
+        centre = tuple(numbers("centre", True))
     return replace(
         shell,
         coefficients=tuple(shell.from_display(k, c) for k, c in enumerate(coefficients)),
         sigma=tuple(shell.from_display(k, c) for k, c in enumerate(sigma)),
         reference=float(reference),
+        bounds=bounds,
+        centre=centre,
     )
 
 
@@ -347,4 +396,8 @@ def term_to_dict(term: Term) -> dict[str, object]:
         out["reference"] = term.reference
     if term.name == "compliance":
         out["reference"] = term.reference  # the payload (kg) where the data give none
+    if term.name == "harmonics" and all(math.isfinite(b) for b in term.bounds):
+        out["range_deg"] = [math.degrees(b) for b in term.bounds]
+    if term.centre:
+        out["centre"] = list(term.centre)  # the regressors' own units (1, m)
     return out

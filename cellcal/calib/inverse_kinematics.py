@@ -14,6 +14,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
+from cellcal.calib.error_terms import Conditions
 from cellcal.calib.geometry import Array
 from cellcal.calib.kinematics import target_kinematics
 from cellcal.calib.robot_model import RobotModel
@@ -51,6 +52,7 @@ def solve(
     length_mm: float = 500.0,
     max_iter: int = 200,
     tol_mm: float = 1e-7,
+    conditions: Conditions | None = None,
 ) -> IKSolution:
     """Joint readings that put the target at ``p_target`` (N×3, mm) with the flange at
     ``R_target`` (N×3×3), starting from ``q_seed`` (n or N×n, rad)."""
@@ -63,7 +65,7 @@ def solve(
     ep = np.full(N, np.inf)
     er = np.full(N, np.inf)
     for _ in range(max_iter):
-        k = target_kinematics(model, q, target_offset)
+        k = target_kinematics(model, q, target_offset, conditions=conditions)
         e_pos = p_target - k.p
         e_rot = _rotvec(R_target @ np.swapaxes(k.R_flange, 1, 2))
         ep = np.linalg.norm(e_pos, axis=1)

@@ -36,6 +36,7 @@ from cellcal.calib.error_terms import (
     compliance_regressors,
     gravity_regressors,
     joint_deltas,
+    joint_regressors,
 )
 from cellcal.calib.geometry import Array
 from cellcal.calib.identifiability import analyse, weakly_determined
@@ -110,12 +111,30 @@ def candidates(name: str, state: State, data: Data) -> tuple[Term, ...] | str:
     n = state.model.dof
     c = data.conditions
     if name == "harmonics":
-        return tuple(Term("harmonics", j, HARMONICS, (0.0,) * 4) for j in range(1, n + 1))
+        lo, hi = data.q.min(axis=0), data.q.max(axis=0)
+        return _centred(
+            tuple(
+                Term(
+                    "harmonics",
+                    j,
+                    HARMONICS,
+                    (0.0,) * 4,
+                    bounds=(float(lo[j - 1]), float(hi[j - 1])),
+                )
+                for j in range(1, n + 1)
+            ),
+            state,
+            data,
+        )
     if name == "gravity":
-        return tuple(
-            Term("gravity", j, regs, (0.0,) * len(regs))
-            for j in range(1, n + 1)
-            for regs in [gravity_regressors(j, n)]
+        return _centred(
+            tuple(
+                Term("gravity", j, regs, (0.0,) * len(regs))
+                for j in range(1, n + 1)
+                for regs in [gravity_regressors(j, n)]
+            ),
+            state,
+            data,
         )
     if name == "drift":
         for column in ("temperature_c", "time_s"):
@@ -149,6 +168,15 @@ def candidates(name: str, state: State, data: Data) -> tuple[Term, ...] | str:
         regs = compliance_regressors(j, tuple(sorted(coupled)))
         out.append(Term("compliance", j, regs, (0.0,) * len(regs), reference=reference))
     return tuple(out)
+
+
+def _centred(terms: tuple[Term, ...], state: State, data: Data) -> tuple[Term, ...]:
+    """The terms with each regressor's mean over the poses taken off it."""
+    frames = chain_frames(state.model, data.q)
+    return tuple(
+        replace(t, centre=tuple(float(v) for v in joint_regressors(t, data.q, frames).mean(axis=0)))
+        for t in terms
+    )
 
 
 @dataclass(frozen=True)
@@ -197,6 +225,7 @@ def _fit(base: _Fitted, terms: tuple[Term, ...], data: Data, w: Array) -> _Fitte
             regressors=tuple(t.regressors[k] for k in sorted(keep[g])),
             coefficients=(0.0,) * len(keep[g]),
             sigma=(),
+            centre=tuple(t.centre[k] for k in sorted(keep[g])) if t.centre else (),
         )
         for g, t in enumerate(terms)
         if g in keep
@@ -214,20 +243,30 @@ def _fit(base: _Fitted, terms: tuple[Term, ...], data: Data, w: Array) -> _Fitte
 
 
 def _largest_turn(state: State, data: Data) -> str | None:
-    """Why the joint terms of ``state`` are implausible, or None."""
+    """Why the joint terms of ``state`` are implausible, or None: a joint turned by more
+    than :data:`TERM_LIMIT_DEG` at a measured pose beyond what an offset of its zero (the
+    geometry's part) accounts for — half its peak-to-peak over the poses — or, for a
+    harmonic, anywhere in its range."""
     joint_terms = tuple(t for t in state.model.terms if t.is_joint_term)
     if not joint_terms:
         return None
-    frames = chain_frames(state.model, data.q)
-    turn = np.degrees(
-        np.abs(joint_deltas(joint_terms, data.q, frames, state.model.mass_model, data.conditions))
-    )
-    pose, joint = np.unravel_index(int(np.argmax(turn)), turn.shape)
-    if turn[pose, joint] <= TERM_LIMIT_DEG:
+    model = state.model
+    frames = chain_frames(model, data.q)
+    turn = joint_deltas(joint_terms, data.q, frames, model.mass_model, data.conditions)
+    half = np.degrees(np.ptp(turn, axis=0)) / 2.0
+    for t in joint_terms:
+        if t.name == "harmonics":
+            grid = np.linspace(*t.bounds, 721)
+            q = np.zeros((len(grid), model.dof))
+            q[:, t.joint - 1] = grid
+            h = joint_deltas((t,), q, None)[:, t.joint - 1]
+            half[t.joint - 1] = max(half[t.joint - 1], math.degrees(float(np.ptp(h))) / 2.0)
+    joint = int(np.argmax(half))
+    if half[joint] <= TERM_LIMIT_DEG:
         return None
     return (
-        f"implausible: it turns joint {joint + 1} by {turn[pose, joint]:.2f}° at a measured "
-        f"pose, beyond any transmission's error ({TERM_LIMIT_DEG}°)"
+        f"implausible: it turns joint {joint + 1} by ±{half[joint]:.2f}° over the measured "
+        f"poses, beyond any transmission's error or deflection ({TERM_LIMIT_DEG}°)"
     )
 
 

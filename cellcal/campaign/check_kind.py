@@ -277,6 +277,8 @@ def analyse_check(done: Acquired) -> CheckOutcome:
     """The check's figures from its stored poses; recorded in ``checks`` (ending the
     model's validity when the robot is out of its limits)."""
     from cellcal.calib import drift
+    from cellcal.calib.error_terms import Conditions
+    from cellcal.campaign.analysis import pose_conditions
     from cellcal.files.models import model_uncertainty
     from cellcal.store.schema import model_digest
 
@@ -294,7 +296,9 @@ def analyse_check(done: Acquired) -> CheckOutcome:
             f"check {done.campaign_id}: the reference sensor {reference} measured nothing"
         )
     q, m = data.q[seen], data.mean[reference][seen]
-    errors = drift.pose_errors(state, q, m)
+    measured_air = pose_conditions(data, seen)
+    at = None if measured_air is None else Conditions(temperature_c=measured_air.temperature_c)
+    errors = drift.pose_errors(state, q, m, at)
     norms = np.linalg.norm(errors, axis=1)
     model_id = options.get("model_id")
     digest = model_digest(text)

@@ -123,7 +123,8 @@ def _csv(targets: Targets, comp: Compensation) -> str:
     "targets_path",
     required=True,
     help="CSV name,x,y,z (mm); optional ori_w,ori_x,ori_y,ori_z (flange orientation) and "
-    "q1..qn (deg: the joints the program uses today, which pick the configuration).",
+    "q1..qn (deg: the joints the program uses today, which pick the configuration), "
+    "payload_kg (the payload each point is reached with, for a compliance term).",
 )
 @click.option("--out", "out_path", required=True, help="Write the joint targets CSV here.")
 @click.option(
@@ -183,7 +184,7 @@ def compensate_command(
     if R is None and targets.q is not None:
         # Keep the orientation the program has today at its joints (nominal model).
         R = flange_transforms(nominal, seed)[:, :3, :3]
-    comp = compensate(loaded.model, target_offset, nominal, p, R, seed)
+    comp = compensate(loaded.model, target_offset, nominal, p, R, seed, targets.conditions)
     _refuse(targets, comp)
     write_atomically(out_path, _csv(targets, comp))
     summary = {

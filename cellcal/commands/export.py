@@ -5,14 +5,47 @@ from __future__ import annotations
 
 from importlib import resources
 from pathlib import Path
+from typing import Any
 
 import click
 
-from cellcal.commands.output import print_json
+from cellcal.calib.geometry import Array
+from cellcal.calib.robot_model import RobotModel
+from cellcal.calib.term_effect import readings_within_limits, term_effects
+from cellcal.commands.output import print_json, warn
 from cellcal.errors import InputError
 from cellcal.files.models import load_model, write_atomically
 from cellcal.files.outputs import check_output_file
 from cellcal.files.urdf import to_urdf
+
+#: Readings (within the limits) at which a URDF export measures what it leaves out.
+LOST_AT = 2000
+
+
+def terms_lost(model: RobotModel, target_offset: Array) -> tuple[str, dict[str, Any]] | None:
+    """A URDF holds geometry only: the line saying which error terms it leaves out and how
+    far they move the target (at :data:`LOST_AT` readings within the limits, the
+    calibration's payload, the campaign's start), and the same for --json; None without
+    terms."""
+    effects = term_effects(model, target_offset, readings_within_limits(model, LOST_AT))
+    if not effects:
+        return None
+    every = effects[-1]
+    names = ", ".join(
+        f"{e.name} (joints {', '.join(map(str, e.joints))})" if e.joints != (0,) else e.name
+        for e in effects[:-1]
+    )
+    line = (
+        f"a URDF holds geometry only: the model's error terms — {names} — are left out; at "
+        f"{LOST_AT} readings within the limits they move the target by {every.rms_mm:.3g} mm "
+        f"RMS, {every.max_mm:.3g} mm at most, which a program using the URDF does not correct"
+    )
+    doc = {
+        "terms": [e.name for e in effects[:-1]],
+        "rms_mm": every.rms_mm,
+        "max_mm": every.max_mm,
+    }
+    return line, doc
 
 
 @click.group()
@@ -34,6 +67,9 @@ def export_urdf(model_spec: str, out_path: str, as_json: bool) -> None:
     loaded = load_model(model_spec)
     text = to_urdf(loaded.model, loaded.target_offset, loaded.T_sensor_base)
     write_atomically(out_path, text)
+    lost = terms_lost(loaded.model, loaded.target_offset)
+    if lost is not None:
+        warn(lost[0])
     frames = ["base_link", *(f"link_{i + 1}" for i in range(loaded.model.dof)), "flange", "target"]
     if loaded.T_sensor_base is not None:
         frames.append("sensor")
@@ -50,6 +86,7 @@ def export_urdf(model_spec: str, out_path: str, as_json: bool) -> None:
                     "target",
                     *(["sensor"] if loaded.T_sensor_base is not None else []),
                 ],
+                "terms_left_out": None if lost is None else lost[1],
             }
         )
         return

@@ -199,7 +199,7 @@ def _covariance_document(result: CalibrationResult) -> dict[str, Any] | None:
     cov, specs = result.covariance, result.covariance_specs
     if cov is None or not specs or not np.isfinite(cov).all():
         return None
-    scale = np.array([math.degrees(1.0) if s.is_angle else 1.0 for s in specs])
+    scale = np.array([s.display_factor for s in specs])
     pivot = result.pivots[0] if result.pivots is not None else np.zeros(3)
     return {
         "parameters": [s.name for s in specs],
@@ -371,7 +371,7 @@ def model_uncertainty(text: str, label: str) -> ModelUncertainty:
             f"{label}: [fit.covariance] must be a finite {P}×{P} matrix with pivot_mm, "
             "and [fit] n_points and dof positive"
         )
-    scale = np.array([math.radians(1.0) if s.is_angle else 1.0 for s in chosen])
+    scale = np.array([1.0 / s.display_factor for s in chosen])
     noise = rms_after * math.sqrt(3 * n / dof)
     held_out = tomllib.loads(text).get("validation", {})
     validation = held_out.get("after_rms_mm") if isinstance(held_out, dict) else None

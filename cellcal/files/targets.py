@@ -1,17 +1,24 @@
 """Targets for ``cellcal compensate``: ``name,x,y,z`` (mm) with, optionally, the flange
 orientation ``ori_w,ori_x,ori_y,ori_z`` (a unit quaternion, w first) and the joints the
 robot program uses for the point today ``q1..qn`` (deg), which pick the configuration
-the compensated joints stay near."""
+the compensated joints stay near; ``payload_kg`` (the payload each point is reached
+with, for a model's compliance term)."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
 
+from cellcal.calib.error_terms import Conditions
 from cellcal.calib.geometry import Array
 from cellcal.errors import FileFormatError
 from cellcal.files.csvtable import read_table
-from cellcal.files.measurements import joint_columns, read_joint_columns, read_orientations
+from cellcal.files.measurements import (
+    joint_columns,
+    read_conditions,
+    read_joint_columns,
+    read_orientations,
+)
 from cellcal.files.points import read_points
 
 
@@ -25,6 +32,7 @@ class Targets:
     xyz: Array
     orientations: Array | None
     q: Array | None
+    conditions: Conditions | None = None
 
 
 def read_targets(path: str | Path, dof: int) -> Targets:
@@ -37,4 +45,6 @@ def read_targets(path: str | Path, dof: int) -> Targets:
         q = read_joint_columns(t, dof)
     elif any(t.has(c) for c in cols):
         raise FileFormatError(f"{t.path}: give all of {', '.join(cols)} or none")
-    return Targets(points.path, points.names, points.xyz, read_orientations(t), q)
+    return Targets(
+        points.path, points.names, points.xyz, read_orientations(t), q, read_conditions(t)
+    )

@@ -25,7 +25,8 @@ from cellcal.calib.identification import fit_frames
 from cellcal.calib.kinematics import target_kinematics
 from cellcal.calib.registration import fit_rigid
 from cellcal.calib.robot_model import RobotModel, model_from_dict
-from cellcal.campaign.analysis import mean_sigma, sensor_estimates
+from cellcal.calib.term_effect import TermEffect, term_effects
+from cellcal.campaign.analysis import mean_sigma, pose_conditions, sensor_estimates
 from cellcal.campaign.plan import CALIBRATION, VALIDATION
 from cellcal.errors import CellcalError
 from cellcal.files.models import load_model
@@ -110,10 +111,13 @@ class ReportData:
     air: tuple[AirRange, ...] = ()
     #: the model's checks (a calibration's, a check's; None for an ISO 9283 test)
     drift: DriftHistory | None = None
+    #: how far each of the model's error terms moves the target at the calibration poses
+    term_effects: tuple[TermEffect, ...] = ()
 
 
 def _state(doc: dict[str, Any]) -> State:
-    model = model_from_dict({k: doc[k] for k in ("name", "convention", "joint")}, "stored model")
+    keys = ("name", "convention", "joint", "term", "payload_com_mm")
+    model = model_from_dict({k: doc[k] for k in keys if k in doc}, "stored model")
     T = np.array(doc["sensor"]["matrix"], dtype=np.float64)
     return State(
         model, np.array(doc["tool"]["xyz"], dtype=np.float64), T[:3, :3], T[:3, 3], np.zeros(3)
@@ -244,7 +248,7 @@ def report_data(
         region=tuple(np.array(data.region)[val]),
         position=target_kinematics(state.model, data.q[val], state.target_offset, jacobian=False).p,
         before=ref[val] - predict(baseline, data.q[val]),
-        after=ref[val] - predict(state, data.q[val]),
+        after=ref[val] - predict(state, data.q[val], None, pose_conditions(data, val)),
     )
     regs = list(summary["registrations"])
     agreements = []
@@ -295,4 +299,7 @@ def report_data(
         retries=retries,
         air=air,
         drift=drift,
+        term_effects=term_effects(
+            state.model, state.target_offset, data.q[cal], pose_conditions(data, cal)
+        ),
     )

@@ -18,6 +18,7 @@ from cellcal.reports.html_parts import figure_html as _figure
 from cellcal.reports.html_parts import mm_text as _mm
 from cellcal.reports.html_parts import table as _table
 from cellcal.reports.iso_html import iso9283_section as _iso9283
+from cellcal.reports.terms_html import terms_section
 from cellcal.store.air import AirRange
 from cellcal.store.devices import description_of
 
@@ -411,6 +412,7 @@ def report_html(d: ReportData, timeline: dict[str, Any]) -> str:
             _validation(d, salt),
             _registrations(d, salt),
             _parameters(d, salt),
+            terms_section(d.model, d.term_effects),
             _points(d, salt),
             _methods(d, salt),
         ]

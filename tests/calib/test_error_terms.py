@@ -15,6 +15,7 @@ import pytest
 from cellcal.calib.error_model import Groups, State, jacobian, parameter_specs, predict
 from cellcal.calib.error_terms import HARMONICS, Conditions, Term
 from cellcal.calib.identification import CalibrationResult, calibrate
+from cellcal.calib.kinematics import target_kinematics
 from cellcal.calib.robot_model import ModelError, RobotModel, model_from_dict, model_to_dict
 from cellcal.calib.term_choice import parse_terms
 from cellcal.errors import InputError
@@ -257,3 +258,42 @@ def test_compliance_needs_a_mass_model():
     assert res.term_choice is not None
     assert "needs a mass model" in res.term_choice.rejected["compliance"]
     assert res.calibrated.terms == ()
+
+
+def test_a_model_file_with_terms_predicts_and_keeps_its_covariance():
+    """Written and read back, a model with terms predicts what the fit did, and its
+    covariance — in deg, deg/m and ppm/h in the file — comes back in internal units."""
+    from cellcal.calib.drift import model_state, predicted_rms
+    from cellcal.files.models import calibrated_toml, model_from_text, model_uncertainty
+
+    res, _ = _case("ur5e", 1, GRAVITY_TRUTH, "auto")
+    text = calibrated_toml(res, None, "simulated")
+    loaded = model_from_text(text, "model")
+    rng = np.random.default_rng(9)
+    q = random_joints(res.calibrated, rng, 20)
+    u = model_uncertainty(text, "model")
+    assert any(s.unit == "deg/m" for s in u.specs)
+    assert np.allclose(u.covariance, res.covariance, rtol=1e-9, atol=0)
+    state = model_state(loaded.model, loaded.target_offset, loaded.T_sensor_base, u.pivot)
+    assert np.allclose(predict(state, q), res.predict(q), atol=1e-9)
+    assert 0.0 < predicted_rms(state, q, u) < 0.1
+
+
+def test_compensation_reaches_the_point_with_the_terms_at_its_payload():
+    from cellcal.calib.compensation import compensate
+
+    res, _, _ = _payload_case((0.0, 5.0), 2.5, COMPLIANCE_TRUTH)
+    rng = np.random.default_rng(2)
+    nominal = load_model("ur5e").model
+    q0 = random_joints(nominal, rng, 10, span=0.5)
+    offset = res.target_offset
+    p = target_kinematics(nominal, q0, offset, jacobian=False).p
+    for payload in (0.0, 5.0):
+        at = Conditions(payload_kg=np.full(len(p), payload))
+        comp = compensate(res.calibrated, offset, nominal, p, None, q0, at)
+        assert comp.ok.all(), comp.why_not
+        reached = target_kinematics(res.calibrated, comp.q, offset, jacobian=False, conditions=at)
+        assert np.abs(reached.p - p).max() < 1e-6
+    # the geometry alone, without the deflection, puts the target elsewhere
+    bare = target_kinematics(res.calibrated.geometry, comp.q, offset, jacobian=False).p
+    assert np.linalg.norm(bare - p, axis=1).max() > 0.05

@@ -8,6 +8,7 @@ import json
 import math
 import tomllib
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 
@@ -120,3 +121,29 @@ def test_refusals_are_one_line(capsys, tmp_path):
     code, _, err = run(capsys, "calibrate", "--model", "ur5e", "--data", path)
     assert code == 2 and "temperature_c 294.6 is not °C" in err, err
     assert len(err.strip().splitlines()) == 1
+
+
+def test_urdf_export_says_what_the_terms_it_leaves_out_are_worth(capsys, tmp_path):
+    real = Path(__file__).parents[1] / "data" / "real" / "ur5"
+    model = tmp_path / "ur5.toml"
+    code, _, err = run(
+        capsys,
+        "calibrate",
+        "--model",
+        real / "model.toml",
+        "--data",
+        real / "measurements.csv",
+        "--out",
+        model,
+        "--folds",
+        "0",
+    )
+    assert code == 0, err
+    code, stdout, err = run(
+        capsys, "export", "urdf", "--model", model, "--out", tmp_path / "ur5.urdf", "--json"
+    )
+    assert code == 0, err
+    assert "a URDF holds geometry only" in err and "harmonics (joints 1, 2" in err
+    lost = json.loads(stdout)["terms_left_out"]
+    assert lost["terms"] == ["harmonics"]
+    assert 0.05 < lost["rms_mm"] < lost["max_mm"] < 5.0
