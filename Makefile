@@ -109,6 +109,7 @@ bench: $(STAMP) $(PG)
 	$(BIN)/python benchmarks/service.py
 	$(BIN)/python benchmarks/startup.py
 	$(BIN)/python benchmarks/fleet.py
+	$(BIN)/python benchmarks/error_terms.py
 
 clean:
 	rm -rf $(VENV) .pytest_cache .mypy_cache .ruff_cache .hypothesis

@@ -118,6 +118,11 @@ class CampaignConfig(Strict):
     # error terms beyond geometry the calibration may add: auto (each only when blocked
     # cross-validation accepts it), geometric, or a comma list (cellcal.calib.term_choice)
     terms: str = "auto"
+    # measure the plan once per payload (kg), in this order, pausing before each new one
+    # for the operator to mount it; none: the plan once, with whatever the robot carries
+    payloads_kg: Annotated[list[Annotated[float, Field(ge=0, le=5000)]], Field(max_length=10)] = (
+        Field(default_factory=list)
+    )
 
     @model_validator(mode="after")
     def _box(self) -> CampaignConfig:
@@ -125,6 +130,8 @@ class CampaignConfig(Strict):
             parse_terms(self.terms)
         except InputError as e:
             raise ValueError(str(e).replace("--terms", "terms")) from None
+        if len(set(self.payloads_kg)) != len(self.payloads_kg):
+            raise ValueError("payloads_kg: each payload once (the plan is measured per payload)")
         if any(
             lo >= hi for lo, hi in zip(self.workspace_min_mm, self.workspace_max_mm, strict=True)
         ):

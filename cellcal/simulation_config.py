@@ -1,6 +1,7 @@
 """The ``[simulation]`` table of a cell configuration (mock mode only): the simulated
 cell's ground truth, the faults its twins inject (``[simulation.faults]``) and how the
-cell changed after its calibration (``[simulation.change]``)."""
+cell changed after its calibration (``[simulation.change]``) and its errors beyond
+geometry (``[simulation.terms]``)."""
 
 from __future__ import annotations
 
@@ -68,6 +69,23 @@ class SimulatedChange(Strict):
         return float(np.interp(t_s, ts, cs))
 
 
+class SimulatedTerms(Strict):
+    """Errors beyond geometry the simulated robot has (mock mode only), for the error
+    terms to be tested against a known truth. ``harmonics_deg``: per joint, the first and
+    second harmonics of its reading added to its angle, ``[sin1, cos1, sin2, cos2]`` (deg;
+    none: no joint has any); ``compliance_deg_per_knm``: per joint, how far it yields
+    under the gravity torque about it, of the links it carries and of the payload mounted
+    (deg per kN·m; the robot model's mass model gives the torque; none: stiff). Thermal
+    drift is ``[simulation.change] thermal_mm_per_c`` with its ``temperature_c``."""
+
+    harmonics_deg: list[
+        Annotated[list[Annotated[float, Field(ge=-1, le=1)]], Field(min_length=4, max_length=4)]
+    ] = Field(default_factory=list, max_length=20)
+    compliance_deg_per_knm: list[Annotated[float, Field(ge=0, le=100)]] = Field(
+        default_factory=list, max_length=20
+    )
+
+
 class SimulationConfig(Strict):
     """The simulated cell's ground truth (mock mode only). Same seed, same campaign."""
 
@@ -85,3 +103,4 @@ class SimulationConfig(Strict):
     joint_speed_deg_s: Annotated[float, Field(gt=0, le=3600)] = 60.0
     faults: SimulatedFaults = Field(default_factory=SimulatedFaults)
     change: SimulatedChange = Field(default_factory=SimulatedChange)
+    terms: SimulatedTerms = Field(default_factory=SimulatedTerms)

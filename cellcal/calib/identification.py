@@ -107,11 +107,14 @@ def fit_frames(
     measured: Array,
     sigma: Array | None = None,
     groups: Groups | None = None,
+    conditions: Conditions | None = None,
 ) -> State:
     """The nominal geometry with best-fit sensor frames and target offsets (the
-    "before" model of a calibration, and the baseline of validation)."""
+    "before" model of a calibration, and the baseline of validation); a model's error
+    terms at the measurements' ``conditions``."""
     q, measured, sigma = check_measurements(model, q, measured, sigma)
-    data = Data(q, measured, groups if groups is not None else Groups.single(len(q)))
+    g = groups if groups is not None else Groups.single(len(q))
+    data = Data(q, measured, g, None, conditions)
     return _fit_frames(model, data, weights(sigma, len(q)))
 
 

@@ -11,8 +11,9 @@ is tried back in (the rule then re-applied to the rest, since freeing one change
 others' uncertainty); a candidate set counts only if its fit on all the data passes the
 acceptance checks (every correction within manufacturing tolerance), and it is taken
 only if it lowers the k-fold error — the RMS of each fold's poses predicted by a fit to
-the other folds — by more than :data:`GAIN`. Folds interleave the poses (pose i in fold
-i mod k), so each holds every session and target alike and the choice is repeatable.
+the other folds — by more than :data:`GAIN`. The folds are regions of the workspace
+(:func:`cellcal.calib.blocked_cv.region_folds`: seeded, so the choice is repeatable),
+which ask what a parameter does where it was not fitted.
 """
 
 from __future__ import annotations

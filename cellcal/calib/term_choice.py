@@ -20,6 +20,7 @@ import numpy as np
 
 from cellcal.calib import levenberg
 from cellcal.calib.blocked_cv import (
+    REGIONS,
     Comparison,
     Folds,
     compare,
@@ -42,6 +43,7 @@ from cellcal.calib.geometry import Array
 from cellcal.calib.identifiability import analyse, weakly_determined
 from cellcal.calib.kinematics import chain_frames
 from cellcal.calib.observations import Data
+from cellcal.calib.parameter_choice import EQUATIONS_PER_PARAMETER
 from cellcal.errors import CellcalError, InputError
 
 #: A term is accepted when its pose-by-pose gain is this many standard errors from zero …
@@ -232,6 +234,13 @@ def _fit(base: _Fitted, terms: tuple[Term, ...], data: Data, w: Array) -> _Fitte
     )
     st = replace(base.state, model=base.state.model.with_terms(pruned))
     sel = geometric + tuple(term_specs(st.model))
+    train = (1.0 - 1.0 / REGIONS) * w.size
+    if train < EQUATIONS_PER_PARAMETER * len(sel):
+        return (
+            f"too few poses for it: {len(data.q)} poses give {w.size} equations for "
+            f"{len(sel)} parameters with it (a fold's fit needs {EQUATIONS_PER_PARAMETER} "
+            "equations per parameter)"
+        )
     try:
         fitted = levenberg.fit(st, sel, data, w).state
     except CellcalError as e:

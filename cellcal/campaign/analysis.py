@@ -12,8 +12,8 @@ left out of the calibration and the validation, and the summary says how many.""
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-from dataclasses import dataclass
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -198,6 +198,14 @@ def mean_covariance(data: PoseData, sensor: str) -> Array:
     return out
 
 
+def with_payloads(data: PoseData, payload_of: Mapping[int, float | None] | None) -> PoseData:
+    """``data`` with each pose's planned payload (none planned: as it is)."""
+    if not payload_of or all(v is None for v in payload_of.values()):
+        return data
+    kg = [payload_of.get(int(i)) for i in data.idx]
+    return replace(data, payload_kg=np.array([np.nan if v is None else v for v in kg]))
+
+
 def pose_conditions(data: PoseData, rows: Array) -> Conditions | None:
     """The time and air temperature of some poses, for error terms (a column only where
     every one of those poses has it)."""
@@ -209,9 +217,10 @@ def pose_conditions(data: PoseData, rows: Array) -> Conditions | None:
         return out
 
     time_s, temperature_c = column(data.time_s), column(data.temperature_c)
-    if time_s is None and temperature_c is None:
+    payload_kg = column(data.payload_kg)
+    if time_s is None and temperature_c is None and payload_kg is None:
         return None
-    return Conditions(time_s=time_s, temperature_c=temperature_c)
+    return Conditions(time_s=time_s, temperature_c=temperature_c, payload_kg=payload_kg)
 
 
 def _rms(e: Array) -> float:
@@ -226,12 +235,14 @@ def analyse(
     *,
     accept: bool = False,
     terms: str = "geometric",
+    payload_of: Mapping[int, float | None] | None = None,
 ) -> CampaignSummary:
     """Register, calibrate, validate; store the results (all in one transaction: none or
     all of them); return the summary. A result that fails an acceptance check raises
     :class:`AcceptanceError` and stores nothing of the analysis (the samples stay), unless
-    ``accept``; ``terms``: the error terms beyond geometry the calibration may add."""
-    data = store.pose_data(campaign_id)
+    ``accept``; ``terms``: the error terms beyond geometry the calibration may add;
+    ``payload_of``: each pose's planned payload by its index."""
+    data = with_payloads(store.pose_data(campaign_id), payload_of)
     summary, results = analysis_of(
         data, campaign_id, nominal, reference, accept=accept, terms=terms
     )
@@ -304,6 +315,7 @@ def analysis_of(
             sigma(sensor, mask),
             sensor,
             accept,
+            pose_conditions(data, mask),
         )
         registrations.append(reg)
         writes += rows
@@ -403,6 +415,7 @@ def _register(
     s: Array,
     sensor: str,
     accept: bool,
+    conditions: Conditions | None = None,
 ) -> tuple[SensorRegistration, list[RegistrationRow]]:
     """One sensor registered with the nominal and with the calibrated geometry; refused
     when its samples do not follow the robot. Returns the registration and its rows."""
@@ -418,8 +431,8 @@ def _register(
             f"{_rms(e_nom):.3g} mm, far worse than any robot's accuracy class: its samples "
             "do not belong to this robot's poses (another target, a clock out of step)",
         )
-    after = fit_frames(result.calibrated, q, m, s)
-    e_cal = m - predict(after, q)
+    after = fit_frames(result.calibrated, q, m, s, None, conditions)
+    e_cal = m - predict(after, q, None, conditions)
     e_max_nom = float(np.max(np.linalg.norm(e_nom, axis=1)))
     e_max_cal = float(np.max(np.linalg.norm(e_cal, axis=1)))
     reg = SensorRegistration(

@@ -26,6 +26,7 @@ if TYPE_CHECKING:
 def calibration_plan(config: CellConfig) -> tuple[Plan, RobotModel]:
     """The campaign's plan and the nominal model; refused before any motion when it
     cannot work (nothing reachable, too few poses to identify, a move out of the box)."""
+    from cellcal.campaign.payloads import with_payloads
     from cellcal.campaign.plan import CALIBRATION, VALIDATION, make_plan, plan_identifiability
     from cellcal.campaign.plan_checks import refuse_moves_outside
     from cellcal.files.models import load_model
@@ -35,7 +36,9 @@ def calibration_plan(config: CellConfig) -> tuple[Plan, RobotModel]:
     if len(home) != nominal.dof:
         raise CampaignError(f"robot.home_deg has {len(home)} joints, the model {nominal.dof}")
     target_offset = np.asarray(config.reference_sensor.target_offset_mm, dtype=np.float64)
-    plan = make_plan(config.campaign, nominal, home, target_offset)
+    plan = with_payloads(
+        make_plan(config.campaign, nominal, home, target_offset), config.campaign.payloads_kg
+    )
     n_cal = plan.count(CALIBRATION)
     if n_cal == 0:
         raise CampaignError("no calibration pose of the plan is reachable; check the cube")
@@ -93,6 +96,7 @@ class CalibrationKind:
             reference,
             accept=done.accept,
             terms=done.config.campaign.terms,
+            payload_of={p.idx: p.payload_kg for p in done.plan.poses},
         )
         return Analysis(summary, summary)
 

@@ -31,6 +31,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from cellcal.campaign.payloads import PAYLOAD_CHANGE, instruction
 from cellcal.campaign.plan import Plan, PlannedPose
 from cellcal.campaign.records import CampaignEvent, PoseStored, RecordStream
 from cellcal.clock import Clock
@@ -68,6 +69,9 @@ class Acquisition:
     stored_now: int
     interrupted: bool
     clock_seconds: float
+    #: the payload (kg) the next pose needs and the robot does not carry: the acquisition
+    #: stopped for the operator to mount it (``cellcal.campaign.payloads``)
+    awaiting_payload: float | None = None
 
 
 def acquire(
@@ -85,8 +89,11 @@ def acquire(
     stop: threading.Event | None = None,
     hold: threading.Event | None = None,
     phase: PhaseWatcher | None = None,
+    mounted_kg: float | None = None,
 ) -> Acquisition:
-    """Visit every planned pose not in ``done``; see the module docstring."""
+    """Visit every planned pose not in ``done``; see the module docstring. A pose
+    planned with another payload than ``mounted_kg`` stops the acquisition with the
+    instruction to mount it (a ``payload-change`` event)."""
     stop = stop or threading.Event()
     hold = hold or threading.Event()
     watch = phase or _unwatched
@@ -95,10 +102,20 @@ def acquire(
     t0 = clock.now()
     stored_now = 0
     interrupted = False
+    awaiting: float | None = None
     with ThreadPoolExecutor(max_workers=max(1, len(sensors)), thread_name_prefix="sensor") as pool:
         for pose in todo:
             if stop.is_set() or hold.is_set():
                 interrupted = True
+                break
+            if pose.payload_kg is not None and pose.payload_kg != mounted_kg:
+                awaiting, interrupted = pose.payload_kg, True
+                message = f"pose {pose.idx} is planned with another payload: " + instruction(
+                    pose.payload_kg
+                )
+                stream.emit(
+                    CampaignEvent(campaign_id, PAYLOAD_CHANGE, message, pose.idx, clock.now())
+                )
                 break
             try:
                 record = _visit(
@@ -135,7 +152,7 @@ def acquire(
             robot.stop()
         except DeviceError as exc:  # the interrupt stays one; the operator is told
             log.warning("%s: not stopped after the interrupt: %s", robot.name, exc)
-    return Acquisition(len(done) + stored_now, stored_now, interrupted, clock.now() - t0)
+    return Acquisition(len(done) + stored_now, stored_now, interrupted, clock.now() - t0, awaiting)
 
 
 def _outcome(future: Future[Series]) -> Series | DeviceError:

@@ -76,13 +76,15 @@ def _quiet(message: str) -> None:
 class PlannedPose:
     """``idx``: position in the plan; ``role``: calibration or validation; ``region``:
     ``cube``, ``workspace`` (drawn over the workspace box) or ``O1``…; ``target_mm``:
-    the nominal target position (base frame); ``q``: joint readings (rad)."""
+    the nominal target position (base frame); ``q``: joint readings (rad); ``payload_kg``:
+    the payload it is measured with (``[campaign] payloads_kg``; None: not planned)."""
 
     idx: int
     role: str
     region: str
     target_mm: Array
     q: Array
+    payload_kg: float | None = None
 
 
 @dataclass(frozen=True)
@@ -116,6 +118,8 @@ class Plan:
         h = hashlib.sha256()
         for p in self.poses:
             h.update(f"{p.idx}:{p.role}:{p.region}:".encode())
+            if p.payload_kg is not None:
+                h.update(f"{p.payload_kg!r}:".encode())
             h.update(np.round(p.q, 9).tobytes())
         return h.hexdigest()[:16]
 

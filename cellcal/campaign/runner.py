@@ -33,6 +33,7 @@ from cellcal.campaign.kinds import (
     stored_kind,
 )
 from cellcal.campaign.locks import RunLock, claimed_address, robot_claim
+from cellcal.campaign.payloads import PAYLOAD, instruction, mounted_payload
 from cellcal.campaign.plan import Plan
 from cellcal.campaign.plan_checks import LIMITS_EVENT, limits_record, same_limits
 from cellcal.campaign.records import (
@@ -143,6 +144,13 @@ def _run(
                 campaign_id, plan, config_digest(config), len(done), resumed, clock.now()
             )
         )
+        mounted, confirmed = mounted_payload(plan, done, store.events(campaign_id))
+        if mounted is not None:
+            said = "mounted (the campaign resumed)" if confirmed else "on the robot"
+            if confirmed or not done:
+                stream.emit(CampaignEvent(campaign_id, PAYLOAD, f"{mounted:g} kg payload {said}"))
+            if devices.simulated_cell is not None:  # mock mode: the operator's hands
+                devices.simulated_cell.payload_kg = mounted  # type: ignore[attr-defined]
         acquisition = acquire(
             plan,
             devices.robot,
@@ -157,6 +165,7 @@ def _run(
             stop=stop,
             hold=held.hold,
             phase=held.phase,
+            mounted_kg=mounted,
         )
     except BaseException as exc:
         record_failure(stream, campaign_id, total, f"{type(exc).__name__}: {exc}", held.on_fault)
@@ -182,6 +191,18 @@ def _run(
             campaign_id, store.path, config, plan, acquisition, result, c.kind.name, c.options
         )
 
+    if acquisition.awaiting_payload is not None:
+        resume = (
+            held.hint.split(": ", 1)[-1]
+            if held.hint
+            else (f"cellcal run --resume {campaign_id} --db {store.path}")
+        )
+        end(
+            "paused",
+            f"paused after {n} poses: {instruction(acquisition.awaiting_payload)} ({resume})",
+            "paused",
+        )
+        return outcome(None)
     if acquisition.interrupted:
         status = held.halted()
         verb = "stopped" if status == "interrupted" else status

@@ -17,6 +17,7 @@ from typing import TYPE_CHECKING, Any, TypeVar
 import click
 
 from cellcal.campaign.kinds import DEFAULT_KIND, CampaignKind, KindOption, all_kinds, kind_named
+from cellcal.campaign.payloads import instruction
 from cellcal.campaign.stop_request import StopRequest
 from cellcal.commands.output import SEED, TIME_SCALE, print_json
 from cellcal.config import CellConfig, default_database, load_config
@@ -441,6 +442,15 @@ def run_kind(a: CampaignRun) -> None:
             progress.close()
         for signum, handler in previous.items():
             signal.signal(signum, handler)
+    if outcome.result is None and outcome.acquisition.awaiting_payload is not None:
+        click.echo(
+            f"cellcal: campaign {outcome.campaign_id} paused with "
+            f"{outcome.acquisition.stored} of {len(outcome.plan.poses)} poses stored: "
+            f"{instruction(outcome.acquisition.awaiting_payload)}: cellcal run --resume "
+            f"{outcome.campaign_id} --db {outcome.db_path}",
+            err=True,
+        )
+        sys.exit(EXIT_INTERRUPTED)
     if outcome.result is None:
         why = f" ({stop.reason})" if stop.reason else ""
         click.echo(

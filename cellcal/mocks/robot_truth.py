@@ -11,14 +11,14 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from cellcal.calib.error_terms import Conditions
+from cellcal.calib.error_terms import HARMONICS, Conditions, Term
 from cellcal.calib.geometry import Array, so3_exp
 from cellcal.calib.kinematics import target_kinematics
 from cellcal.calib.robot_model import RobotModel
 from cellcal.errors import InputError
 
 if TYPE_CHECKING:
-    from cellcal.simulation_config import SimulatedChange
+    from cellcal.simulation_config import SimulatedChange, SimulatedTerms
 
 
 @dataclass(frozen=True)
@@ -139,3 +139,31 @@ def measure(
     p = cell.positions(q, conditions)
     out: Array = p + rng.normal(0.0, sigma_mm, p.shape)
     return out
+
+
+def truth_terms(model: RobotModel, terms: SimulatedTerms) -> tuple[Term, ...]:
+    """The simulated robot's errors beyond geometry (``[simulation.terms]``) as error
+    terms of its model; one line naming a key that does not fit the robot."""
+    n = model.dof
+    out: list[Term] = []
+    for key, values in (
+        ("harmonics_deg", terms.harmonics_deg),
+        ("compliance_deg_per_knm", terms.compliance_deg_per_knm),
+    ):
+        if values and len(values) != n:
+            raise InputError(
+                f"simulation.terms.{key}: {len(values)} values for a robot of {n} joints "
+                "(one a joint, or none)"
+            )
+    for j, h in enumerate(terms.harmonics_deg, start=1):
+        if any(h):
+            out.append(Term("harmonics", j, HARMONICS, tuple(math.radians(v) for v in h)))
+    if any(terms.compliance_deg_per_knm) and model.mass_model is None:
+        raise InputError(
+            "simulation.terms.compliance_deg_per_knm needs the robot model's mass model: "
+            "mass_kg and com_mm in every [[joint]]"
+        )
+    for j, c in enumerate(terms.compliance_deg_per_knm, start=1):
+        if c:
+            out.append(Term("compliance", j, ("tau",), (math.radians(c),)))
+    return tuple(out)

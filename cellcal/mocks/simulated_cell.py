@@ -31,6 +31,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from cellcal.calib.error_terms import Conditions
 from cellcal.calib.geometry import Array, invert
 from cellcal.calib.kinematics import target_kinematics
 from cellcal.calib.robot_model import RobotModel
@@ -38,7 +39,7 @@ from cellcal.clock import Clock
 from cellcal.config import CellConfig
 from cellcal.device_options import SensorOptions
 from cellcal.families import find
-from cellcal.mocks.robot_truth import changed_model, grown_model, perturbed_model
+from cellcal.mocks.robot_truth import changed_model, grown_model, perturbed_model, truth_terms
 from cellcal.simulation_config import REFERENCE_C
 
 
@@ -86,6 +87,10 @@ class SimulatedCell:
         )
         self.model = changed_model(self.model_at_calibration, sim.change)
         self.change = sim.change
+        # errors beyond geometry, and the payload the robot carries (its compliance's load)
+        self.terms = truth_terms(nominal, sim.terms)
+        payloads = config.campaign.payloads_kg
+        self.payload_kg = float(payloads[0]) if payloads else 0.0
         self.clock = clock  # the campaign's: the temperature profile runs on it
         self.sensors: dict[str, SensorTruth] = {}
         shift = np.eye(4)
@@ -196,9 +201,10 @@ class SimulatedCell:
         profile gives at the campaign clock's reading (``[simulation.change]``)."""
         c = self.change
         if c.thermal_mm_per_c == 0 or not c.temperature_c:
-            return self.model
+            return self.model.with_terms(self.terms)
         t = self.clock.now() if self.clock is not None else 0.0
-        return grown_model(self.model, c.thermal_mm_per_c * (c.temperature_at(t) - REFERENCE_C))
+        grown = grown_model(self.model, c.thermal_mm_per_c * (c.temperature_at(t) - REFERENCE_C))
+        return grown.with_terms(self.terms)
 
     def true_position(self, sensor: str, q: Array | None = None) -> Array:
         """Noise-free target position of ``sensor`` in its frame (mm), the robot's
@@ -206,7 +212,9 @@ class SimulatedCell:
         s = self.sensors[sensor]
         qq = self.q if q is None else q
         model = self.model_now()
-        p = target_kinematics(model, np.atleast_2d(qq), s.target_offset, jacobian=False).p
+        q2 = np.atleast_2d(qq)
+        load = Conditions(payload_kg=np.full(len(q2), self.payload_kg))
+        p = target_kinematics(model, q2, s.target_offset, jacobian=False, conditions=load).p
         out: Array = p @ s.T_sensor_base[:3, :3].T + s.T_sensor_base[:3, 3]
         return out if q is not None and np.ndim(q) == 2 else out[0]
 

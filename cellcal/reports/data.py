@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import json
 import tomllib
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -27,6 +27,7 @@ from cellcal.calib.registration import fit_rigid
 from cellcal.calib.robot_model import RobotModel, model_from_dict
 from cellcal.calib.term_effect import TermEffect, term_effects
 from cellcal.campaign.analysis import mean_sigma, pose_conditions, sensor_estimates
+from cellcal.campaign.payloads import pose_payloads
 from cellcal.campaign.plan import CALIBRATION, VALIDATION
 from cellcal.errors import CellcalError
 from cellcal.files.models import load_model
@@ -184,7 +185,8 @@ def _registration_residuals(
         mask = (role == CALIBRATION) & data.measured(sensor)
         q, m = data.q[mask], data.mean[sensor][mask]
         e_nom = m - predict(_frame_state(nominal, reg, False), q)
-        e_cal = m - predict(_frame_state(calibrated, reg, True), q)
+        at = pose_conditions(data, mask)
+        e_cal = m - predict(_frame_state(calibrated, reg, True), q, None, at)
         out.append(SensorResiduals(sensor, data.idx[mask], e_nom, e_cal))
     return tuple(out)
 
@@ -204,11 +206,22 @@ def drift_history(store: Store, campaign_id: int, summary: dict[str, Any] | None
     return DriftHistory(model, tuple(c for c in store.checks() if c.model_digest == model.digest))
 
 
+def _with_planned_payloads(store: Store, campaign_id: int, data: PoseData) -> PoseData:
+    """The poses' payloads, as the campaign's stored configuration planned them."""
+    row = store.campaign(campaign_id)
+    try:
+        planned = json.loads(row.config_json).get("campaign", {}).get("payloads_kg") or []
+    except (ValueError, AttributeError):
+        return data
+    kg = pose_payloads([float(v) for v in planned], row.n_poses, data.idx)
+    return data if kg is None else replace(data, payload_kg=kg)
+
+
 def report_data(
     store: Store, campaign_id: int, facts: dict[str, Any], *, methods: bool = False
 ) -> ReportData:
     """Everything the report shows of campaign ``campaign_id``."""
-    data = store.pose_data(campaign_id)
+    data = _with_planned_payloads(store, campaign_id, store.pose_data(campaign_id))
     summary = store.latest_report(campaign_id)
     model_toml = store.latest_model_toml(campaign_id)
     events = store.event_rows(campaign_id)

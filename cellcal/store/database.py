@@ -126,6 +126,9 @@ class PoseData:
     #: samples) and the air temperature its tracker reported (°C; NaN where none did)
     time_s: Array | None = None
     temperature_c: Array | None = None
+    #: each pose's payload (kg): not stored, but planned (``[campaign] payloads_kg``);
+    #: set by whoever knows the plan (None: not planned)
+    payload_kg: Array | None = None
 
     def measured(self, sensor: str) -> Array:
         """Which poses this sensor measured (a boolean mask)."""

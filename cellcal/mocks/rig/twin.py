@@ -109,7 +109,7 @@ class RigTruth:
         truth = cell.sensors[sensor]
         sim = cell.simulation
         return cls(
-            cell.model,
+            cell.model.with_terms(cell.terms),  # the payload-free load: rendered at start
             truth.T_sensor_base,
             truth.target_offset,
             tuple(cell.home_deg),

@@ -1,0 +1,74 @@
+"""Payload sessions on the simulated cell: a UR5e (its published mass model) that yields
+under gravity (``[simulation.terms]``), measured at 0 and 5 kg (``[campaign]
+payloads_kg``). The campaign pauses before the second payload with the instruction,
+resuming is the operator's word that it is mounted, and the calibration then accepts
+compliance and predicts both payloads to the noise."""
+
+from __future__ import annotations
+
+import sqlite3
+import tomllib
+from pathlib import Path
+
+import pytest
+import tomli_w
+
+from tests.inprocess import cellcal
+
+pytestmark = [pytest.mark.twin, pytest.mark.timeout(300)]
+
+ROOT = Path(__file__).resolve().parents[2]
+#: the simulated robot's compliance at joints 2, 3, 4 (deg per kN·m)
+COMPLIANCE = [0.0, 0.5, 0.8, 1.0, 0.0, 0.0]
+
+
+def _cell(folder: Path, payloads: list[float]) -> Path:
+    cell = tomllib.loads((ROOT / "config" / "mock-cell-ur10e.toml").read_text())
+    cell["name"] = "simulated UR5e cell with payloads"
+    cell["robot"]["model"] = "ur5e"
+    cell["campaign"] |= {
+        "cube_centre_mm": [-450.0, -150.0, 350.0],
+        "grid": [4, 4, 3],
+        "samples_per_pose": 3,
+        "validation_inside": 6,
+        "validation_per_region": 0,
+        "workspace_min_mm": [-900.0, -900.0, -100.0],
+        "workspace_max_mm": [900.0, 900.0, 900.0],
+        "payloads_kg": payloads,
+    }
+    cell["simulation"]["terms"] = {"compliance_deg_per_knm": COMPLIANCE}
+    path = folder / "cell.toml"
+    path.write_text(tomli_w.dumps(cell))
+    return path
+
+
+def test_the_campaign_pauses_for_each_payload_and_finds_the_compliance(tmp_path: Path) -> None:
+    config, db = _cell(tmp_path, [0.0, 5.0]), tmp_path / "cell.db"
+    first = cellcal("run", "--mock", "--config", config, "--db", db)
+    assert first.returncode == 130, first.stderr[-2000:]
+    said = first.stderr.strip().splitlines()[-1]
+    assert "paused with 54 of 108 poses stored: mount the 5 kg payload" in said
+    assert f"cellcal run --resume 1 --db {db}" in said
+    with sqlite3.connect(db) as conn:
+        status = conn.execute("SELECT status FROM campaigns").fetchone()[0]
+        kinds = [k for (k,) in conn.execute("SELECT kind FROM events ORDER BY id")]
+    assert status == "paused" and "payload-change" in kinds
+
+    done = cellcal("run", "--resume", "1", "--db", db, "--json")
+    assert done.returncode == 0, done.stderr[-2000:]
+    with sqlite3.connect(db) as conn:
+        payloads = [m for (m,) in conn.execute("SELECT message FROM events WHERE kind='payload'")]
+        model = tomllib.loads(conn.execute("SELECT model_toml FROM calibrations").fetchone()[0])
+    assert payloads == ["0 kg payload on the robot", "5 kg payload mounted (the campaign resumed)"]
+    assert model["fit"]["terms"]["accepted"] == ["compliance"]
+    joints = {t["joint"]: t["coefficients"][0] for t in model["term"]}
+    assert 0.35 < joints[2] < 0.65  # what the poses can tell apart of joints 2–4
+    assert model["validation"]["after_rms_mm"] < 0.03  # both payloads, to the noise
+
+
+def test_payloads_are_each_planned_once(tmp_path: Path) -> None:
+    config = _cell(tmp_path, [5.0, 5.0])
+    done = cellcal("plan", "--config", config)
+    assert done.returncode == 2
+    assert "payloads_kg: each payload once" in done.stderr
+    assert len(done.stderr.strip().splitlines()) == 1
