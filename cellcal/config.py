@@ -123,6 +123,10 @@ class CampaignConfig(Strict):
     payloads_kg: Annotated[list[Annotated[float, Field(ge=0, le=5000)]], Field(max_length=10)] = (
         Field(default_factory=list)
     )
+    # repeated reference poses: this many, measured first, after every reference_every
+    # poses and last (repeatability and drift, measured directly); 0: none
+    reference_poses: Annotated[int, Field(ge=0, le=10)] = 0
+    reference_every: Annotated[int, Field(ge=2, le=1000)] = 20
 
     @model_validator(mode="after")
     def _box(self) -> CampaignConfig:

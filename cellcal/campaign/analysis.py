@@ -13,7 +13,7 @@ left out of the calibration and the validation, and the summary says how many.""
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -27,10 +27,12 @@ from cellcal.calib.geometry import Array
 from cellcal.calib.identification import CalibrationResult, calibrate, fit_frames
 from cellcal.calib.kinematics import target_kinematics
 from cellcal.calib.outliers import PointResidual, point_residuals
+from cellcal.calib.reference_repeats import ReferenceRepeat
 from cellcal.calib.repeat_spread import RepeatSpread, repeat_spread
 from cellcal.calib.robot_model import RobotModel
 from cellcal.calib.validation import ErrorStats, Validation
 from cellcal.campaign.plan import CALIBRATION, VALIDATION
+from cellcal.campaign.pose_conditions import pose_conditions, repeats_of, with_payloads
 from cellcal.errors import AcceptanceError, CampaignError
 from cellcal.files.models import builtin_models, calibrated_toml
 from cellcal.store.database import PoseData, Store
@@ -110,6 +112,8 @@ class CampaignSummary:
     #: the validation RMS after calibration another campaign would give (None: no
     #: covariance)
     spread: RepeatSpread | None = None
+    #: the repeated reference poses' repeatability and drift (none planned: empty)
+    repeats: tuple[ReferenceRepeat, ...] = ()
 
     @property
     def improvement_pct(self) -> float:
@@ -136,6 +140,17 @@ class CampaignSummary:
             "rms_after_mm": self.validation_after.rms,
             "improvement_pct": self.improvement_pct,
             "rms_after_spread": None if self.spread is None else self.spread.as_dict(),
+            "reference_poses": [
+                {
+                    "pose": r.label,
+                    "n": r.n,
+                    "hours": r.hours,
+                    "repeatability_mm": r.repeatability_mm,
+                    "drift_mm_per_h": r.drift_mm_per_h,
+                    "drift_sigma_mm_per_h": r.drift_sigma_mm_per_h,
+                }
+                for r in self.repeats
+            ],
             "cellcal_version": __version__,
             "validation_before": stats(self.validation_before),
             "validation_after": stats(self.validation_after),
@@ -196,31 +211,6 @@ def mean_covariance(data: PoseData, sensor: str) -> Array:
     diag = np.einsum("ni,ij->nij", mean_sigma(data, sensor) ** 2, np.eye(3))
     out: Array = np.where(np.asarray(np.isfinite(own).all(axis=(1, 2)))[:, None, None], own, diag)
     return out
-
-
-def with_payloads(data: PoseData, payload_of: Mapping[int, float | None] | None) -> PoseData:
-    """``data`` with each pose's planned payload (none planned: as it is)."""
-    if not payload_of or all(v is None for v in payload_of.values()):
-        return data
-    kg = [payload_of.get(int(i)) for i in data.idx]
-    return replace(data, payload_kg=np.array([np.nan if v is None else v for v in kg]))
-
-
-def pose_conditions(data: PoseData, rows: Array) -> Conditions | None:
-    """The time and air temperature of some poses, for error terms (a column only where
-    every one of those poses has it)."""
-
-    def column(values: Array | None) -> Array | None:
-        if values is None or not np.isfinite(values[rows]).all():
-            return None
-        out: Array = values[rows]
-        return out
-
-    time_s, temperature_c = column(data.time_s), column(data.temperature_c)
-    payload_kg = column(data.payload_kg)
-    if time_s is None and temperature_c is None and payload_kg is None:
-        return None
-    return Conditions(time_s=time_s, temperature_c=temperature_c, payload_kg=payload_kg)
 
 
 def _rms(e: Array) -> float:
@@ -371,6 +361,7 @@ def analysis_of(
         n_fused=sum(f is not None for f in fused),
         warnings=tuple(warnings),
         spread=spread,
+        repeats=repeats_of(data, reference),
     )
     calibration = CalibrationRow(
         sensor=reference,

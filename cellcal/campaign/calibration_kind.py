@@ -29,6 +29,7 @@ def calibration_plan(config: CellConfig) -> tuple[Plan, RobotModel]:
     from cellcal.campaign.payloads import with_payloads
     from cellcal.campaign.plan import CALIBRATION, VALIDATION, make_plan, plan_identifiability
     from cellcal.campaign.plan_checks import refuse_moves_outside
+    from cellcal.campaign.reference_poses import with_reference_poses
     from cellcal.files.models import load_model
 
     nominal = load_model(config.robot.model).model
@@ -36,8 +37,12 @@ def calibration_plan(config: CellConfig) -> tuple[Plan, RobotModel]:
     if len(home) != nominal.dof:
         raise CampaignError(f"robot.home_deg has {len(home)} joints, the model {nominal.dof}")
     target_offset = np.asarray(config.reference_sensor.target_offset_mm, dtype=np.float64)
+    c = config.campaign
     plan = with_payloads(
-        make_plan(config.campaign, nominal, home, target_offset), config.campaign.payloads_kg
+        with_reference_poses(
+            make_plan(c, nominal, home, target_offset), c.reference_poses, c.reference_every
+        ),
+        c.payloads_kg,
     )
     n_cal = plan.count(CALIBRATION)
     if n_cal == 0:

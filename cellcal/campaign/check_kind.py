@@ -278,7 +278,7 @@ def analyse_check(done: Acquired) -> CheckOutcome:
     model's validity when the robot is out of its limits)."""
     from cellcal.calib import drift
     from cellcal.calib.error_terms import Conditions
-    from cellcal.campaign.analysis import pose_conditions
+    from cellcal.campaign.pose_conditions import pose_conditions
     from cellcal.files.models import model_uncertainty
     from cellcal.store.schema import model_digest
 

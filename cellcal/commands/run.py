@@ -20,6 +20,7 @@ from cellcal.campaign.kinds import DEFAULT_KIND, CampaignKind, KindOption, all_k
 from cellcal.campaign.payloads import instruction
 from cellcal.campaign.stop_request import StopRequest
 from cellcal.commands.output import SEED, TIME_SCALE, print_json
+from cellcal.commands.terms_output import repeats_text
 from cellcal.config import CellConfig, default_database, load_config
 from cellcal.errors import InputError
 from cellcal.extras import require
@@ -213,6 +214,8 @@ def _print_summary(out: CampaignOutcome, folder: str | None, residuals: bool) ->
             f"(90 % of {s.spread.draws} repeats drawn from the fit's covariance and the "
             "poses' noise)"
         )
+    if s.repeats:
+        click.echo(f"reference poses ({s.reference}): " + repeats_text(s.repeats))
     click.echo(
         f"the paper, after calibration: {PAPER['cl_inside_mm']:.3f} mm in the calibrated region "
         f"({PAPER['other_method_mm']:.3f} mm with another registration method), "

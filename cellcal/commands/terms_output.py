@@ -1,9 +1,13 @@
 """The lines a calibration prints about its error terms beyond geometry: each term tried,
-accepted or not and why, and the accepted terms' coefficients with their uncertainty."""
+accepted or not and why, and the accepted terms' coefficients with their uncertainty;
+and a campaign's repeated reference poses (repeatability and drift)."""
 
 from __future__ import annotations
 
+import math
+
 from cellcal.calib.calibration_result import CalibrationResult
+from cellcal.calib.reference_repeats import ReferenceRepeat
 
 #: Coefficients shown per term line before "…" (gravity terms have dozens).
 SHOWN = 6
@@ -31,3 +35,18 @@ def terms_lines(res: CalibrationResult) -> list[str]:
         more = f", … ({len(parts) - SHOWN} more)" if len(parts) > SHOWN else ""
         out.append(f"    {t.name}{where}: {', '.join(parts[:SHOWN])}{more}")
     return out
+
+
+def repeats_text(repeats: tuple[ReferenceRepeat, ...]) -> str:
+    """One clause per reference pose: measurements, repeatability, drift ± 1σ."""
+
+    def drift(r: ReferenceRepeat) -> str:
+        if math.isnan(r.drift_mm_per_h):
+            return "drift not measured"
+        return f"drift {r.drift_mm_per_h:.4f} ± {r.drift_sigma_mm_per_h:.4f} mm/h"
+
+    return "; ".join(
+        f"{r.label} {r.n}× over {r.hours:.2f} h: repeatability {r.repeatability_mm:.4f} mm "
+        f"RMS, {drift(r)}"
+        for r in repeats
+    )

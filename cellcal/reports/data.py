@@ -26,9 +26,10 @@ from cellcal.calib.kinematics import target_kinematics
 from cellcal.calib.registration import fit_rigid
 from cellcal.calib.robot_model import RobotModel, model_from_dict
 from cellcal.calib.term_effect import TermEffect, term_effects
-from cellcal.campaign.analysis import mean_sigma, pose_conditions, sensor_estimates
+from cellcal.campaign.analysis import mean_sigma, sensor_estimates
 from cellcal.campaign.payloads import pose_payloads
 from cellcal.campaign.plan import CALIBRATION, VALIDATION
+from cellcal.campaign.pose_conditions import pose_conditions
 from cellcal.errors import CellcalError
 from cellcal.files.models import load_model
 from cellcal.store.air import AirRange

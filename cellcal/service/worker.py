@@ -14,6 +14,7 @@ import threading
 
 from cellcal.calib.robot_model import RobotModel
 from cellcal.campaign.devices import Devices, build_devices
+from cellcal.campaign.payloads import instruction
 from cellcal.campaign.records import CampaignEnded, CampaignStarted, Record
 from cellcal.campaign.run_parts import Held
 from cellcal.campaign.runner import run_stored
@@ -215,6 +216,11 @@ class Worker(threading.Thread):
                 subscribers=[started, c.record],
             )
             message = f"{out.acquisition.stored} of {len(out.plan.poses)} poses stored"
+            if out.acquisition.awaiting_payload is not None:  # the operator's turn
+                message += (
+                    f"; {instruction(out.acquisition.awaiting_payload)}: "
+                    f"cellcal campaign resume {cid}"
+                )
         except CellcalError as exc:
             message, failure = str(exc), exc
         except Exception as exc:

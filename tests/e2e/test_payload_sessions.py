@@ -1,11 +1,14 @@
-"""Payload sessions on the simulated cell: a UR5e (its published mass model) that yields
-under gravity (``[simulation.terms]``), measured at 0 and 5 kg (``[campaign]
-payloads_kg``). The campaign pauses before the second payload with the instruction,
-resuming is the operator's word that it is mounted, and the calibration then accepts
-compliance and predicts both payloads to the noise."""
+"""Campaigns that make error terms identifiable. Payload sessions on the simulated
+cell: a UR5e (its published mass model) that yields under gravity
+(``[simulation.terms]``), measured at 0 and 5 kg (``[campaign] payloads_kg``). The
+campaign pauses before the second payload with the instruction, resuming is the
+operator's word that it is mounted, and the calibration then accepts compliance and
+predicts both payloads to the noise. Repeated reference poses measure a warming cell's
+drift directly."""
 
 from __future__ import annotations
 
+import json
 import sqlite3
 import tomllib
 from pathlib import Path
@@ -13,6 +16,7 @@ from pathlib import Path
 import pytest
 import tomli_w
 
+from tests.conftest import small_tracker_file
 from tests.inprocess import cellcal
 
 pytestmark = [pytest.mark.twin, pytest.mark.timeout(300)]
@@ -72,3 +76,31 @@ def test_payloads_are_each_planned_once(tmp_path: Path) -> None:
     assert done.returncode == 2
     assert "payloads_kg: each payload once" in done.stderr
     assert len(done.stderr.strip().splitlines()) == 1
+
+
+def test_reference_poses_measure_a_warming_cells_drift(tmp_path: Path) -> None:
+    """Two reference poses measured every ten poses while the simulated arm warms by
+    10 °C over the campaign: the drift they measure is far beyond its uncertainty, and
+    the drift term, judged on later stretches, is accepted."""
+    warming = {"thermal_mm_per_c": 0.05, "temperature_c": [[0.0, 20.0], [2000.0, 30.0]]}
+    config = small_tracker_file(
+        tmp_path,
+        "warm",
+        [4, 4, 4],
+        3,
+        6,
+        campaign={"reference_poses": 2, "reference_every": 10},
+        simulation={"change": warming},
+    )
+    done = cellcal("run", "--mock", "--config", config, "--db", tmp_path / "warm.db", "--json")
+    assert done.returncode == 0, done.stderr[-2000:]
+    summary = json.loads(done.stdout)
+    refs = summary["reference_poses"]
+    assert [r["pose"] for r in refs] == ["ref1", "ref2"] and all(r["n"] == 8 for r in refs)
+    for r in refs:
+        assert r["drift_mm_per_h"] > 5 * r["drift_sigma_mm_per_h"]
+        assert r["repeatability_mm"] < 0.06  # the drift over ten minutes, the noise below
+    assert summary["n_calibration_poses"] == 64  # the reference poses are not fitted
+    with sqlite3.connect(tmp_path / "warm.db") as conn:
+        model = tomllib.loads(conn.execute("SELECT model_toml FROM calibrations").fetchone()[0])
+    assert "drift" in model["fit"]["terms"]["accepted"]
