@@ -175,3 +175,25 @@ def test_urdfs_cellcal_cannot_use_are_refused_in_one_line(tmp_path):
     assert run.returncode == 2 and "missing.urdf" in run.stderr
     with pytest.raises(Exception, match=r"revolute"):
         model_from_urdf(tmp_path / "prismatic.urdf")
+
+
+def test_a_urdfs_inertials_are_its_mass_model_and_give_pinocchios_gravity_torques():
+    """The mass model read from ros-industrial's UR5 gives, through cellcal's own
+    torques (the compliance term's regressor), what Pinocchio's computeGeneralizedGravity
+    gives for the file, at random readings."""
+    from cellcal.calib.error_terms import joint_torques
+    from cellcal.calib.kinematics import chain_frames
+
+    path = Path(__file__).parent / "data" / "urdf" / "ur5_robot.urdf"
+    model = load_model(str(path)).model
+    mass = model.mass_model
+    assert mass is not None
+    assert np.allclose(mass.mass_kg, [3.7, 8.393, 2.275, 1.219, 1.219, 0.1879])
+    pm = pin.buildModelFromUrdf(str(path))
+    data = pm.createData()
+    rng = np.random.default_rng(4)
+    q = rng.uniform(-np.pi, np.pi, (8, model.dof))
+    ours = joint_torques(chain_frames(model, q), mass, np.zeros(len(q))) * 1000.0  # N·m
+    ours *= 9.81 / 9.80665  # the file's gravity is Pinocchio's 9.81
+    theirs = np.array([pin.computeGeneralizedGravity(pm, data, row) for row in q])
+    assert np.allclose(ours, -theirs, atol=1e-9 * np.abs(theirs).max())

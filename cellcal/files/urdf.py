@@ -13,26 +13,28 @@ bounded), then Pinocchio parses it, every failure one line; the serial chain of
 revolute joints from the root to the end frame (``tool0``, else ``flange``, else the
 last joint's link) becomes a modified-DH table by the common normals of consecutive
 joint axes at the zero readings, with Hayati's β where consecutive axes are parallel.
-The end frame is the model's flange frame, orientation included (the last row's θ, and
-scale −1 where its z is against the last axis), so that a target offset read back names
-the point it named; an end frame no DH table can end on (tilted off the last axis, or
-its origin off it) is said in one warning line, the model then ending on the nearest
-frame that one can, with the end frame's origin as the model's ``[tool]`` offset. The
-result is checked against Pinocchio's own kinematics of the file at random readings,
-and refused when they differ.
+Its inertials become the model's mass model (each joint body's mass and centre of
+mass, for the compliance error term). The end frame is the model's flange frame,
+orientation included (the last row's θ, and scale −1 where its z is against the last
+axis), so that a target offset read back names the point it named; an end frame no DH
+table can end on (tilted off the last axis, or its origin off it) is said in one warning
+line, the model then ending on the nearest frame that one can, with the end frame's
+origin as the model's ``[tool]`` offset. The result is checked against Pinocchio's own
+kinematics of the file at random readings, and refused when they differ.
 """
 
 from __future__ import annotations
 
 import math
 import xml.etree.ElementTree as ET
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from cellcal.calib.geometry import Array, invert, so3_log
-from cellcal.calib.kinematics import target_kinematics
+from cellcal.calib.kinematics import chain_frames, target_kinematics
 from cellcal.calib.robot_model import PARALLEL_AXES_DEG, Joint, RobotModel
 from cellcal.config import Warn, warn_on_stderr
 from cellcal.errors import FileFormatError, InputError
@@ -429,6 +431,7 @@ def _from_urdf(p: Path, text: str, warn: Warn | None) -> RobotModel:
     model = mdh_from_axes(
         np.array(points), np.array(axes), ends[0], limits, pm.name or p.stem, end_axes[0]
     )
+    model = _with_inertials(model, pm, d, chain)
     # The end frame in the model's flange frame: a turn (identity but for a frame a DH
     # table cannot end on) and an origin (model.target_offset: zero but for one off the last axis).
     k0 = target_kinematics(model, np.zeros((1, len(chain))), model.target_offset, jacobian=False)
@@ -456,6 +459,24 @@ def _from_urdf(p: Path, text: str, warn: Warn | None) -> RobotModel:
     if line is not None and warn is not None:
         warn(line)
     return model
+
+
+def _with_inertials(model: RobotModel, pm: Any, d: Any, chain: list[int]) -> RobotModel:
+    """The model with the URDF's inertials as its mass model: each joint's body (its link
+    and every link fixed to it, merged by Pinocchio) as ``mass_kg`` and ``com_mm`` in the
+    model's link frame; unchanged when the file gives no mass (all zero)."""
+    masses = [float(pm.inertias[j].mass) for j in chain]
+    if not any(m > 0 for m in masses):
+        return model
+    frames = chain_frames(model, np.zeros((1, len(chain))))  # the zero readings, as d
+    joints = []
+    for k, (j, row) in enumerate(zip(chain, model.joints, strict=True)):
+        com_base = np.asarray(d.oMi[j].act(pm.inertias[j].lever), dtype=np.float64) * 1000.0
+        com = frames.R[0, k].T @ (com_base - frames.o[0, k])
+        joints.append(
+            replace(row, mass_kg=masses[k], com_mm=(float(com[0]), float(com[1]), float(com[2])))
+        )
+    return model.with_joints(tuple(joints))
 
 
 def _child_link(root: ET.Element, joint: str) -> str:
