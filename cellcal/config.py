@@ -127,6 +127,11 @@ class CampaignConfig(Strict):
     # poses and last (repeatability and drift, measured directly); 0: none
     reference_poses: Annotated[int, Field(ge=0, le=10)] = 0
     reference_every: Annotated[int, Field(ge=2, le=1000)] = 20
+    # the warm-up gate: move through the plan's poses for this long (s of the campaign's
+    # clock) before measuring, ending early once the robot's joint temperatures (where
+    # its driver reads them) change less than warm_up_settled_c_per_min; 0: none
+    warm_up_s: Annotated[float, Field(ge=0, le=7200)] = 0.0
+    warm_up_settled_c_per_min: Annotated[float, Field(ge=0, le=10)] = 0.1
 
     @model_validator(mode="after")
     def _box(self) -> CampaignConfig:

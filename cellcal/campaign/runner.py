@@ -53,6 +53,7 @@ from cellcal.campaign.run_parts import (
     with_seed,
 )
 from cellcal.campaign.stop_request import StopRequest
+from cellcal.campaign.warm_up import warm_up
 from cellcal.clock import Clock, SimulatedClock, WallClock
 from cellcal.config import CellConfig, config_from_dict, upgrade_stored
 from cellcal.errors import AcceptanceError, CampaignError, UserError
@@ -151,21 +152,41 @@ def _run(
                 stream.emit(CampaignEvent(campaign_id, PAYLOAD, f"{mounted:g} kg payload {said}"))
             if devices.simulated_cell is not None:  # mock mode: the operator's hands
                 devices.simulated_cell.payload_kg = mounted  # type: ignore[attr-defined]
-        acquisition = acquire(
+        cfg = config.campaign
+
+        def halted() -> bool:
+            return any(e is not None and e.is_set() for e in (stop, held.hold))
+
+        warmed = len(done) == total or warm_up(
             plan,
             devices.robot,
-            devices.sensors,
             clock,
+            stream,
             campaign_id=campaign_id,
-            done=done,
-            stream=stream,
-            dwell_s=config.campaign.dwell_s,
-            samples_per_pose=config.campaign.samples_per_pose,
+            seconds=cfg.warm_up_s,
+            settled_c_per_min=cfg.warm_up_settled_c_per_min,
             speed=config.robot.speed,
-            stop=stop,
-            hold=held.hold,
-            phase=held.phase,
-            mounted_kg=mounted,
+            halted=halted,
+        )
+        acquisition = (
+            acquire(
+                plan,
+                devices.robot,
+                devices.sensors,
+                clock,
+                campaign_id=campaign_id,
+                done=done,
+                stream=stream,
+                dwell_s=cfg.dwell_s,
+                samples_per_pose=cfg.samples_per_pose,
+                speed=config.robot.speed,
+                stop=stop,
+                hold=held.hold,
+                phase=held.phase,
+                mounted_kg=mounted,
+            )
+            if warmed
+            else Acquisition(len(done), 0, True, 0.0)
         )
     except BaseException as exc:
         record_failure(stream, campaign_id, total, f"{type(exc).__name__}: {exc}", held.on_fault)

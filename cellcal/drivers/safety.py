@@ -211,6 +211,11 @@ class GuardedRobot:
     def actual_joints(self) -> Array:
         return self.robot.actual_joints()
 
+    def joint_temperatures(self) -> Array | None:
+        """The joints' temperatures (°C) where the robot's driver reads them, else None."""
+        read = getattr(self.robot, "joint_temperatures", None)
+        return None if read is None else np.asarray(read(), dtype=np.float64)
+
     def describe(self) -> DeviceDescription:
         return self.robot.describe()
 

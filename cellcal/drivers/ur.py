@@ -228,6 +228,11 @@ class URRobot(StopAndMeasureRobot):
         _, receive = self._require()
         return self._read6(receive.getActualQ, "getActualQ")
 
+    def joint_temperatures(self) -> Array:
+        """The joints' temperatures the controller reports (°C, one per joint)."""
+        _, receive = self._require()
+        return self._read6(receive.getJointTemperatures, "getJointTemperatures")
+
     def tcp_pose(self) -> Array:
         """The TCP pose in the base frame: [x, y, z (mm), rx, ry, rz (rad, rotation
         vector)] as one array of 6."""

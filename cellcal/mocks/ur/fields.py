@@ -9,8 +9,11 @@ Where the values come from:
   ``target_TCP_pose`` and ``actual_TCP_speed`` / ``target_TCP_speed`` (computed by the
   parent from the joints), the modes and safety words, ``runtime_state``,
   ``robot_status_bits``, ``target_speed_fraction`` (the speed slider input), the digital
-  and analog outputs and every register (set through the inputs);
-* constant but realistic: currents, moments, temperatures, voltages, accelerometer,
+  and analog outputs and every register (set through the inputs), and
+  ``joint_temperatures``: each joint warming from :data:`COLD_BY_C` below its working
+  temperature towards it, with time constant :data:`WARM_TAU_S` of the controller's
+  uptime (``timestamp``);
+* constant but realistic: currents, moments, voltages, accelerometer,
   forces (``tcp_force_scalar`` is the norm of ``actual_TCP_force``), payload, elbow,
   tool and Euromap words. A target equals its actual (the twin has no tracking error).
 
@@ -32,6 +35,12 @@ if TYPE_CHECKING:
 
 _B, _U8, _U32, _U64, _I32, _D = "BOOL", "UINT8", "UINT32", "UINT64", "INT32", "DOUBLE"
 _V3, _V6, _V6I = "VECTOR3D", "VECTOR6D", "VECTOR6INT32"
+
+
+def _warming(uptime_s: float) -> list[float]:
+    """The joints' temperatures (°C) after ``uptime_s`` of the controller."""
+    cold = COLD_BY_C * math.exp(-uptime_s / WARM_TAU_S)
+    return [t - cold for t in TEMPERATURES]
 
 
 def _registers(side: str) -> dict[str, str]:
@@ -163,7 +172,9 @@ CURRENTS = [0.05, -3.1, -1.6, -0.32, 0.03, 0.0]
 MOMENTS = [0.1, -58.0, -21.0, -1.9, 0.2, 0.0]
 CONTROL_OUTPUT = [0.05, -3.05, -1.58, -0.31, 0.03, 0.0]
 CURRENT_WINDOW = [0.4, 0.6, 0.6, 0.3, 0.3, 0.3]
-TEMPERATURES = [31.6, 33.9, 33.1, 35.4, 34.7, 34.2]
+TEMPERATURES = [31.6, 33.9, 33.1, 35.4, 34.7, 34.2]  # each joint's working temperature
+#: how much colder the joints are when the controller starts (°C), and how fast they warm
+COLD_BY_C, WARM_TAU_S = 8.0, 600.0
 TCP_FORCE = [1.2, -0.8, 2.1, 0.05, -0.04, 0.01]
 ACCELEROMETER = [0.02, -0.03, 9.79]
 ELBOW = [-0.6127, -0.1807, 0.1807]
@@ -201,7 +212,7 @@ class Fields:
             "tcp_force_scalar": lambda: scalar,
             "tcp_offset": lambda: zeros6,
             "ft_raw_wrench": lambda: TCP_FORCE,
-            "joint_temperatures": lambda: TEMPERATURES,
+            "joint_temperatures": lambda: _warming(c.cycle * CYCLE_S),
             "actual_execution_time": lambda: 0.35,
             "robot_mode": lambda: c.robot_mode,
             "joint_mode": lambda: [JOINT_MODE_BY_ROBOT_MODE.get(c.robot_mode, 253)] * 6,
