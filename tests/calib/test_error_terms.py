@@ -297,3 +297,61 @@ def test_compensation_reaches_the_point_with_the_terms_at_its_payload():
     # the geometry alone, without the deflection, puts the target elsewhere
     bare = target_kinematics(res.calibrated.geometry, comp.q, offset, jacobian=False).p
     assert np.linalg.norm(bare - p, axis=1).max() > 0.05
+
+
+def test_drift_with_temperature_is_judged_by_temperature_and_recovered():
+    """A cell that grows 2 ppm/°C and shifts 0.01 mm/°C as it warms from 19 to 27 °C:
+    the drift term reads the temperature column, not the time."""
+    truth_terms = (
+        Term(
+            "drift",
+            0,
+            ("x", "y", "z", "scale"),
+            (0.0, 0.0, 0.01, 2e-6),
+            variable="temperature_c",
+            reference=19.0,
+        ),
+    )
+    nominal = load_model("ur5e").model
+    rng = np.random.default_rng(6)
+    cell = random_cell(nominal, rng)
+    q = random_joints(nominal, rng, 300)
+    at = Conditions(
+        time_s=np.linspace(0.0, 3 * 3600.0, len(q)),
+        temperature_c=np.linspace(19.0, 27.0, len(q)) + rng.normal(0.0, 0.05, len(q)),
+    )
+    measured = measure(
+        replace(cell, model=cell.model.with_terms(truth_terms)), q, rng, SIGMA_MM, at
+    )
+    res = calibrate(nominal, q, measured, terms="auto", accept=True, conditions=at)
+    assert res.term_choice is not None and res.term_choice.accepted == ("drift",)
+    (drift,) = res.calibrated.terms
+    assert drift.variable == "temperature_c" and abs(drift.reference - at.temperature_c[0]) < 1e-12
+    assert drift.display_unit(3) == "ppm/°C"
+    z = dict(zip(drift.regressors, zip(drift.coefficients, drift.sigma, strict=True), strict=True))
+    assert abs(z["z"][0] - 0.01) < 4 * z["z"][1]
+
+
+def test_a_coupled_drive_yields_to_its_partners_torque_too():
+    """FANUC's J2/J3: joint 3's angle adds joint 2's reading, and the drives share the
+    load: each one's compliance term has the other's torque as a cross term."""
+    from cellcal.calib.observations import Data
+    from cellcal.calib.term_choice import candidates
+
+    base = load_model("ur5e").model
+    joints = list(base.joints)
+    joints[2] = replace(joints[2], couple_joint=2, couple_factor=1.0)
+    model = base.with_joints(tuple(joints))
+    q = random_joints(model, np.random.default_rng(0), 10)
+    data = Data(
+        q,
+        np.zeros((10, 3)),
+        Groups.single(10),
+        None,
+        Conditions(payload_kg=np.r_[[0.0] * 5, [3.0] * 5]),
+    )
+    state = State(model, np.zeros(3), np.eye(3), np.zeros(3), np.zeros(3))
+    found = candidates("compliance", state, data)
+    assert not isinstance(found, str)
+    regs = {t.joint: t.regressors for t in found}
+    assert regs[2] == ("tau", "tau3") and regs[3] == ("tau", "tau2") and regs[1] == ("tau",)

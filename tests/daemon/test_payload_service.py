@@ -19,7 +19,7 @@ def test_the_service_pauses_for_the_next_payload_and_resumes(folder: Path, daemo
     cell = small_tracker_file(
         folder, "payloads", [2, 2, 2], 2, 4, campaign={"payloads_kg": [0.0, 2.0]}
     )
-    d = daemon(folder, None, time_scale=0.02, config=cell)
+    d = daemon(folder, None, time_scale=0.002, config=cell)
     d.start()
     run = cellcal("campaign", "start", "--socket", d.sock, "--json")
     assert run.returncode == 0, run.stderr
