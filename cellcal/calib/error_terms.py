@@ -13,7 +13,9 @@ A term is a small, named correction a model carries besides its geometry:
     of link k and ``p_i`` a point on joint i's axis. Each coefficient is a compliance ×
     a mass moment, not a stiffness; the fit keeps the identifiable combinations.
   - ``harmonics``: ``sin1``, ``cos1``, ``sin2``, ``cos2`` of the joint's reading
-    (eccentricity and ellipticity of its transmission), within the range of readings
+    (eccentricity and ellipticity of its transmission), and ``sin{k}``, ``cos{k}`` at an
+    order k a transmission's stage turns per joint turn, where the data show one
+    (:mod:`cellcal.calib.cyclic_search`), within the range of readings
     the calibration measured (``range_deg``; none: every reading) and held at its ends
     beyond: over a range
     much shorter than a turn, a harmonic fits an offset, a scale and a bend of the
@@ -227,7 +229,7 @@ def _raw_regressors(
         return np.stack(cols, axis=1)
     for name in term.regressors:
         if term.name == "harmonics":
-            order = int(name[-1])
+            order = int(name[3:])
             f = np.sin if name.startswith("sin") else np.cos
             cols.append(f(order * np.clip(q[:, i], *term.bounds)))
             continue
@@ -326,6 +328,9 @@ def term_from_dict(row: object, where: str, n: int) -> Term:
         else:
             allowed = HARMONICS if name == "harmonics" else gravity_regressors(joint, n)
     regs = row.get("regressors")
+    if name == "harmonics" and isinstance(regs, list):
+        # a cyclic error at a transmission's own order: sin{k}, cos{k}, k up to 360
+        allowed = tuple(dict.fromkeys((*allowed, *(r for r in regs if _cyclic_name(r)))))
     if not isinstance(regs, list) or not regs or any(r not in allowed for r in regs):
         raise ValueError(f"{where}: regressors must be a list of {', '.join(allowed)}")
     if len(set(regs)) != len(regs):
@@ -377,6 +382,18 @@ def term_from_dict(row: object, where: str, n: int) -> Term:
         bounds=bounds,
         centre=centre,
     )
+
+
+def _cyclic_name(name: object) -> bool:
+    """``sin{k}`` or ``cos{k}`` for an order k of 1 to 360."""
+    if not isinstance(name, str) or name[:3] not in ("sin", "cos") or not name[3:].isdigit():
+        return False
+    return 1 <= int(name[3:]) <= 360 and not name[3:].startswith("0")
+
+
+def cyclic(order: int) -> tuple[str, str]:
+    """The regressors of a cyclic error of order ``order`` (k turns per joint turn)."""
+    return f"sin{order}", f"cos{order}"
 
 
 def term_to_dict(term: Term) -> dict[str, object]:

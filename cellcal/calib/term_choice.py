@@ -28,6 +28,7 @@ from cellcal.calib.blocked_cv import (
     region_folds,
     stretch_folds,
 )
+from cellcal.calib.cyclic_search import cyclic_orders
 from cellcal.calib.error_model import ParameterSpec, State, term_specs
 from cellcal.calib.error_terms import (
     DRIFT,
@@ -35,6 +36,7 @@ from cellcal.calib.error_terms import (
     TERM_NAMES,
     Term,
     compliance_regressors,
+    cyclic,
     gravity_regressors,
     joint_deltas,
     joint_regressors,
@@ -114,13 +116,15 @@ def candidates(name: str, state: State, data: Data) -> tuple[Term, ...] | str:
     c = data.conditions
     if name == "harmonics":
         lo, hi = data.q.min(axis=0), data.q.max(axis=0)
+        found = cyclic_orders(state, data)
+        names = {j: HARMONICS + (cyclic(found[j]) if j in found else ()) for j in range(1, n + 1)}
         return _centred(
             tuple(
                 Term(
                     "harmonics",
                     j,
-                    HARMONICS,
-                    (0.0,) * 4,
+                    names[j],
+                    (0.0,) * len(names[j]),
                     bounds=(float(lo[j - 1]), float(hi[j - 1])),
                 )
                 for j in range(1, n + 1)
