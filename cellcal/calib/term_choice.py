@@ -324,10 +324,11 @@ def choose_terms(
             verdicts[name] = TermVerdict(name, False, found)
         else:
             possible[name] = found
+    judge = _Judge(data, w, folds_for, errors, verdicts)
     if request.mode == "list":
-        current = _listed(current, possible, data, w, verdicts, folds_for, errors)
+        current = _listed(current, possible, judge)
     else:
-        current = _greedy(current, possible, data, w, verdicts, folds_for, errors)
+        current = _greedy(current, possible, judge)
     final_cv = errors(current, regions)
     return (
         current.state,
@@ -346,20 +347,22 @@ def _rms(e: Array) -> float:
     return math.sqrt(float(np.mean(e[ok] ** 2))) if ok.any() else math.nan
 
 
-FoldsFor = Callable[[str], Folds]
-Errors = Callable[[_Fitted, Folds], Array]
+@dataclass(frozen=True)
+class _Judge:
+    """What judging terms needs: the data and weights, the folds of a term (regions, or
+    stretches for a drift), a fit's held-out errors on folds, and the verdicts so far."""
+
+    data: Data
+    w: Array
+    folds_for: Callable[[str], Folds]
+    errors: Callable[[_Fitted, Folds], Array]
+    verdicts: dict[str, TermVerdict]
 
 
-def _listed(
-    current: _Fitted,
-    possible: dict[str, tuple[Term, ...]],
-    data: Data,
-    w: Array,
-    verdicts: dict[str, TermVerdict],
-    folds_for: FoldsFor,
-    errors: Errors,
-) -> _Fitted:
+def _listed(current: _Fitted, possible: dict[str, tuple[Term, ...]], judge: _Judge) -> _Fitted:
     """Fit every listed term; judge each by the listed set without it."""
+    data, w, verdicts = judge.data, judge.w, judge.verdicts
+    folds_for, errors = judge.folds_for, judge.errors
     every = tuple(t for cand in possible.values() for t in cand)
     if not every:
         return current
@@ -386,16 +389,10 @@ def _listed(
     return fitted
 
 
-def _greedy(
-    current: _Fitted,
-    possible: dict[str, tuple[Term, ...]],
-    data: Data,
-    w: Array,
-    verdicts: dict[str, TermVerdict],
-    folds_for: FoldsFor,
-    errors: Errors,
-) -> _Fitted:
+def _greedy(current: _Fitted, possible: dict[str, tuple[Term, ...]], judge: _Judge) -> _Fitted:
     """Add, one at a time, the term that lowers the blocked error most, while one does."""
+    data, w, verdicts = judge.data, judge.w, judge.verdicts
+    folds_for, errors = judge.folds_for, judge.errors
     terms: tuple[Term, ...] = ()
     last: dict[str, tuple[Comparison, Folds]] = {}
     while possible:

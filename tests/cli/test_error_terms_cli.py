@@ -39,22 +39,15 @@ def _drifting_csv(tmp_path, rows=240):
     return path, q, cell
 
 
+def _calibrate(capsys, path, *more):  # type: ignore[no-untyped-def]
+    """``cellcal calibrate`` of the simulated UR5e's data, without k-fold validation."""
+    return run(capsys, "calibrate", "--model", "ur5e", "--data", path, "--folds", "0", *more)
+
+
 def test_calibrate_accepts_drift_and_predict_reads_time(capsys, tmp_path):
     path, q, cell = _drifting_csv(tmp_path)
     out = tmp_path / "cal.toml"
-    code, stdout, err = run(
-        capsys,
-        "calibrate",
-        "--model",
-        "ur5e",
-        "--data",
-        path,
-        "--out",
-        out,
-        "--json",
-        "--folds",
-        "0",
-    )
+    code, stdout, err = _calibrate(capsys, path, "--out", out, "--json")
     assert code == 0, err
     doc = json.loads(stdout)
     assert doc["terms"]["accepted"] == ["drift"]
@@ -82,9 +75,7 @@ def test_calibrate_accepts_drift_and_predict_reads_time(capsys, tmp_path):
 
 def test_calibrate_text_says_each_terms_verdict(capsys, tmp_path):
     path, _, _ = _drifting_csv(tmp_path)
-    code, stdout, err = run(
-        capsys, "calibrate", "--model", "ur5e", "--data", path, "--folds", "0", "--terms", "drift"
-    )
+    code, stdout, err = _calibrate(capsys, path, "--terms", "drift")
     assert code == 0, err
     assert "error terms beyond geometry (list)" in stdout
     assert "drift: accepted — blocked cross-validation over later stretches" in stdout
@@ -93,19 +84,7 @@ def test_calibrate_text_says_each_terms_verdict(capsys, tmp_path):
 
 def test_geometric_calibration_has_no_terms(capsys, tmp_path):
     path, _, _ = _drifting_csv(tmp_path, rows=80)
-    code, stdout, err = run(
-        capsys,
-        "calibrate",
-        "--model",
-        "ur5e",
-        "--data",
-        path,
-        "--json",
-        "--folds",
-        "0",
-        "--terms",
-        "geometric",
-    )
+    code, stdout, err = _calibrate(capsys, path, "--json", "--terms", "geometric")
     assert code == 0, err
     doc = json.loads(stdout)
     assert doc["terms"] is None and doc["error_terms"] == []
