@@ -52,6 +52,9 @@ from cellcal.errors import CellcalError, InputError
 Z_ACCEPT = 2.0
 #: … and lowers the held-out RMS by more than this fraction.
 GAIN = 0.01
+#: A temperature that changes less than this (°C) over the measurements cannot carry a
+#: drift: the time does.
+MIN_TEMPERATURE_SPREAD_C = 0.5
 #: A joint term that turns its joint farther than this (deg) at any measured pose is no
 #: transmission's or deflection's error: refused as implausible.
 TERM_LIMIT_DEG = 2.0
@@ -143,13 +146,16 @@ def candidates(name: str, state: State, data: Data) -> tuple[Term, ...] | str:
             data,
         )
     if name == "drift":
-        for column in ("temperature_c", "time_s"):
+        for column, spread in (("temperature_c", MIN_TEMPERATURE_SPREAD_C), ("time_s", 0.0)):
             x = None if c is None else c.column(column)
-            if x is not None and float(np.ptp(x)) > 0:
+            if x is not None and float(np.ptp(x)) > spread:
                 first = int(np.argmin(c.time_s)) if c is not None and c.time_s is not None else 0
                 reference = float(x[first]) if column == "temperature_c" else 0.0
                 return (Term("drift", 0, DRIFT, (0.0,) * 4, variable=column, reference=reference),)
-        return "needs a time_s or temperature_c column that changes during the measurements"
+        return (
+            "needs a time_s column, or a temperature_c column that changes by more than "
+            f"{MIN_TEMPERATURE_SPREAD_C:g} °C, during the measurements"
+        )
     # compliance
     payload = None if c is None else c.payload_kg
     if payload is None or len(np.unique(payload)) < 2:

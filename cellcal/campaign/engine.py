@@ -16,13 +16,16 @@ acquisition as interrupted, not as a device fault: the pose is abandoned, not me
 again, and the failure is logged (stopping may be what made it fail). A hold request
 (the service's deferred pause) lets the pose under way finish and be stored, then
 stops. Every device error leaving the engine names its device (``device``: "robot", a
-sensor's name). The devices are left open: whoever built them closes them. Whoever
+sensor's name). Where the robot's driver reads its joints' temperatures (a UR), each
+pose records them as a ``robot-temperature`` event before it is sampled. The devices are
+left open: whoever built them closes them. Whoever
 watches the engine's progress (the service's heartbeat and status page) is told each
 phase as it begins: ``move``, ``dwell``, ``sample``.
 """
 
 from __future__ import annotations
 
+import json
 import logging
 import threading
 from collections.abc import Callable, Collection, Sequence
@@ -41,6 +44,8 @@ from cellcal.errors import DeviceError, NoTargetError, device_errors
 
 log = logging.getLogger("cellcal.engine")
 
+#: The event that keeps the joints' temperatures at a pose (where the robot reads them).
+ROBOT_TEMPERATURE = "robot-temperature"
 #: A reached joint position further than this from the plan (rad) is refused.
 IN_POSITION_TOL = 1e-3
 #: A sensor that fails at a pose (after its own driver's retries) is asked again this often.
@@ -155,6 +160,22 @@ def acquire(
     return Acquisition(len(done) + stored_now, stored_now, interrupted, clock.now() - t0, awaiting)
 
 
+def _log_temperatures(
+    robot: Robot, stream: RecordStream, campaign_id: int, idx: int, t: float
+) -> None:
+    """The joints' temperatures at the pose, as a ``robot-temperature`` event (JSON
+    ``{"joints_c": [...]}``), where the robot's driver reads them (a UR)."""
+    read = getattr(robot, "joint_temperatures", None)
+    if read is None:
+        return
+    with device_errors(ROBOT_NAME):
+        temps = read()
+    if temps is None:
+        return
+    said = json.dumps({"joints_c": [round(float(v), 3) for v in temps]})
+    stream.emit(CampaignEvent(campaign_id, ROBOT_TEMPERATURE, said, idx, t))
+
+
 def _outcome(future: Future[Series]) -> Series | DeviceError:
     """A sensor's series, or the device error it ended with."""
     try:
@@ -201,6 +222,7 @@ def _visit(
         return None
     start = clock.now()
     phase("sample", pose, start)
+    _log_temperatures(robot, stream, campaign_id, pose.idx, start)
 
     def sample(s: SensorSetting) -> Series:
         with clock.branch(start), device_errors(s.sensor.name):

@@ -1,5 +1,6 @@
-"""What the error terms read of a campaign's stored poses: each pose's time, air
-temperature and planned payload, and the repeated reference poses' repeatability and
+"""What the error terms read of a campaign's stored poses: each pose's time, temperature
+(the robot's joints' mean where it reports them, else a tracker's air) and planned
+payload, and the repeated reference poses' repeatability and
 drift."""
 
 from __future__ import annotations
@@ -34,7 +35,11 @@ def pose_conditions(data: PoseData, rows: Array) -> Conditions | None:
         out: Array = values[rows]
         return out
 
-    time_s, temperature_c = column(data.time_s), column(data.temperature_c)
+    # the robot's own joints where it reports them, else the air a tracker measured in
+    time_s = column(data.time_s)
+    temperature_c = column(data.robot_temperature_c)
+    if temperature_c is None:
+        temperature_c = column(data.temperature_c)
     payload_kg = column(data.payload_kg)
     if time_s is None and temperature_c is None and payload_kg is None:
         return None

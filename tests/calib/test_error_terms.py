@@ -126,7 +126,7 @@ def test_no_term_is_accepted_on_a_robot_without_them_and_the_result_is_unchanged
     assert res.term_choice is not None and res.term_choice.accepted == ()
     assert "blocked cross-validation over" in res.term_choice.rejected["harmonics"]
     assert "two or more payloads" in res.term_choice.rejected["compliance"]
-    assert "time_s or temperature_c" in res.term_choice.rejected["drift"]
+    assert "needs a time_s column, or a temperature_c" in res.term_choice.rejected["drift"]
     assert res.calibrated.terms == ()
     assert np.array_equal(res.residuals, geometric.residuals)
     assert geometric.term_choice is None

@@ -64,6 +64,13 @@ def test_the_campaign_pauses_for_each_payload_and_finds_the_compliance(tmp_path:
         payloads = [m for (m,) in conn.execute("SELECT message FROM events WHERE kind='payload'")]
         model = tomllib.loads(conn.execute("SELECT model_toml FROM calibrations").fetchone()[0])
     assert payloads == ["0 kg payload on the robot", "5 kg payload mounted (the campaign resumed)"]
+    # the UR's joint temperatures, read through ur_rtde at every pose
+    with sqlite3.connect(db) as conn:
+        logged = conn.execute(
+            "SELECT pose_idx, message FROM events WHERE kind = 'robot-temperature'"
+        ).fetchall()
+    assert sorted(i for i, _ in logged) == list(range(84))
+    assert all(20.0 < t < 40.0 for _, m in logged for t in json.loads(m)["joints_c"])
     assert model["fit"]["terms"]["accepted"] == ["compliance"]
     joints = {t["joint"]: t["coefficients"][0] for t in model["term"]}
     assert 0.35 < joints[2] < 0.65  # what the poses can tell apart of joints 2–4
