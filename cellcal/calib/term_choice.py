@@ -60,9 +60,14 @@ MIN_TEMPERATURE_SPREAD_C = 0.5
 TERM_LIMIT_DEG = 2.0
 
 
+#: The mode of a request that fits given terms and judges nothing: a k-fold validation's
+#: folds refit the terms their calibration accepted (not a user's choice).
+FIXED = "fixed"
+
+
 @dataclass(frozen=True)
 class TermRequest:
-    """``auto``, ``geometric``, or ``list`` with the listed names."""
+    """``auto``, ``geometric``, ``list`` with the listed names, or :data:`FIXED`."""
 
     mode: str
     names: tuple[str, ...] = ()
@@ -308,6 +313,8 @@ def choose_terms(
 ) -> tuple[State, tuple[ParameterSpec, ...], TermChoice]:
     """The geometric fit ``state`` over ``sel`` with the terms the request and the data
     accept, its parameters, and each term's verdict."""
+    if request.mode == FIXED:
+        return _fixed(state, sel, data, w, request.names)
     regions = region_folds(state, data)
     c = data.conditions
     order = None if c is None else (c.time_s if c.time_s is not None else c.temperature_c)
@@ -346,6 +353,27 @@ def choose_terms(
             _rms(final_cv),
         ),
     )
+
+
+def _fixed(
+    state: State, sel: tuple[ParameterSpec, ...], data: Data, w: Array, names: tuple[str, ...]
+) -> tuple[State, tuple[ParameterSpec, ...], TermChoice]:
+    """The named terms fitted as they are found in these data, nothing judged."""
+    verdicts: list[TermVerdict] = []
+    terms: tuple[Term, ...] = ()
+    for name in names:
+        found = candidates(name, state, data)
+        if isinstance(found, str):
+            verdicts.append(TermVerdict(name, False, found))
+        else:
+            terms += found
+    fitted = _fit(_Fitted(state, sel), terms, data, w) if terms else _Fitted(state, sel)
+    if isinstance(fitted, str):
+        verdicts += [TermVerdict(n, False, fitted) for n in names]
+        fitted = _Fitted(state, sel)
+    present = {t.name for t in fitted.state.model.terms}
+    verdicts += [TermVerdict(n, True, "fitted as given") for n in names if n in present]
+    return fitted.state, fitted.sel, TermChoice(FIXED, tuple(verdicts), math.nan, math.nan)
 
 
 def _rms(e: Array) -> float:

@@ -24,6 +24,7 @@ from cellcal.calib.identification import (
 from cellcal.calib.observations import check_measurements, on_a_line
 from cellcal.calib.registration_batch import fit_rigid_batch
 from cellcal.calib.robot_model import RobotModel
+from cellcal.calib.term_choice import TermRequest
 from cellcal.errors import AcceptanceError, InputError, UserError
 
 
@@ -172,7 +173,7 @@ def cross_validate(
     fix: Collection[str] = (),
     groups: Groups | None = None,
     orientations: Array | None = None,
-    terms: str = "geometric",
+    terms: str | TermRequest = "geometric",
     conditions: Conditions | None = None,
 ) -> Validation:
     """k-fold cross-validation: every point is predicted by a calibration without it,

@@ -20,7 +20,7 @@ from cellcal.calib.identification import (
 from cellcal.calib.observations import on_a_line
 from cellcal.calib.outliers import OUTLIER_Z, PointResidual, point_residuals
 from cellcal.calib.parameter_choice import FOLDS
-from cellcal.calib.term_choice import parse_terms
+from cellcal.calib.term_choice import FIXED, TermRequest, parse_terms
 from cellcal.calib.validation import (
     Validation,
     cross_validate,
@@ -312,6 +312,10 @@ def calibrate(
             res, data.q, data.xyz, val.q, val.xyz, data.sigma, held, val.conditions
         )
     elif folds:
+        # each fold refits the terms the calibration accepted (choosing them again in
+        # every fold would cost five term choices for the same answer)
+        chosen = () if res.term_choice is None else res.term_choice.accepted
+        options["terms"] = TermRequest(FIXED, chosen) if chosen else "geometric"
         try:
             validation = cross_validate(
                 nominal, data.q, data.xyz, data.sigma, folds=folds, seed=seed, **options
