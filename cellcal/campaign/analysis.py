@@ -32,7 +32,7 @@ from cellcal.calib.repeat_spread import RepeatSpread, repeat_spread
 from cellcal.calib.robot_model import RobotModel
 from cellcal.calib.validation import ErrorStats, Validation
 from cellcal.campaign.plan import CALIBRATION, VALIDATION
-from cellcal.campaign.pose_conditions import pose_conditions, repeats_of, with_payloads
+from cellcal.campaign.pose_conditions import pose_conditions, repeats_of, with_pose_payloads
 from cellcal.errors import AcceptanceError, CampaignError
 from cellcal.files.models import builtin_models, calibrated_toml
 from cellcal.store.database import PoseData, Store
@@ -232,7 +232,7 @@ def analyse(
     :class:`AcceptanceError` and stores nothing of the analysis (the samples stay), unless
     ``accept``; ``terms``: the error terms beyond geometry the calibration may add;
     ``payload_of``: each pose's planned payload by its index."""
-    data = with_payloads(store.pose_data(campaign_id), payload_of)
+    data = with_pose_payloads(store.pose_data(campaign_id), payload_of)
     summary, results = analysis_of(
         data, campaign_id, nominal, reference, accept=accept, terms=terms
     )

@@ -17,7 +17,7 @@ from cellcal.campaign.reference_poses import REFERENCE
 from cellcal.store.database import PoseData
 
 
-def with_payloads(data: PoseData, payload_of: Mapping[int, float | None] | None) -> PoseData:
+def with_pose_payloads(data: PoseData, payload_of: Mapping[int, float | None] | None) -> PoseData:
     """``data`` with each pose's planned payload (none planned: as it is)."""
     if not payload_of or all(v is None for v in payload_of.values()):
         return data

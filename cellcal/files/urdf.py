@@ -27,18 +27,18 @@ from __future__ import annotations
 
 import math
 import xml.etree.ElementTree as ET
-from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from cellcal.calib.geometry import Array, invert, so3_log
-from cellcal.calib.kinematics import chain_frames, target_kinematics
+from cellcal.calib.kinematics import target_kinematics
 from cellcal.calib.robot_model import PARALLEL_AXES_DEG, Joint, RobotModel
 from cellcal.config import Warn, warn_on_stderr
 from cellcal.errors import FileFormatError, InputError
 from cellcal.files.text import read_text
+from cellcal.files.urdf_inertials import with_inertials
 from cellcal.files.urdf_input import MAX_BYTES, first_line, pinocchio_model, screen
 
 #: A rebuilt origin may differ from the intended one by this much (rotation, and m).
@@ -431,7 +431,7 @@ def _from_urdf(p: Path, text: str, warn: Warn | None) -> RobotModel:
     model = mdh_from_axes(
         np.array(points), np.array(axes), ends[0], limits, pm.name or p.stem, end_axes[0]
     )
-    model = _with_inertials(model, pm, d, chain)
+    model = with_inertials(model, pm, d, chain)
     # The end frame in the model's flange frame: a turn (identity but for a frame a DH
     # table cannot end on) and an origin (model.target_offset: zero but for one off the last axis).
     k0 = target_kinematics(model, np.zeros((1, len(chain))), model.target_offset, jacobian=False)
@@ -459,24 +459,6 @@ def _from_urdf(p: Path, text: str, warn: Warn | None) -> RobotModel:
     if line is not None and warn is not None:
         warn(line)
     return model
-
-
-def _with_inertials(model: RobotModel, pm: Any, d: Any, chain: list[int]) -> RobotModel:
-    """The model with the URDF's inertials as its mass model: each joint's body (its link
-    and every link fixed to it, merged by Pinocchio) as ``mass_kg`` and ``com_mm`` in the
-    model's link frame; unchanged when the file gives no mass (all zero)."""
-    masses = [float(pm.inertias[j].mass) for j in chain]
-    if not any(m > 0 for m in masses):
-        return model
-    frames = chain_frames(model, np.zeros((1, len(chain))))  # the zero readings, as d
-    joints = []
-    for k, (j, row) in enumerate(zip(chain, model.joints, strict=True)):
-        com_base = np.asarray(d.oMi[j].act(pm.inertias[j].lever), dtype=np.float64) * 1000.0
-        com = frames.R[0, k].T @ (com_base - frames.o[0, k])
-        joints.append(
-            replace(row, mass_kg=masses[k], com_mm=(float(com[0]), float(com[1]), float(com[2])))
-        )
-    return model.with_joints(tuple(joints))
 
 
 def _child_link(root: ET.Element, joint: str) -> str:

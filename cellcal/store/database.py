@@ -455,7 +455,7 @@ class Store(AnalysisTables, StatusReads, CampaignQueries, AirReads):
             temperature_c[pos[pid]] = c if c is not None else np.nan
         if np.isfinite(time_s).any():
             time_s -= np.nanmin(time_s)
-        robot_c = self._robot_temperatures(campaign_id, [int(p[1]) for p in poses])
+        robot_c = self.robot_temperatures(campaign_id, [int(p[1]) for p in poses])
         reached = [loads(self.path, p[4], f"pose {p[1]}'s joints") for p in poses]
         q = np.radians(np.array(reached, dtype=np.float64)) if poses else np.zeros((0, 0))
         return PoseData(
@@ -472,26 +472,6 @@ class Store(AnalysisTables, StatusReads, CampaignQueries, AirReads):
             temperature_c=temperature_c,
             robot_temperature_c=robot_c,
         )
-
-    def _robot_temperatures(self, campaign_id: int, idx: list[int]) -> Array | None:
-        """Each pose's mean joint temperature (°C) from its ``robot-temperature`` event;
-        None when no pose has one (a robot whose driver reads none)."""
-        rows = self.conn.execute(
-            """SELECT pose_idx, message FROM events WHERE campaign_id = ?
-            AND kind = 'robot-temperature' ORDER BY id""",
-            (campaign_id,),
-        ).fetchall()
-        if not rows:
-            return None
-        by_idx: dict[int, float] = {}
-        for pose_idx, message in rows:
-            try:
-                joints = [float(v) for v in json.loads(message)["joints_c"]]
-            except (ValueError, KeyError, TypeError):
-                continue  # a damaged row: that pose has none
-            if pose_idx is not None and joints:
-                by_idx[int(pose_idx)] = float(np.mean(joints))
-        return np.array([by_idx.get(i, np.nan) for i in idx])
 
     def _pose_stats_cov(self) -> str:
         """The covariance columns of ``pose_stats``: NULLs in a file older than schema 3
