@@ -27,7 +27,6 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.cluster.vq import kmeans2
 
 from cellcal.calib import levenberg
 from cellcal.calib.error_model import ParameterSpec, State
@@ -65,6 +64,8 @@ def region_folds(state: State, data: Data, regions: int = REGIONS) -> Folds:
     model = state.model.geometry
     p = target_kinematics(model, data.q, state.target_offsets[data.groups.target], jacobian=False).p
     k = max(2, min(regions, len(p) // MIN_FOLD))
+    from scipy.cluster.vq import kmeans2  # heavy: imported when folds are made
+
     _, raw = kmeans2(p, k, seed=np.random.default_rng(0), minit="++")
     used = sorted(set(np.asarray(raw).tolist()))
     remap = {v: i for i, v in enumerate(used)}

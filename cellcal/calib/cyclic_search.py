@@ -20,7 +20,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy.stats import f as f_distribution
+from scipy.special import fdtrc
 
 from cellcal.calib.error_model import State
 from cellcal.calib.geometry import Array
@@ -79,7 +79,7 @@ def cyclic_orders(state: State, data: Data) -> dict[int, int]:
             A = np.c_[base, np.sin(order * qi), np.cos(order * qi)]
             rss1 = _fit_rss(A * sw[:, None], s * sw)
             F = ((rss0 - rss1) / 2.0) / (rss1 / dof) if rss1 > 0 else math.inf
-            p = float(f_distribution.sf(F, 2, dof))
+            p = float(fdtrc(2, dof, F))  # the F distribution's survival function
             if best is None or p < best[0]:
                 best = (p, order)
         if best is not None and best[0] * len(orders) < P_VALUE:

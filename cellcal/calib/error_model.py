@@ -32,7 +32,6 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.spatial.transform import Rotation
 
 from cellcal.calib.error_terms import Conditions, drift_parts, drift_variable, joint_regressors
 from cellcal.calib.geometry import Array, so3_exp
@@ -287,6 +286,8 @@ def predict_orientation(state: State, q: Array, groups: Groups | None = None) ->
 
 def orientation_residuals(measured_R: Array, predicted_R: Array) -> Array:
     """Rotation vectors (N×3, rad, sensor frame) taking predicted onto measured."""
+    from scipy.spatial.transform import Rotation  # heavy: imported when a fit needs it
+
     out: Array = Rotation.from_matrix(measured_R @ np.swapaxes(predicted_R, 1, 2)).as_rotvec()
     return out
 
