@@ -32,7 +32,6 @@ from cellcal.errors import CampaignError, InputError
 from cellcal.files.models import write_atomically
 from cellcal.files.outputs import check_output_file
 from cellcal.reports.data import report_data
-from cellcal.reports.html import report_html
 from cellcal.store.database import CampaignRow, PoseData, Store
 from cellcal.store.queries import CampaignListing
 
@@ -274,6 +273,8 @@ def write_report(
     dwell_s, timeline = _timeline(store, row, iso)
     page_facts = {**facts, "dwell_s": dwell_s, "iso9283": iso}
     data_for_page = report_data(store, cid, page_facts, methods=methods and not iso)
+    from cellcal.reports.html import report_html  # matplotlib: loaded for a page only
+
     files["index.html"] = report_html(data_for_page, timeline)
     for name in files:  # a device, FIFO or folder in the way: refused before any is written
         check_output_file(folder / name)
