@@ -181,6 +181,7 @@ def test_the_table_is_consistent():
     assert sorted(set(names)) == [
         "abb-rws",
         "cameras",
+        "fanuc-rmi",
         "kuka-eki",
         "kuka-kvp",
         "modbus-robot",
@@ -235,7 +236,7 @@ def test_the_camera_backends_are_rows_of_the_registry():
 @pytest.mark.parametrize(
     ("robot", "message"),
     [
-        ({"driver": "fanuc"}, r"robot\.driver: no robot driver 'fanuc' \(choose simulated, modbus, ur, kuka-kvp, kuka-eki, abb-rws\)"),  # noqa: E501
+        ({"driver": "fanuc"}, r"robot\.driver: no robot driver 'fanuc' \(choose simulated, modbus, ur, kuka-kvp, kuka-eki, abb-rws, fanuc-rmi\)"),  # noqa: E501
         ({"driver": "ur", "map": {}}, r"robot\.map: unknown key"),
         ({"driver": "ur", "heartbeat_timeout_s": 1.0}, r"robot\.heartbeat_timeout_s: unknown key"),
         ({"driver": "simulated", "move_timeout_s": 5.0}, r"robot\.move_timeout_s: unknown key"),

@@ -1,6 +1,7 @@
-"""``cellcal mock kuka-kvp``, ``kuka-eki`` and ``abb-rws``: the twins of the robot
-controllers reached through their own interfaces (docs/robots.md), each serving the
-simulated cell's robot as the controller running cellcal's program would."""
+"""``cellcal mock kuka-kvp``, ``kuka-eki``, ``abb-rws`` and ``fanuc-rmi``: the twins of
+the robot controllers reached through their own interfaces (docs/robots.md), each
+serving the simulated cell's robot as the controller running cellcal's program (or
+FANUC's RMI) would."""
 
 from __future__ import annotations
 
@@ -132,3 +133,49 @@ def mock_abb_rws(
     twin.faults.running = not stopped
     twin.faults.mastership_held = mastership_held
     serve_until_signal(twin, listen, "mock ABB controller (RWS 1.0) on {}", scheme="http://")
+
+
+@click.command("fanuc-rmi")
+@click.option(
+    "--host",
+    required=True,
+    help="Loopback address to bind (RMI's connection port 16001 and the session's 16002).",
+)
+@click.option(
+    "--config",
+    "config_path",
+    help="Cell configuration (default: the bundled cell); its robot's home and model are served.",
+)
+@click.option("--seed", type=SEED, help="Seed of the simulated truth.")
+@click.option(
+    "--time-scale",
+    type=TIME_SCALE,
+    default=1.0,
+    show_default=True,
+    help="Wall seconds per second of motion (and of the 60-minute idle end of a session).",
+)
+@click.option("--tp-enabled", is_flag=True, help="Fault: the teach pendant is enabled.")
+@click.option("--servo-off", is_flag=True, help="Fault: the servo is off (ServoReady 0).")
+@click.option("--single-step", is_flag=True, help="Fault: single step mode.")
+def mock_fanuc_rmi(
+    host: str,
+    config_path: str | None,
+    seed: int | None,
+    time_scale: float,
+    tp_enabled: bool,
+    servo_off: bool,
+    single_step: bool,
+) -> None:
+    """A FANUC controller with the Remote Motion Interface (docs/robots.md): the simulated
+    cell's robot on HOST:16001 (the session on HOST:16002), served until Ctrl-C or
+    SIGTERM; prints HOST:16001."""
+    from cellcal.families import RmiTwin, krc_for_cell
+
+    config, cell = simulated_cell_of(config_path, seed)
+    twin = RmiTwin(
+        krc_for_cell(list(config.robot.home_deg), cell, time_scale), time_scale=time_scale
+    )
+    twin.faults.tp_enabled = tp_enabled
+    twin.faults.servo_off = servo_off
+    twin.faults.single_step = single_step
+    serve_until_signal(twin, f"{host}:16001", "mock FANUC controller (RMI) on {}")

@@ -18,6 +18,7 @@ TRACKER_HOST = "127.0.0.5"
 MODBUS_HOST = "127.0.0.3"
 KUKA_HOST = "127.0.0.7"
 ABB_HOST = "127.0.0.8"
+FANUC_HOST = "127.0.0.11"
 UR_HOSTS = tuple(f"127.0.0.{k}" for k in range(100, 140))
 
 

@@ -1,8 +1,8 @@
 """A mock campaign through each robot family that drives a program on its controller
 (issue 32): KUKA through KUKAVARPROXY and through EthernetKRL, ABB through Robot Web
-Services — the real driver against its twin over TCP. Every pose is moved to,
-acknowledged, read back as the controller's measured joints and measured; the
-calibration finds the simulated errors as it does behind Modbus."""
+Services, FANUC through RMI (issue 35) — the real driver against its twin over TCP.
+Every pose is moved to, acknowledged, read back as the controller's measured joints and
+measured; the calibration finds the simulated errors as it does behind Modbus."""
 
 from __future__ import annotations
 
@@ -19,7 +19,7 @@ from tests.inprocess import cellcal
 pytestmark = [pytest.mark.twin, pytest.mark.timeout(240)]
 
 ROOT = Path(__file__).resolve().parents[2]
-MAKERS = {"kuka-kvp": "KUKA", "kuka-eki": "KUKA", "abb-rws": "ABB"}
+MAKERS = {"kuka-kvp": "KUKA", "kuka-eki": "KUKA", "abb-rws": "ABB", "fanuc-rmi": "FANUC"}
 
 
 @pytest.mark.parametrize("driver", sorted(MAKERS))

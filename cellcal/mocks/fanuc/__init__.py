@@ -1,0 +1,1 @@
+"""The FANUC controller twin (Remote Motion Interface)."""
