@@ -73,6 +73,7 @@ if TYPE_CHECKING:  # what ``__getattr__`` hands out, for the type checker
     from cellcal.mocks.tracker.server import TrackerTwin as TrackerTwin
     from cellcal.mocks.twins import limits_deg as limits_deg
     from cellcal.mocks.ur.server import twin_for_cell as twin_for_cell
+    from cellcal.mocks.yaskawa.hses_server import HsesTwin as HsesTwin
 
 Role = Literal["robot", "sensor"]
 
@@ -154,6 +155,7 @@ FAMILIES: tuple[Family, ...] = (
     Family("robot", ROBOT, "kuka-eki", "cellcal.drivers.kuka_eki:KukaEkiOptions", "cellcal.drivers.kuka_eki:KukaEkiRobot", "cellcal.mocks.kuka.eki_server:serve", "a KUKA KR C4/C5 through the EthernetKRL option and cellcal's KRL program (docs/robots.md)", mock_command="cellcal.commands.mock_robots:mock_kuka_eki"),  # noqa: E501
     Family("robot", ROBOT, "abb-rws", "cellcal.drivers.abb_rws:AbbRwsOptions", "cellcal.drivers.abb_rws:AbbRwsRobot", "cellcal.mocks.abb.rws_server:serve", "an ABB IRC5 (RobotWare 6) or OmniCore (RobotWare 7) through Robot Web Services and cellcal's RAPID module (docs/robots.md)", libraries=("httpx",), mock_command="cellcal.commands.mock_robots:mock_abb_rws"),  # noqa: E501
     Family("robot", ROBOT, "fanuc-rmi", "cellcal.drivers.fanuc_rmi:FanucRmiOptions", "cellcal.drivers.fanuc_rmi:FanucRmiRobot", "cellcal.mocks.fanuc.rmi_server:serve", "a FANUC R-30iB Plus or R-30iB Mate Plus through the Remote Motion Interface option (TCP 16001; docs/robots.md)", mock_command="cellcal.commands.mock_robots:mock_fanuc_rmi"),  # noqa: E501
+    Family("robot", ROBOT, "yaskawa-hses", "cellcal.drivers.yaskawa_hses:YaskawaHsesOptions", "cellcal.drivers.yaskawa_hses:YaskawaHsesRobot", "cellcal.mocks.yaskawa.hses_server:serve", "a Yaskawa Motoman (DX100, DX200, FS100, YRC1000) through the High-Speed Ethernet Server (UDP 10040; docs/robots.md)", mock_command="cellcal.commands.mock_robots:mock_yaskawa_hses"),  # noqa: E501
     Family("sensor", "laser-tracker", "line-protocol", "cellcal.drivers.tracker:LineTrackerOptions", "cellcal.drivers.tracker:LineTracker", "cellcal.mocks.tracker.server:serve", "a laser tracker speaking cellcal's line protocol over serial or TCP (docs/tracker.md)", mock="tracker", mock_command="cellcal.commands.mock:mock_tracker"),  # noqa: E501
     Family("sensor", "laser-tracker", "emscon", "cellcal.drivers.emscon:EmsconOptions", "cellcal.drivers.emscon:EmsconTracker", "cellcal.mocks.tracker.emscon_server:serve", "a Leica laser tracker (AT401, AT402, AT403) through its emScon TPI interface on TCP (docs/tracker.md)", mock="tracker", mock_command="cellcal.commands.mock:mock_tracker"),  # noqa: E501
     Family("sensor", "photogrammetry", "cameras", "cellcal.drivers.photogrammetry:CameraRigOptions", "cellcal.drivers.photogrammetry:CameraRigSensor", "cellcal.mocks.rig.twin:serve", "a photogrammetry rig of cameras: marker corners, the target's pose from every camera (docs/photogrammetry.md)", libraries=("cv2",), mock_command="cellcal.commands.rig_capture:mock_cameras", simulated_as="images"),  # noqa: E501
@@ -408,6 +410,8 @@ TWIN_NAMES = {
     "RwsTwin": "abb.rws_server",
     # cellcal mock fanuc-rmi
     "RmiTwin": "fanuc.rmi_server",
+    # cellcal mock yaskawa-hses
+    "HsesTwin": "yaskawa.hses_server",
     # cellcal rig capture --mock, cellcal mock cameras
     "mock_rig": "rig.capture_twin",
     "GigECameraTwin": "rig.gige_cameras",
@@ -467,6 +471,10 @@ def twin_module(name: str) -> ModuleType:
         from cellcal.mocks.fanuc import rmi_server
 
         return rmi_server
+    if name == "yaskawa.hses_server":
+        from cellcal.mocks.yaskawa import hses_server
+
+        return hses_server
     if name == "kuka.krc":
         from cellcal.mocks.kuka import krc
 

@@ -187,6 +187,7 @@ def test_the_table_is_consistent():
         "modbus-robot",
         "tracker",
         "ur",
+        "yaskawa-hses",
     ]
     # two dialects of one kind share their command (cellcal mock tracker --dialect)
     for name in set(names):
@@ -236,7 +237,7 @@ def test_the_camera_backends_are_rows_of_the_registry():
 @pytest.mark.parametrize(
     ("robot", "message"),
     [
-        ({"driver": "fanuc"}, r"robot\.driver: no robot driver 'fanuc' \(choose simulated, modbus, ur, kuka-kvp, kuka-eki, abb-rws, fanuc-rmi\)"),  # noqa: E501
+        ({"driver": "fanuc"}, r"robot\.driver: no robot driver 'fanuc' \(choose simulated, modbus, ur, kuka-kvp, kuka-eki, abb-rws, fanuc-rmi, yaskawa-hses\)"),  # noqa: E501
         ({"driver": "ur", "map": {}}, r"robot\.map: unknown key"),
         ({"driver": "ur", "heartbeat_timeout_s": 1.0}, r"robot\.heartbeat_timeout_s: unknown key"),
         ({"driver": "simulated", "move_timeout_s": 5.0}, r"robot\.move_timeout_s: unknown key"),

@@ -179,3 +179,70 @@ def mock_fanuc_rmi(
     twin.faults.servo_off = servo_off
     twin.faults.single_step = single_step
     serve_until_signal(twin, f"{host}:16001", "mock FANUC controller (RMI) on {}")
+
+
+@click.command("yaskawa-hses")
+@_twin_options
+@click.option(
+    "--pulses-per-degree",
+    help="The encoder pulses per degree of each axis, comma-separated (default: the "
+    "configuration's, when its robot is a yaskawa-hses one).",
+)
+@click.option("--teach", is_flag=True, help="Fault: the controller is in TEACH.")
+@click.option("--no-remote", is_flag=True, help="Fault: command remote is not set.")
+@click.option("--servo-locked", is_flag=True, help="Fault: the servo cannot be turned on.")
+@click.option(
+    "--lose-every",
+    type=click.IntRange(0),
+    default=0,
+    help="Fault: every N-th request datagram is lost.",
+)
+@click.option(
+    "--duplicate-every",
+    type=click.IntRange(0),
+    default=0,
+    help="Fault: every N-th answer is sent twice.",
+)
+def mock_yaskawa_hses(
+    listen: str,
+    config_path: str | None,
+    seed: int | None,
+    time_scale: float,
+    pulses_per_degree: str | None,
+    teach: bool,
+    no_remote: bool,
+    servo_locked: bool,
+    lose_every: int,
+    duplicate_every: int,
+) -> None:
+    """A Yaskawa YRC1000's High-Speed Ethernet Server (docs/robots.md): the simulated
+    cell's robot on UDP HOST:PORT, served until Ctrl-C or SIGTERM; prints HOST:PORT."""
+    from cellcal.families import HsesTwin, krc_for_cell
+
+    config, cell = simulated_cell_of(config_path, seed)
+    ppd = _pulses_per_degree(pulses_per_degree, config)
+    twin = HsesTwin(krc_for_cell(list(config.robot.home_deg), cell, time_scale), ppd)
+    twin.faults.teach = teach
+    twin.faults.remote = not no_remote
+    twin.faults.servo_locked = servo_locked
+    twin.faults.lose_every = lose_every
+    twin.faults.duplicate_every = duplicate_every
+    serve_until_signal(twin, listen, "mock Yaskawa controller (HSES, UDP) on {}")
+
+
+def _pulses_per_degree(text: str | None, config: Any) -> list[float]:
+    from cellcal.drivers.yaskawa_hses import checked_pulses_per_degree
+    from cellcal.errors import InputError
+
+    if text is None:
+        configured = getattr(config.robot, "pulses_per_degree", None)
+        if configured is None:
+            raise InputError(
+                "--pulses-per-degree: the configuration's robot is not a yaskawa-hses one: "
+                "give the pulses per degree of each axis"
+            )
+        return list(configured)
+    try:
+        return checked_pulses_per_degree([float(v) for v in text.split(",")])
+    except ValueError as exc:
+        raise InputError(f"--pulses-per-degree {text}: {exc}") from None

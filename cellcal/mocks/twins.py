@@ -19,6 +19,7 @@ MODBUS_HOST = "127.0.0.3"
 KUKA_HOST = "127.0.0.7"
 ABB_HOST = "127.0.0.8"
 FANUC_HOST = "127.0.0.11"
+YASKAWA_HOST = "127.0.0.12"
 UR_HOSTS = tuple(f"127.0.0.{k}" for k in range(100, 140))
 
 

@@ -7,6 +7,7 @@ from __future__ import annotations
 import contextlib
 from collections.abc import Iterator
 from importlib import resources
+from pathlib import Path
 from typing import Any
 
 from cellcal.campaign.devices import Devices, build_devices
@@ -14,6 +15,8 @@ from cellcal.clock import SimulatedClock
 from cellcal.config import CellConfig, config_from_dict, load_config
 from cellcal.families import Family
 from cellcal.files.models import load_model
+
+CONFIG = Path(__file__).resolve().parents[2] / "config"
 
 
 def bundled_cells() -> list[CellConfig]:
@@ -27,12 +30,16 @@ def bundled_cells() -> list[CellConfig]:
 
 def cell_for(family: Family) -> CellConfig:
     """A bundled cell whose device of this family's role (for a sensor: its last)
-    already uses it, or the default cell with that device's driver replaced."""
+    already uses it, the robot family's example cell in ``config/``, or the default cell
+    with that device's driver replaced."""
     cells = bundled_cells()
     if family.role == "robot":
         for c in cells:
             if c.robot.driver == family.driver:
                 return c
+        shipped = CONFIG / f"mock-cell-{family.driver}.toml"
+        if shipped.exists():  # the family's own example cell (its driver's required keys)
+            return load_config(shipped, relative_paths=False)
         data: dict[str, Any] = cells[0].model_dump()
         keep = {"model", "speed", "max_speed", "home_deg", "address"}
         data["robot"] = {k: v for k, v in data["robot"].items() if k in keep}

@@ -1,8 +1,9 @@
-"""A mock campaign through each robot family that drives a program on its controller
-(issue 32): KUKA through KUKAVARPROXY and through EthernetKRL, ABB through Robot Web
-Services, FANUC through RMI (issue 35) — the real driver against its twin over TCP.
-Every pose is moved to, acknowledged, read back as the controller's measured joints and
-measured; the calibration finds the simulated errors as it does behind Modbus."""
+"""A mock campaign through each robot family that drives its controller through its own
+interface: KUKA through KUKAVARPROXY and through EthernetKRL, ABB through Robot Web
+Services (issue 32), FANUC through RMI and Yaskawa through HSES (issue 35) — the real
+driver against its twin over TCP or UDP. Every pose is moved to, acknowledged, read back
+as the controller's measured joints and measured; the calibration finds the simulated
+errors as it does behind Modbus."""
 
 from __future__ import annotations
 
@@ -19,7 +20,13 @@ from tests.inprocess import cellcal
 pytestmark = [pytest.mark.twin, pytest.mark.timeout(240)]
 
 ROOT = Path(__file__).resolve().parents[2]
-MAKERS = {"kuka-kvp": "KUKA", "kuka-eki": "KUKA", "abb-rws": "ABB", "fanuc-rmi": "FANUC"}
+MAKERS = {
+    "kuka-kvp": "KUKA",
+    "kuka-eki": "KUKA",
+    "abb-rws": "ABB",
+    "fanuc-rmi": "FANUC",
+    "yaskawa-hses": "Yaskawa",
+}
 
 
 @pytest.mark.parametrize("driver", sorted(MAKERS))
@@ -46,9 +53,12 @@ def test_a_campaign_is_stored_and_calibrated(tmp_path: Path, driver: str):
         "SELECT message FROM events WHERE kind = 'device' AND message LIKE ?", (f"%{driver}%",)
     ).fetchone()
     assert f'"maker": "{MAKERS[driver]}"' in device
-    # the joints stored are the controller's measured ones, at the targets
+    # the joints stored are the controller's measured ones, at the targets (a Yaskawa's:
+    # whole encoder pulses, within half a pulse)
+    ppd = cell["robot"].get("pulses_per_degree")
+    atol = 1e-3 if ppd is None else 0.5 / min(ppd) + 1e-9
     for planned, reached in conn.execute("SELECT planned_q_deg, reached_q_deg FROM poses"):
-        assert json.loads(reached) == pytest.approx(json.loads(planned), abs=1e-3)
+        assert json.loads(reached) == pytest.approx(json.loads(planned), abs=atol)
     # 27 calibration poses: the simulated 0.3 mm / 0.03° errors found as behind Modbus
     assert summary["improvement_pct"] > 85, summary["validation_after"]
     assert summary["inside"]["after"]["rms_mm"] < 0.02

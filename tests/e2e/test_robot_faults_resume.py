@@ -1,8 +1,8 @@
 """A protective stop in the middle of a mock campaign, through each robot family that
 drives a program on its controller (KUKA over KUKAVARPROXY and EthernetKRL, ABB over Robot
-Web Services, FANUC over RMI): the campaign ends in one line naming the robot and the
-resume command, keeps every pose it stored, and `run --resume` completes it with every
-planned pose stored exactly once."""
+Web Services, FANUC over RMI, Yaskawa over HSES): the campaign ends in one line naming
+the robot and the resume command, keeps every pose it stored, and `run --resume`
+completes it with every planned pose stored exactly once."""
 
 from __future__ import annotations
 
@@ -24,6 +24,7 @@ SAYS = {
     "kuka-eki": "a stop message is active",
     "abb-rws": "RAPID is not running",
     "fanuc-rmi": "system fault during the move",
+    "yaskawa-hses": "move failed: alarm 4000",
 }
 
 

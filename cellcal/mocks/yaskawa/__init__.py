@@ -1,0 +1,1 @@
+"""The Yaskawa controller twin (High-Speed Ethernet Server)."""
