@@ -6,6 +6,7 @@ import click
 
 from cellcal.commands.output import print_json
 from cellcal.reports.folder import write_report
+from cellcal.reports.html import report_html  # noqa: F401 - matplotlib: a missing extra is named at once
 from cellcal.store.database import Store
 
 
