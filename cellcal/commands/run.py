@@ -17,7 +17,6 @@ from typing import TYPE_CHECKING, Any, TypeVar
 import click
 
 from cellcal.campaign.kinds import DEFAULT_KIND, CampaignKind, KindOption, all_kinds, kind_named
-from cellcal.campaign.payloads import instruction
 from cellcal.campaign.stop_request import StopRequest
 from cellcal.commands.output import SEED, TIME_SCALE, print_json
 from cellcal.commands.terms_output import repeats_text
@@ -446,6 +445,8 @@ def run_kind(a: CampaignRun) -> None:
         for signum, handler in previous.items():
             signal.signal(signum, handler)
     if outcome.result is None and outcome.acquisition.awaiting_payload is not None:
+        from cellcal.campaign.payloads import instruction
+
         click.echo(
             f"cellcal: campaign {outcome.campaign_id} paused with "
             f"{outcome.acquisition.stored} of {len(outcome.plan.poses)} poses stored: "

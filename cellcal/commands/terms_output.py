@@ -5,9 +5,11 @@ and a campaign's repeated reference poses (repeatability and drift)."""
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING
 
-from cellcal.calib.calibration_result import CalibrationResult
-from cellcal.calib.reference_repeats import ReferenceRepeat
+if TYPE_CHECKING:  # types only: the commands that print a result have it imported already
+    from cellcal.calib.calibration_result import CalibrationResult
+    from cellcal.calib.reference_repeats import ReferenceRepeat
 
 #: Coefficients shown per term line before "…" (gravity terms have dozens).
 SHOWN = 6
