@@ -19,6 +19,8 @@ import pytest
 
 from cellcal.extras import PROVIDERS
 
+pytestmark = pytest.mark.slow  # a process per case: the parallel run starts it early
+
 ROOT = Path(__file__).resolve().parents[1]
 TRACKER_CELL = "config/mock-cell-tracker.toml"
 UR5_URDF = "tests/data/urdf/ur5_robot.urdf"

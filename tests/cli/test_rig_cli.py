@@ -15,6 +15,8 @@ from cellcal.files.photogrammetry import write_rig, write_target
 from cellcal.mocks.rig.camera_render import Optics, SceneRenderer
 from cellcal.mocks.rig.scene import board_poses, dome_target, four_camera_rig, volume_centre
 
+pytestmark = pytest.mark.slow  # renders and calibrates a rig: the parallel run starts it early
+
 
 def measure_args(root: Path) -> list[object]:
     return ["rig", "measure", "--rig", root / "rig.toml", "--target", root / "target.toml"]

@@ -19,7 +19,7 @@ from cellcal.errors import DeviceError
 from cellcal.families import families
 from tests.inprocess import cellcal
 
-pytestmark = [pytest.mark.twin, pytest.mark.timeout(120)]
+pytestmark = [pytest.mark.twin, pytest.mark.slow, pytest.mark.timeout(120)]
 
 #: driver → (the fault option that makes its controller refuse a campaign, what it says)
 REFUSED = {

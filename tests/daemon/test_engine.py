@@ -25,7 +25,7 @@ from cellcal.errors import DeviceError, NoTargetError
 from cellcal.files.models import load_model
 from cellcal.store.database import Store, StoreError
 
-pytestmark = pytest.mark.twin
+pytestmark = [pytest.mark.twin, pytest.mark.slow]
 
 CONFIG = config_from_dict(
     {

@@ -22,7 +22,7 @@ from cellcal.errors import DeviceError
 from cellcal.mocks import netns
 from cellcal.mocks.rig.gige_cameras import GigECameraTwin, fit, serve_rig
 
-pytestmark = [pytest.mark.twin, pytest.mark.timeout(30)]
+pytestmark = [pytest.mark.twin, pytest.mark.slow, pytest.mark.timeout(30)]
 
 
 class MovingSquare:

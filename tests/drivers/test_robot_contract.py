@@ -14,7 +14,7 @@ from cellcal.families import families
 from cellcal.mocks.modbus.server import ModbusRobotFaults
 from tests.drivers.families import cell_for, mock_devices
 
-pytestmark = [pytest.mark.twin, pytest.mark.timeout(90)]
+pytestmark = [pytest.mark.twin, pytest.mark.slow, pytest.mark.timeout(90)]
 
 ROBOTS = families("robot")
 

@@ -21,7 +21,7 @@ from cellcal.drivers.tracker_protocol import TrackerTimeoutError
 from cellcal.drivers.transport import TransportError
 from cellcal.mocks.tracker.server import TrackerTwin
 
-pytestmark = pytest.mark.twin
+pytestmark = [pytest.mark.twin, pytest.mark.slow]
 
 V1_CHECKS = [
     "identification",

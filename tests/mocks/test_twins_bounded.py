@@ -24,7 +24,7 @@ from cellcal.mocks.ur import script_port as ur_script_port
 from cellcal.mocks.ur.rtde_session import RtdeSession
 from cellcal.mocks.ur.script_port import MAX_PROGRAM, ScriptReader
 
-pytestmark = [pytest.mark.twin, pytest.mark.timeout(60)]
+pytestmark = [pytest.mark.twin, pytest.mark.slow, pytest.mark.timeout(60)]
 
 TRACKER_HOST = "127.0.0.142"
 MODBUS_HOST = "127.0.0.143"

@@ -49,7 +49,7 @@ ur_rtde_client: Any = importlib.import_module("rtde.rtde")
 ur_config: Any = importlib.import_module("rtde.rtde_config")
 ur_csv: Any = importlib.import_module("rtde.csv_writer")
 
-pytestmark = [pytest.mark.twin, pytest.mark.timeout(120, method="thread")]
+pytestmark = [pytest.mark.twin, pytest.mark.slow, pytest.mark.timeout(120, method="thread")]
 
 EXAMPLES = CLIENT / "examples"
 HAS_EXAMPLES = (EXAMPLES / "record.py").is_file()

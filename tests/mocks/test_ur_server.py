@@ -27,7 +27,7 @@ from cellcal.mocks.ur.server import POLYSCOPE_VERSION, CellInURUnits, URTwin
 from tests.mocks.test_ur_twin_wire import Rtde as RawRTDE
 from tests.mocks.test_ur_twin_wire import dashboard
 
-pytestmark = pytest.mark.twin
+pytestmark = [pytest.mark.twin, pytest.mark.slow]
 
 rtde_control = pytest.importorskip("rtde_control")
 rtde_receive = pytest.importorskip("rtde_receive")
