@@ -10,7 +10,8 @@ flat plate whose face is drawn once as a fine bitmap (a ChArUco board from OpenC
 board geometry, a marker with a white quiet zone from ``generateImageMarker``), edges on
 texel boundaries; each output pixel averages a *regular* s×s grid of sub-samples, each
 mapped pixel → undistorted normalised coordinates by this module's own Newton inversion of
-the distortion (never ``cv2.undistortPoints``) → ray/plate intersection (a homography) →
+the distortion (never ``cv2.undistortPoints``; solved at the pixel centres and
+interpolated between them, 1e-5 px off) → ray/plate intersection (a homography) →
 bilinear texture lookup (``cv2.remap``); the nearest plate wins (depth test). Then a
 defocus disk convolved with a Gaussian blurs it, Gaussian noise (and optionally a
 photo-response non-uniformity) is added and it is quantised to 8 bits.
@@ -328,7 +329,6 @@ def render_clean(camera: Camera, planes: list[TexturedPlane], params: RenderPara
     if not placed:
         return img
     s = params.supersample
-    K = camera.K
     offs = (np.arange(s) + 0.5) / s - 0.5
     width = max(p.box[2] for p in placed) - min(p.box[0] for p in placed)
     rows = int(np.clip(_CHUNK_SAMPLES // (s * s * width), 1, _REMAP_MAX // s))
@@ -338,11 +338,7 @@ def render_clean(camera: Camera, planes: list[TexturedPlane], params: RenderPara
         if not active:
             continue
         c0, c1 = min(p.box[0] for p in active), max(p.box[2] for p in active)
-        u = (np.arange(c0, c1)[:, None] + offs).ravel()
-        v = (np.arange(r0, r1)[:, None] + offs).ravel()
-        xd = ((u - K[0, 2]) / K[0, 0]).astype(np.float32)[None, :]
-        yd = ((v - K[1, 2]) / K[1, 1]).astype(np.float32)[:, None]
-        x, y = undistort(xd, yd, camera.dist)
+        x, y = _undistorted_samples(camera, (r0, r1), (c0, c1), offs)
         value = np.full(x.shape, params.background, np.float32)
         nearest = np.zeros(x.shape, np.float32)  # 1/depth of what was drawn
         for p in active:
@@ -362,6 +358,36 @@ def render_clean(camera: Camera, planes: list[TexturedPlane], params: RenderPara
             np.copyto(nearest[:, a:b], w, where=seen)
         img[r0:r1, c0:c1] = cv2.resize(value, (c1 - c0, r1 - r0), interpolation=cv2.INTER_AREA)
     return img
+
+
+def _undistorted_samples(
+    camera: Camera, rows: tuple[int, int], cols: tuple[int, int], offs: Array
+) -> tuple[Array, Array]:
+    """Undistorted normalised coordinates (float32) of every sub-sample of the pixels
+    ``rows`` × ``cols``: solved exactly (float64) at the pixel centres of the block and a
+    pixel around it, linearly interpolated between them along the columns, then the
+    rows. The map is smooth: its curvature makes the interpolation err by about 1e-8 of
+    the focal length (1e-5 px), 25 times fewer points solved than sub-samples."""
+    K = camera.K
+    (r0, r1), (c0, c1) = rows, cols
+    cc = np.arange(c0 - 1, c1 + 1, dtype=np.float64)
+    rr = np.arange(r0 - 1, r1 + 1, dtype=np.float64)
+    X, Y = undistort(((cc - K[0, 2]) / K[0, 0])[None, :], ((rr - K[1, 2]) / K[1, 1])[:, None],
+                     camera.dist)  # fmt: skip
+
+    def weights(start: int, stop: int, origin: int) -> tuple[Array, Array]:
+        pos = (np.arange(start, stop)[:, None] + offs).ravel() - origin
+        lo = np.floor(pos).astype(np.intp)
+        return lo, pos - lo
+
+    ju, wu = weights(c0, c1, c0 - 1)
+    jv, wv = weights(r0, r1, r0 - 1)
+    out = []
+    for grid in (X, Y):
+        across = grid[:, ju] * (1.0 - wu) + grid[:, ju + 1] * wu
+        fine = across[jv] * (1.0 - wv)[:, None] + across[jv + 1] * wv[:, None]
+        out.append(fine.astype(np.float32))
+    return out[0], out[1]
 
 
 @lru_cache(maxsize=16)
