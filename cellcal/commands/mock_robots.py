@@ -14,34 +14,41 @@ from cellcal.commands.mock import serve_until_signal, simulated_cell_of
 from cellcal.commands.output import SEED, TIME_SCALE
 
 
-def _twin_options(f: Callable[..., None]) -> Callable[..., None]:
-    """The options every controller twin here takes: where, which cell, which truth, how
-    fast."""
-    for option in reversed(
-        [
-            click.option(
-                "--listen",
-                required=True,
-                help="TCP address HOST:PORT (a 127.0.0.x address for tests).",
-            ),
-            click.option(
-                "--config",
-                "config_path",
-                help="Cell configuration (default: the bundled cell); its robot's home and "
-                "model are served.",
-            ),
-            click.option("--seed", type=SEED, help="Seed of the simulated truth."),
-            click.option(
-                "--time-scale",
-                type=TIME_SCALE,
-                default=1.0,
-                show_default=True,
-                help="Wall seconds per second of motion.",
-            ),
-        ]
-    ):
-        f = option(f)
-    return f
+def _cell_options(where: Any) -> Callable[[Callable[..., None]], Callable[..., None]]:
+    """The options every controller twin here takes: ``where`` (its address option),
+    which cell, which truth, how fast."""
+
+    def add(f: Callable[..., None]) -> Callable[..., None]:
+        for option in reversed(
+            [
+                where,
+                click.option(
+                    "--config",
+                    "config_path",
+                    help="Cell configuration (default: the bundled cell); its robot's home "
+                    "and model are served.",
+                ),
+                click.option("--seed", type=SEED, help="Seed of the simulated truth."),
+                click.option(
+                    "--time-scale",
+                    type=TIME_SCALE,
+                    default=1.0,
+                    show_default=True,
+                    help="Wall seconds per second of motion (and of a controller's timeouts).",
+                ),
+            ]
+        ):
+            f = option(f)
+        return f
+
+    return add
+
+
+_twin_options = _cell_options(
+    click.option(
+        "--listen", required=True, help="Address HOST:PORT (a 127.0.0.x address for tests)."
+    )
+)
 
 
 def _kuka_options(f: Callable[..., None]) -> Callable[..., None]:
@@ -136,23 +143,12 @@ def mock_abb_rws(
 
 
 @click.command("fanuc-rmi")
-@click.option(
-    "--host",
-    required=True,
-    help="Loopback address to bind (RMI's connection port 16001 and the session's 16002).",
-)
-@click.option(
-    "--config",
-    "config_path",
-    help="Cell configuration (default: the bundled cell); its robot's home and model are served.",
-)
-@click.option("--seed", type=SEED, help="Seed of the simulated truth.")
-@click.option(
-    "--time-scale",
-    type=TIME_SCALE,
-    default=1.0,
-    show_default=True,
-    help="Wall seconds per second of motion (and of the 60-minute idle end of a session).",
+@_cell_options(
+    click.option(
+        "--host",
+        required=True,
+        help="Loopback address to bind (RMI's connection port 16001 and the session's 16002).",
+    )
 )
 @click.option("--tp-enabled", is_flag=True, help="Fault: the teach pendant is enabled.")
 @click.option("--servo-off", is_flag=True, help="Fault: the servo is off (ServoReady 0).")
