@@ -1,7 +1,10 @@
 """``cellcal run``: a whole campaign, or ``--resume ID`` of an interrupted one.
 
 Its first line comes within a second: the campaign's modules (the analysis, scipy, the
-report's matplotlib) are loaded after it."""
+report's matplotlib) are loaded after it.
+
+Size (about 500 lines): the command, its options and its summary lines; the summary
+would move to a module of its own first if it grows."""
 
 from __future__ import annotations
 
