@@ -43,6 +43,7 @@ log = logging.getLogger("cellcal.drivers.yaskawa")
 AT_TARGET_PULSES = 2  # the position is at the target within this many pulses per axis
 MAX_PULSES_PER_DEGREE = 1e6
 SERVO_ON_S = 5.0  # how long the servo may take to come on
+SETTLE_S = 0.1  # standing at the target, not running, this long: the move is done
 
 
 class YaskawaHsesOptions(RobotOptions):
@@ -192,6 +193,8 @@ class YaskawaHsesRobot(HandshakeRobot):
             alarm = wire.alarm_of(answer.data)
         except wire.HsesPacketError:
             return ""
+        if alarm.code == 0:
+            return ""  # an error, not an alarm: the controller has no alarm to name
         return f"alarm {alarm.code}" + (f" ({alarm.text})" if alarm.text else "")
 
     # ------------------------------------------------------------------ the link
@@ -247,6 +250,8 @@ class YaskawaHsesRobot(HandshakeRobot):
         elif not s.servo_on:
             refusal = "the servo is off and did not come on: check the safety circuit"
         fault = None if refusal is None else f"move failed: {refusal}"
+        if fault is None and s.hold_command:  # a stop() during the move: it is abandoned
+            fault = "move failed: held by a HOLD command (a stop)"
         return ControllerState(refusal, fault, s.running, 0, s.text)
 
     def _ready_to_move(self, target: Array) -> None:
@@ -260,14 +265,21 @@ class YaskawaHsesRobot(HandshakeRobot):
         goal = self._pulses(np.degrees(target))
         self._send_move(np.degrees(target), speed, 0)
         deadline = time.monotonic() + self.timeout_s
+        still_since: float | None = None  # standing at the target since (monotonic)
         while True:
             state = self._state()
             if state.fault is not None:
                 raise self._error(state.fault)
-            if not state.moving:
-                now = self._read_pulses()
-                if np.abs(now - goal).max() <= AT_TARGET_PULSES:
+            if state.moving:
+                still_since = None
+            elif np.abs(self._read_pulses() - goal).max() <= AT_TARGET_PULSES:
+                # a controller may set its running bit late: the robot must stand there
+                # for SETTLE_S before a move of a pulse or two counts as done
+                still_since = still_since or time.monotonic()
+                if time.monotonic() - still_since >= SETTLE_S:
                     return
+            else:
+                still_since = None
             if time.monotonic() > deadline:
                 self._stop_quietly()
                 raise self._error(f"move not done after {self.timeout_s:g} s ({state.text})")
