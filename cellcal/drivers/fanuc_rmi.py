@@ -405,5 +405,6 @@ class FanucRmiRobot(HandshakeRobot):
         initialises again."""
         if self._sock is None:
             return
+        self._ensure_session()  # a session the controller ended: a new one to abort in
         self._running = False
         self._call(wire.command("FRC_Abort"))
