@@ -275,11 +275,15 @@ def main(argv: list[str] | None = None) -> None:
     _said = _interrupted = False
     program = argv is None
     here = threading.current_thread() is threading.main_thread()
-    previous = signal.signal(signal.SIGINT, _interrupt_once) if here else None
+    # Until the handler below is in place a Ctrl-C meets the one before it (the
+    # program's: the line and exit 130). From the moment it is, it may fire at any
+    # bytecode, so it is installed inside the try that turns it into the line.
+    previous: Any = signal.getsignal(signal.SIGINT)
     hook = sys.unraisablehook
-    if here:
-        sys.unraisablehook = _unraisable_interrupt(hook)
     try:
+        if here:
+            sys.unraisablehook = _unraisable_interrupt(hook)
+            previous = signal.signal(signal.SIGINT, _interrupt_once)
         code = _run(sys.argv[1:] if argv is None else list(argv), program)
         if _interrupted and not _said:
             # the KeyboardInterrupt was raised where Python drops exceptions (a weakref

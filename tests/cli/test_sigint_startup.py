@@ -214,3 +214,29 @@ def test_an_interrupt_while_the_handler_is_installed_is_the_line(tmp_path: Path)
         [sys.executable, "-c", code, "models"], capture_output=True, text=True, cwd=tmp_path
     )
     assert (done.returncode, done.stderr, done.stdout) == (130, "cellcal: interrupted\n", "")
+
+
+def test_an_interrupt_just_after_main_installs_its_handler_is_the_line(
+    tmp_path: Path,
+) -> None:
+    """Seen in a fresh-clone run: SIGINT 0.04 s into a campaign reached ``main``'s own
+    handler on the first bytecode after ``signal.signal`` put it in place — before the
+    ``try`` that turns the KeyboardInterrupt into the line — and left a traceback. Here
+    the signal is sent the moment the handler is installed."""
+    code = (
+        "import os, signal, sys\n"
+        "import cellcal.cli as cli\n"
+        "real = signal.signal\n"
+        "def racing(signum, handler):\n"
+        "    old = real(signum, handler)\n"
+        "    if handler is cli._interrupt_once:\n"
+        "        os.kill(os.getpid(), signal.SIGINT)\n"
+        "    return old\n"
+        "signal.signal = racing\n"
+        "sys.argv = ['cellcal', 'models']\n"
+        "cli.main()\n"
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, cwd=tmp_path, timeout=60
+    )
+    assert (done.returncode, done.stderr, done.stdout) == (130, "cellcal: interrupted\n", "")
