@@ -45,7 +45,7 @@ CHUNK_ELEMENTS = 1_000_000
 
 def _residuals(R: Array, t: Array, s: Array, P: Array, Q: Array) -> Array:
     """|Q − (s R P + t)| for each hypothesis (rows) and point (columns)."""
-    pred = np.einsum("bij,nj->bni", R, P) * s[:, None, None] + t[:, None, :]
+    pred = np.matmul(P, R.transpose(0, 2, 1)) * s[:, None, None] + t[:, None, :]
     out: Array = np.linalg.norm(Q[None] - pred, axis=2)
     return out
 

@@ -262,16 +262,20 @@ def _diagnose_geometry(P: Array, Q: Array, w: Array) -> list[str]:
         ev = np.linalg.eigvalsh(Xc.T @ Xc)
         span = float(np.sqrt(max(ev[2], 0.0)))
         scale = max(float(np.max(np.abs(X))), 1.0)
-        distinct = len(np.unique(np.round(X / (1e-9 * scale)), axis=0))
+
+        def distinct(X: Array = X, scale: float = scale) -> int:
+            # counted only for the refusal: sorting a million rows takes a second
+            return len(np.unique(np.round(X / (1e-9 * scale)), axis=0))
+
         if span <= 1e-12 * scale:
             raise DegenerateGeometryError(
-                f"{name}: all {len(X)} points coincide ({distinct} distinct); "
+                f"{name}: all {len(X)} points coincide ({distinct()} distinct); "
                 "the transformation is undetermined"
             )
         ratio = float(np.sqrt(max(ev[1], 0.0) / ev[2]))
         if ratio < COLLINEAR_TOL:
             raise DegenerateGeometryError(
-                f"{name}: the {len(X)} points are collinear ({distinct} distinct); "
+                f"{name}: the {len(X)} points are collinear ({distinct()} distinct); "
                 "the rotation about their line is undetermined — add a point off the line"
             )
         if ratio < NEAR_COLLINEAR_WARN:
