@@ -115,7 +115,7 @@ def print_comparison(c: Comparison, fg: Figaroh | None) -> None:
     print(
         f"   {c.robot}: sensor {dist / 1000:.2f} m from the base, target offset "
         f"({', '.join(f'{v:g}' for v in sc.cell.target_offset)}) mm unknown (nominal "
-        f"({', '.join(f'{v:g}' for v in sc.nominal.tool)}))"
+        f"({', '.join(f'{v:g}' for v in sc.nominal.target_offset_xyz)}))"
     )
     print(
         "                                  params   time [ms]      held-out vs truth [mm]"
