@@ -49,10 +49,13 @@ class Choice:
 
     @property
     def tempting(self) -> tuple[tuple[str, float], ...]:
-        """Candidates refused as implausible whose k-fold error beat the chosen set's."""
-        return tuple(
-            (n, cv) for n, cv, ok in self.tried if not ok and cv < self.chosen_mm * (1.0 - GAIN)
-        )
+        """Candidates refused as implausible whose k-fold error beat the chosen set's,
+        each once with its lowest error (a candidate is tried again in every round)."""
+        best: dict[str, float] = {}
+        for n, cv, ok in self.tried:
+            if not ok and cv < self.chosen_mm * (1.0 - GAIN):
+                best[n] = min(cv, best.get(n, cv))
+        return tuple(best.items())
 
     ident: Identifiability
     freed: tuple[str, ...]

@@ -136,3 +136,16 @@ def test_the_one_pass_kfold_error_is_what_refitting_each_fold_gives():
         total += float(np.sum(data.subset(test).residuals(st) ** 2))
     refit = math.sqrt(total / len(q))
     assert kfold_rms(full, sel, data, w) == pytest.approx(refit, rel=0.01)
+
+
+def test_a_candidate_refused_in_two_rounds_is_named_once_with_its_lowest_error():
+    """Seen in benchmarks/real_data.py: "freeing d7, d7 would lower …" — a candidate is
+    tried again in every round of the greedy choice, and was named once per round."""
+    c = Choice(
+        ident=None,  # type: ignore[arg-type]  # not read by tempting
+        freed=("alpha5",),
+        rule_mm=4.0,
+        chosen_mm=3.0,
+        tried=(("d7", 2.6, False), ("alpha5", 3.0, True), ("d7", 2.5, False), ("a7", 3.5, False)),
+    )
+    assert c.tempting == (("d7", 2.5),)
