@@ -10,9 +10,12 @@ first two harmonics already in the ``harmonics`` term, for the order k (from
 :data:`MIN_ORDER` to :data:`MAX_ORDER`, each with at least :data:`SAMPLES_PER_PERIOD`
 poses per period over the measured range and the range at least one period) whose
 ``sin k·q``, ``cos k·q`` explain most. The order is kept when its F test passes at
-:data:`P_VALUE`, divided by the number of orders tried (Bonferroni); the ``harmonics``
-term then carries ``sin{k}``, ``cos{k}`` too, and blocked cross-validation judges it as
-a whole like any term.
+:data:`P_VALUE`, divided by the number of orders tried (Bonferroni). A joint may have
+more than one stage: the search then goes on with the orders kept among the known
+regressors, for up to :data:`MAX_ORDERS_PER_JOINT` orders, each passing the same test
+against everything found before it. The ``harmonics`` term then carries ``sin{k}``,
+``cos{k}`` of every order kept, and blocked cross-validation judges it as a whole like
+any term.
 """
 
 from __future__ import annotations
@@ -31,6 +34,8 @@ DENSE_POSES = 300
 MIN_ORDER, MAX_ORDER = 3, 60
 SAMPLES_PER_PERIOD = 8
 P_VALUE = 1e-3
+#: the stages of one joint's transmission searched for, at most
+MAX_ORDERS_PER_JOINT = 3
 #: a joint whose turn moves the target less than this (mm per rad, median) is not
 #: searched (the target on its axis)
 MIN_LEVER_MM = 1.0
@@ -41,10 +46,10 @@ def _fit_rss(A: Array, s: Array) -> float:
     return float(np.sum((s - A @ coef) ** 2))
 
 
-def cyclic_orders(state: State, data: Data) -> dict[int, int]:
-    """Per joint (1-based), the order of a cyclic error the geometric fit ``state``
-    leaves in ``data``, where one is significant; empty for fewer than
-    :data:`DENSE_POSES` poses."""
+def cyclic_orders(state: State, data: Data) -> dict[int, tuple[int, ...]]:
+    """Per joint (1-based), the orders of the cyclic errors the geometric fit ``state``
+    leaves in ``data``, where they are significant (most significant first); empty for
+    fewer than :data:`DENSE_POSES` poses."""
     q = data.q
     N, n = q.shape
     if N < DENSE_POSES:
@@ -55,26 +60,38 @@ def cyclic_orders(state: State, data: Data) -> dict[int, int]:
     k = target_kinematics(
         state.model, q, state.target_offsets[g.target], conditions=data.conditions
     )
-    found: dict[int, int] = {}
+    found: dict[int, tuple[int, ...]] = {}
     for i in range(n):
         J = k.J_rows[:, :, 5 * i]
         length = np.linalg.norm(J, axis=1)
         if float(np.median(length)) < MIN_LEVER_MM:
             continue
         s = np.sum(J * in_base, axis=1) / length**2  # the turn that fits each residual (rad)
-        sw = length  # weight: a pose where the turn moves the target more says more
-        qi = q[:, i]
-        span = float(np.ptp(qi))
-        base = np.c_[np.ones(N), qi, np.sin(qi), np.cos(qi), np.sin(2 * qi), np.cos(2 * qi)]
+        orders = _orders(q[:, i], s, length)
+        if orders:
+            found[i + 1] = orders
+    return found
+
+
+def _orders(qi: Array, s: Array, sw: Array) -> tuple[int, ...]:
+    """The significant orders of the turns ``s`` (rad) along the readings ``qi``, each
+    searched with those found before it among the known regressors; ``sw``: the poses'
+    weights (a pose where the turn moves the target more says more)."""
+    N = len(qi)
+    span = float(np.ptp(qi))
+    base = np.c_[np.ones(N), qi, np.sin(qi), np.cos(qi), np.sin(2 * qi), np.cos(2 * qi)]
+    orders = [
+        order
+        for order in range(MIN_ORDER, MAX_ORDER + 1)
+        if order * span >= 2 * math.pi and N / (order * span / (2 * math.pi)) >= SAMPLES_PER_PERIOD
+    ]
+    kept: list[int] = []
+    while orders and len(kept) < MAX_ORDERS_PER_JOINT:
         rss0 = _fit_rss(base * sw[:, None], s * sw)
-        orders = [
-            order
-            for order in range(MIN_ORDER, MAX_ORDER + 1)
-            if order * span >= 2 * math.pi
-            and N / (order * span / (2 * math.pi)) >= SAMPLES_PER_PERIOD
-        ]
-        best: tuple[float, int] | None = None
         dof = N - base.shape[1] - 2
+        if dof <= 0:
+            break
+        best: tuple[float, int] | None = None
         for order in orders:
             A = np.c_[base, np.sin(order * qi), np.cos(order * qi)]
             rss1 = _fit_rss(A * sw[:, None], s * sw)
@@ -82,6 +99,9 @@ def cyclic_orders(state: State, data: Data) -> dict[int, int]:
             p = float(fdtrc(2, dof, F))  # the F distribution's survival function
             if best is None or p < best[0]:
                 best = (p, order)
-        if best is not None and best[0] * len(orders) < P_VALUE:
-            found[i + 1] = best[1]
-    return found
+        if best is None or best[0] * len(orders) >= P_VALUE:
+            break
+        kept.append(best[1])
+        orders.remove(best[1])
+        base = np.c_[base, np.sin(best[1] * qi), np.cos(best[1] * qi)]
+    return tuple(kept)

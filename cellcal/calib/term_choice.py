@@ -125,7 +125,10 @@ def candidates(name: str, state: State, data: Data) -> tuple[Term, ...] | str:
     if name == "harmonics":
         lo, hi = data.q.min(axis=0), data.q.max(axis=0)
         found = cyclic_orders(state, data)
-        names = {j: HARMONICS + (cyclic(found[j]) if j in found else ()) for j in range(1, n + 1)}
+        names = {
+            j: HARMONICS + tuple(r for k in found.get(j, ()) for r in cyclic(k))
+            for j in range(1, n + 1)
+        }
         return _centred(
             tuple(
                 Term(

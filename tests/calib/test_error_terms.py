@@ -372,7 +372,7 @@ def test_a_cyclic_error_at_a_transmissions_order_is_found_and_accepted():
     measured = measure(replace(cell, model=cell.model.with_terms(truth)), q, rng, SIGMA_MM)
     geometric = calibrate(nominal, q, measured, terms="geometric", accept=True)
     data = Data(q, measured, Groups.single(len(q)))
-    assert cyclic_orders(geometric.state, data) == {2: 11}
+    assert cyclic_orders(geometric.state, data) == {2: (11,)}
     without = measure(cell, q, rng, SIGMA_MM)  # the same robot without the cyclic error
     clean = calibrate(nominal, q, without, terms="geometric")
     assert cyclic_orders(clean.state, Data(q, without, Groups.single(len(q)))) == {}
@@ -382,3 +382,25 @@ def test_a_cyclic_error_at_a_transmissions_order_is_found_and_accepted():
     assert joint2.regressors[-2:] == ("sin11", "cos11")
     back = model_from_dict(model_to_dict(res.calibrated))
     assert next(t for t in back.terms if t.joint == 2).regressors == joint2.regressors
+
+
+def test_two_stages_of_one_joint_are_both_found():
+    """A transmission with two stages (orders 11 and 29 on joint 2, as a gear and a
+    harmonic drive's wave generator): the search goes on after the first order and finds
+    the second among what is left, and stops there; the harmonics term carries both."""
+    from cellcal.calib.cyclic_search import cyclic_orders
+    from cellcal.calib.observations import Data
+
+    amplitudes = np.radians([0.004, -0.003, -0.002, 0.003])
+    truth = (Term("harmonics", 2, ("sin11", "cos11", "sin29", "cos29"), tuple(amplitudes)),)
+    nominal = load_model("ur5e").model
+    rng = np.random.default_rng(5)
+    cell = random_cell(nominal, rng)
+    q = random_joints(nominal, rng, 600)
+    measured = measure(replace(cell, model=cell.model.with_terms(truth)), q, rng, SIGMA_MM)
+    geometric = calibrate(nominal, q, measured, terms="geometric", accept=True)
+    found = cyclic_orders(geometric.state, Data(q, measured, Groups.single(len(q))))
+    assert set(found) == {2} and sorted(found[2]) == [11, 29], found
+    res = calibrate(nominal, q, measured, terms="harmonics", accept=True)
+    regs = {t.joint: t.regressors for t in res.state.model.terms if t.name == "harmonics"}
+    assert {"sin11", "cos11", "sin29", "cos29"} <= set(regs.get(2, ())), regs
