@@ -207,7 +207,7 @@ def drift_history(store: Store, campaign_id: int, summary: dict[str, Any] | None
     return DriftHistory(model, tuple(c for c in store.checks() if c.model_digest == model.digest))
 
 
-def _with_planned_payloads(store: Store, campaign_id: int, data: PoseData) -> PoseData:
+def with_planned_payloads(store: Store, campaign_id: int, data: PoseData) -> PoseData:
     """The poses' payloads, as the campaign's stored configuration planned them."""
     row = store.campaign(campaign_id)
     try:
@@ -222,7 +222,7 @@ def report_data(
     store: Store, campaign_id: int, facts: dict[str, Any], *, methods: bool = False
 ) -> ReportData:
     """Everything the report shows of campaign ``campaign_id``."""
-    data = _with_planned_payloads(store, campaign_id, store.pose_data(campaign_id))
+    data = with_planned_payloads(store, campaign_id, store.pose_data(campaign_id))
     summary = store.latest_report(campaign_id)
     model_toml = store.latest_model_toml(campaign_id)
     events = store.event_rows(campaign_id)

@@ -24,14 +24,16 @@ from typing import Any
 import numpy as np
 
 from cellcal import __version__
-from cellcal.calib.geometry import apply, invert
+from cellcal.calib.geometry import Array, apply, invert
 from cellcal.campaign.analysis import mean_sigma
 from cellcal.campaign.kinds import DEFAULT_KIND, shown_kinds
 from cellcal.campaign.plan import CALIBRATION, VALIDATION
+from cellcal.campaign.pose_conditions import pose_conditions
 from cellcal.errors import CampaignError, InputError
+from cellcal.files.measurements import CONDITION_RANGES
 from cellcal.files.models import write_atomically
 from cellcal.files.outputs import check_output_file
-from cellcal.reports.data import report_data
+from cellcal.reports.data import report_data, with_planned_payloads
 from cellcal.store.database import CampaignRow, PoseData, Store
 from cellcal.store.queries import CampaignListing
 
@@ -52,22 +54,36 @@ def latest_campaign(store: Store) -> int:
     return cid
 
 
+#: The measurement file's columns of what error terms read (cellcal.files.measurements).
+CONDITION_COLUMNS = tuple(CONDITION_RANGES)
+
+
 def _number(v: float) -> str:
     """Shortest text that reads back to the same float."""
     return repr(float(v)) if math.isfinite(v) else ""
 
 
 def measurements_csv(data: PoseData, sensor: str, role: str) -> str:
-    """The ``calibrate`` format: name (plan index), q (deg), x, y, z and sx, sy, sz (mm)."""
+    """The ``calibrate`` format: name (plan index), q (deg), x, y, z and sx, sy, sz (mm),
+    and what the error terms read where the campaign recorded it for every one of these
+    poses: ``time_s``, ``temperature_c`` (the robot's joints, else the tracker's air) and
+    ``payload_kg`` — so a calibration from this file finds the same drift and compliance
+    as the campaign's."""
     dof = data.q.shape[1]
-    head = ["name", *(f"q{i}" for i in range(1, dof + 1)), "x", "y", "z", "sx", "sy", "sz"]
-    lines = [",".join(head)]
     mean, sig = data.mean[sensor], mean_sigma(data, sensor)
-    for k, idx in enumerate(data.idx):
-        if data.role[k] != role or not np.isfinite(mean[k]).all():
-            continue
-        values = [*np.degrees(data.q[k]), *mean[k], *sig[k]]
-        lines.append(",".join([str(int(idx)), *(_number(v) for v in values)]))
+    mask: Array = (np.array(data.role) == role) & np.isfinite(mean).all(axis=1)
+    rows = np.flatnonzero(mask)
+    conditions = pose_conditions(data, mask) if len(rows) else None
+    extra: list[tuple[str, Array]] = []
+    for name in CONDITION_COLUMNS if conditions is not None else ():
+        column = conditions.column(name) if conditions is not None else None
+        if column is not None:
+            extra.append((name, column))
+    head = ["name", *(f"q{i}" for i in range(1, dof + 1)), "x", "y", "z", "sx", "sy", "sz"]
+    lines = [",".join([*head, *(name for name, _ in extra)])]
+    for j, k in enumerate(rows):
+        values = [*np.degrees(data.q[k]), *mean[k], *sig[k], *(v[j] for _, v in extra)]
+        lines.append(",".join([str(int(data.idx[k])), *(_number(v) for v in values)]))
     return "\n".join(lines) + "\n"
 
 
@@ -228,7 +244,7 @@ def write_report(
         raise InputError(f"--out {folder}: exists and is not a folder")
     cid = latest_campaign(store) if campaign_id is None else campaign_id
     row = store.campaign(cid)
-    data = store.pose_data(cid)
+    data = with_planned_payloads(store, cid, store.pose_data(cid))
     summary = store.latest_report(cid)
     model = store.latest_model_toml(cid)
     try:

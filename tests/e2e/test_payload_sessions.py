@@ -76,6 +76,21 @@ def test_the_campaign_pauses_for_each_payload_and_finds_the_compliance(tmp_path:
     assert 0.35 < joints[2] < 0.65  # what the poses can tell apart of joints 2–4
     assert model["validation"]["after_rms_mm"] < 0.03  # both payloads, to the noise
 
+    # The report's measurement file carries what the terms read, so a calibration from
+    # the file alone finds the same compliance as the campaign's.
+    report = cellcal("report", "--db", db, "--out", tmp_path / "report")
+    assert report.returncode == 0, report.stderr[-2000:]
+    data = tmp_path / "report" / "measurements-tracker.csv"
+    head, *rows = [line.split(",") for line in data.read_text().splitlines()]
+    assert head[-3:] == ["time_s", "temperature_c", "payload_kg"]
+    assert {float(r[-1]) for r in rows} == {0.0, 5.0}
+    assert all(20.0 < float(r[-2]) < 40.0 for r in rows)  # the joints' mean, °C
+    times = [float(r[-3]) for r in rows]
+    assert times == sorted(times) and times[0] >= 0.0
+    again = cellcal("calibrate", "--model", "ur5e", "--data", data, "--folds", "0", "--json")
+    assert again.returncode == 0, again.stderr[-2000:]
+    assert json.loads(again.stdout)["terms"]["accepted"] == ["compliance"]
+
 
 def test_payloads_are_each_planned_once(tmp_path: Path) -> None:
     config = _cell(tmp_path, [5.0, 5.0])
