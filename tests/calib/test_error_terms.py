@@ -8,6 +8,7 @@ from __future__ import annotations
 import math
 from dataclasses import replace
 from functools import cache
+from typing import Any
 
 import numpy as np
 import pytest
@@ -357,6 +358,19 @@ def test_a_coupled_drive_yields_to_its_partners_torque_too():
     assert regs[2] == ("tau", "tau3") and regs[3] == ("tau", "tau2") and regs[1] == ("tau",)
 
 
+def _with_cyclic_error(truth: Term, seed: int, poses: int) -> tuple[Any, ...]:
+    """A simulated UR5e whose joint turns by ``truth`` measured at random poses: the
+    nominal model, the cell, the generator, the joints, the measurements and the
+    geometric calibration."""
+    nominal = load_model("ur5e").model
+    rng = np.random.default_rng(seed)
+    cell = random_cell(nominal, rng)
+    q = random_joints(nominal, rng, poses)
+    measured = measure(replace(cell, model=cell.model.with_terms((truth,))), q, rng, SIGMA_MM)
+    geometric = calibrate(nominal, q, measured, terms="geometric", accept=True)
+    return nominal, cell, rng, q, measured, geometric
+
+
 def test_a_cyclic_error_at_a_transmissions_order_is_found_and_accepted():
     """Joint 2 turning 11 times per turn a little too far and back (a gear stage's
     eccentricity): with 400 poses the periodogram finds order 11 on joint 2 alone, the
@@ -364,13 +378,8 @@ def test_a_cyclic_error_at_a_transmissions_order_is_found_and_accepted():
     from cellcal.calib.cyclic_search import cyclic_orders
     from cellcal.calib.observations import Data
 
-    truth = (Term("harmonics", 2, ("sin11", "cos11"), tuple(np.radians([0.004, -0.003]))),)
-    nominal = load_model("ur5e").model
-    rng = np.random.default_rng(3)
-    cell = random_cell(nominal, rng)
-    q = random_joints(nominal, rng, 400)
-    measured = measure(replace(cell, model=cell.model.with_terms(truth)), q, rng, SIGMA_MM)
-    geometric = calibrate(nominal, q, measured, terms="geometric", accept=True)
+    truth = Term("harmonics", 2, ("sin11", "cos11"), tuple(np.radians([0.004, -0.003])))
+    nominal, cell, rng, q, measured, geometric = _with_cyclic_error(truth, seed=3, poses=400)
     data = Data(q, measured, Groups.single(len(q)))
     assert cyclic_orders(geometric.state, data) == {2: (11,)}
     without = measure(cell, q, rng, SIGMA_MM)  # the same robot without the cyclic error
@@ -392,13 +401,8 @@ def test_two_stages_of_one_joint_are_both_found():
     from cellcal.calib.observations import Data
 
     amplitudes = np.radians([0.004, -0.003, -0.002, 0.003])
-    truth = (Term("harmonics", 2, ("sin11", "cos11", "sin29", "cos29"), tuple(amplitudes)),)
-    nominal = load_model("ur5e").model
-    rng = np.random.default_rng(5)
-    cell = random_cell(nominal, rng)
-    q = random_joints(nominal, rng, 600)
-    measured = measure(replace(cell, model=cell.model.with_terms(truth)), q, rng, SIGMA_MM)
-    geometric = calibrate(nominal, q, measured, terms="geometric", accept=True)
+    truth = Term("harmonics", 2, ("sin11", "cos11", "sin29", "cos29"), tuple(amplitudes))
+    nominal, _, _, q, measured, geometric = _with_cyclic_error(truth, seed=5, poses=600)
     found = cyclic_orders(geometric.state, Data(q, measured, Groups.single(len(q))))
     assert set(found) == {2} and sorted(found[2]) == [11, 29], found
     res = calibrate(nominal, q, measured, terms="harmonics", accept=True)
