@@ -120,6 +120,18 @@ def _short_campaign() -> str:
     return text.replace("validation_per_region = 6", "validation_per_region = 2")
 
 
+def _cells(browser: Any, rows: str, cells: str = "td") -> list[list[str]]:
+    """The text of each row's cells, read in one script: a page that redraws a table
+    between reading a row and reading its cells leaves no stale element to fail on."""
+    out: list[list[str]] = browser.execute_script(
+        "return Array.from(document.querySelectorAll(arguments[0])).map(r =>"
+        " Array.from(r.querySelectorAll(arguments[1])).map(c => c.innerText.trim()))",
+        rows,
+        cells,
+    )
+    return out
+
+
 @needs_chromium
 def test_the_page_in_chromium_follows_a_campaign_to_its_errors(
     folder: Path,
@@ -162,21 +174,18 @@ def test_the_page_in_chromium_follows_a_campaign_to_its_errors(
     assert text("campaign-kind") == "calibration"
     shots.append(folder / "status-page-running.png")
     browser.save_screenshot(str(shots[-1]))
-    rows = browser.find_elements(By.CSS_SELECTOR, "#poses tbody tr")
-    assert rows and rows[0].find_elements(By.TAG_NAME, "td")[0].text.isdigit()
+    # read at once: the running page replaces its rows with every pose stored
+    rows = _cells(browser, "#poses tbody tr")
+    assert rows and rows[0][0].isdigit()
     assert browser.find_elements(By.CSS_SELECTOR, "#plot polyline")
-    sensors = browser.find_elements(By.CSS_SELECTOR, "#sensors tbody tr")
-    assert [r.find_elements(By.TAG_NAME, "td")[0].text for r in sensors] == ["tracker"]
+    assert [r[0] for r in _cells(browser, "#sensors tbody tr")] == ["tracker"]
 
     wait.until(lambda _: browser.find_element(By.ID, "end-box").is_displayed())
     wait.until(lambda _: text("state") == "IDLE")
     shots.append(folder / "status-page-complete.png")
     browser.save_screenshot(str(shots[-1]))
     assert text("progress") == f"pose {planned} of {planned}"
-    cells = [
-        [c.text for c in r.find_elements(By.CSS_SELECTOR, "th, td")]
-        for r in browser.find_elements(By.CSS_SELECTOR, "#end tbody tr")
-    ]
+    cells = _cells(browser, "#end tbody tr", "th, td")
     summary = call(d.sock, "GET", f"/v1/campaigns/{cid}")
     assert summary["status"] == "complete"
     assert cells[0][:2] == ["before calibration", f"{summary['rms_before_mm']:.4f}"]
