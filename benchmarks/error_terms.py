@@ -116,6 +116,8 @@ TRUTHS = {
         Term("drift", 0, ("x", "y", "z", "scale"), (0.005, -0.003, 0.01, 5e-6), variable="time_s"),
     ),
     "cyclic k=11": (Term("harmonics", 2, ("sin11", "cos11"), tuple(np.radians([0.004, -0.003]))),),
+    # transmission ratios off by -0.03 % and +0.02 % (a pulley's radius, a cable's stretch)
+    "ratio": (Term("ratio", 2, ("q",), (-3e-4,)), Term("ratio", 3, ("q",), (2e-4,))),
 }
 
 

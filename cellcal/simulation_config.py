@@ -75,13 +75,18 @@ class SimulatedTerms(Strict):
     second harmonics of its reading added to its angle, ``[sin1, cos1, sin2, cos2]`` (deg;
     none: no joint has any); ``compliance_deg_per_knm``: per joint, how far it yields
     under the gravity torque about it, of the links it carries and of the payload mounted
-    (deg per kN·m; the robot model's mass model gives the torque; none: stiff). Thermal
-    drift is ``[simulation.change] thermal_mm_per_c`` with its ``temperature_c``."""
+    (deg per kN·m; the robot model's mass model gives the torque; none: stiff);
+    ``ratio_pct``: per joint, a transmission's ratio error: the joint turns ``1 + k/100``
+    times its reading (%; none: exact). Thermal drift is ``[simulation.change]
+    thermal_mm_per_c`` with its ``temperature_c``."""
 
     harmonics_deg: list[
         Annotated[list[Annotated[float, Field(ge=-1, le=1)]], Field(min_length=4, max_length=4)]
     ] = Field(default_factory=list, max_length=20)
     compliance_deg_per_knm: list[Annotated[float, Field(ge=0, le=100)]] = Field(
+        default_factory=list, max_length=20
+    )
+    ratio_pct: list[Annotated[float, Field(ge=-5, le=5)]] = Field(
         default_factory=list, max_length=20
     )
 

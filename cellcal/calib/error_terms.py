@@ -27,6 +27,12 @@ A term is a small, named correction a model carries besides its geometry:
     measurement and ``payload_com_mm``); a joint driven together with another (a
     ``couple``) also yields to that joint's torque (``tau{j}``).
 
+  - ``ratio``: a transmission's ratio error (a pulley's or a gear's radius, a cable's
+    stretch along its run, an encoder's scale): the joint turns ``1 + k`` times what it
+    reads. The regressor ``q`` is the reading (rad), less its mean over the
+    calibration's poses (the geometry's θ holds an offset); ``k`` is written in %. It
+    holds over any range: a ratio does not change along the reading.
+
 * ``drift`` (joint 0): a slow change with the measurement's time (hours since the
   campaign's start) or temperature (°C above the campaign's first): the positions grow
   about the base origin by ``scale`` (ppm per hour or per °C) and shift by ``x``,
@@ -49,8 +55,9 @@ from numpy.typing import NDArray
 from cellcal.calib.geometry import Array
 
 #: The terms a calibration may add, in the order they are tried and written.
-TERM_NAMES = ("gravity", "compliance", "harmonics", "drift")
+TERM_NAMES = ("gravity", "compliance", "harmonics", "drift", "ratio")
 HARMONICS = ("sin1", "cos1", "sin2", "cos2")
+RATIO = ("q",)
 DRIFT = ("x", "y", "z", "scale")
 #: The drift's variables: a column of the measurements, and its unit in files.
 DRIFT_VARIABLES = {"time_s": "h", "temperature_c": "°C"}
@@ -117,16 +124,22 @@ class Term:
             return "deg/m"
         if self.name == "compliance":
             return "deg/kN·m"
+        if self.name == "ratio":
+            return "%"
         return "deg"
 
     def to_display(self, k: int, value: float) -> float:
         if self.name == "drift":
             return value * 1e6 if self.regressors[k] == "scale" else value
+        if self.name == "ratio":
+            return value * 100.0
         return math.degrees(value)
 
     def from_display(self, k: int, value: float) -> float:
         if self.name == "drift":
             return value * 1e-6 if self.regressors[k] == "scale" else value
+        if self.name == "ratio":
+            return value / 100.0
         return math.radians(value)
 
     def with_coefficients(self, coefficients: Array, sigma: Array | None = None) -> Term:
@@ -227,6 +240,8 @@ def _raw_regressors(
         for name in term.regressors:
             cols.append(tau[:, i if name == "tau" else int(name[3:]) - 1])
         return np.stack(cols, axis=1)
+    if term.name == "ratio":
+        return q[:, [i] * len(term.regressors)]
     for name in term.regressors:
         if term.name == "harmonics":
             order = int(name[3:])
@@ -326,7 +341,9 @@ def term_from_dict(row: object, where: str, n: int) -> Term:
             others = tuple(j for j in range(1, n + 1) if j != joint)
             allowed = compliance_regressors(joint, others)
         else:
-            allowed = HARMONICS if name == "harmonics" else gravity_regressors(joint, n)
+            allowed = {"harmonics": HARMONICS, "ratio": RATIO}.get(
+                str(name), gravity_regressors(joint, n)
+            )
     regs = row.get("regressors")
     if name == "harmonics" and isinstance(regs, list):
         # a cyclic error at a transmission's own order: sin{k}, cos{k}, k up to 360
@@ -371,8 +388,8 @@ def term_from_dict(row: object, where: str, n: int) -> Term:
         bounds = (math.radians(values[0]), math.radians(values[1]))
     centre: tuple[float, ...] = ()
     if "centre" in row:
-        if name not in ("harmonics", "gravity"):
-            raise ValueError(f"{where}: only harmonics and gravity terms have a centre")
+        if name not in ("harmonics", "gravity", "ratio"):
+            raise ValueError(f"{where}: only harmonics, gravity and ratio terms have a centre")
         centre = tuple(numbers("centre", True))
     return replace(
         shell,

@@ -187,9 +187,11 @@ def _conditioned(
 
 def _limit(spec: ParameterSpec) -> float:
     """The uncertainty (internal units: mm, rad) beyond which a parameter is weak; an
-    error term's joint turn (rad per regressor unit) as an angle, a drift never."""
+    error term's joint turn (rad per regressor unit) as an angle — a ratio's too, as the
+    turn a radian from its mean reading — a drift never."""
     if spec.kind == "term":
-        return math.radians(DETERMINED_DEG) if spec.unit.startswith("deg") else math.inf
+        turns = spec.unit.startswith("deg") or spec.unit == "%"
+        return math.radians(DETERMINED_DEG) if turns else math.inf
     return math.radians(DETERMINED_DEG) if spec.is_angle else DETERMINED_MM
 
 

@@ -33,6 +33,7 @@ from cellcal.calib.error_model import ParameterSpec, State, term_specs
 from cellcal.calib.error_terms import (
     DRIFT,
     HARMONICS,
+    RATIO,
     TERM_NAMES,
     Term,
     compliance_regressors,
@@ -153,6 +154,9 @@ def candidates(name: str, state: State, data: Data) -> tuple[Term, ...] | str:
             state,
             data,
         )
+    if name == "ratio":
+        ratios = tuple(Term("ratio", j, RATIO, (0.0,)) for j in range(1, n + 1))
+        return _centred(ratios, state, data)
     if name == "drift":
         for column, spread in (("temperature_c", MIN_TEMPERATURE_SPREAD_C), ("time_s", 0.0)):
             x = None if c is None else c.column(column)

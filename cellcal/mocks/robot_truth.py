@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from cellcal.calib.error_terms import HARMONICS, Conditions, Term
+from cellcal.calib.error_terms import HARMONICS, RATIO, Conditions, Term
 from cellcal.calib.geometry import Array, so3_exp
 from cellcal.calib.kinematics import target_kinematics
 from cellcal.calib.robot_model import RobotModel
@@ -149,6 +149,7 @@ def truth_terms(model: RobotModel, terms: SimulatedTerms) -> tuple[Term, ...]:
     for key, values in (
         ("harmonics_deg", terms.harmonics_deg),
         ("compliance_deg_per_knm", terms.compliance_deg_per_knm),
+        ("ratio_pct", terms.ratio_pct),
     ):
         if values and len(values) != n:
             raise InputError(
@@ -166,4 +167,7 @@ def truth_terms(model: RobotModel, terms: SimulatedTerms) -> tuple[Term, ...]:
     for j, c in enumerate(terms.compliance_deg_per_knm, start=1):
         if c:
             out.append(Term("compliance", j, ("tau",), (math.radians(c),)))
+    for j, k in enumerate(terms.ratio_pct, start=1):
+        if k:  # about the reading zero: the geometry's θ holds where it is centred
+            out.append(Term("ratio", j, RATIO, (k / 100.0,)))
     return tuple(out)

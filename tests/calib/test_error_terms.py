@@ -408,3 +408,60 @@ def test_two_stages_of_one_joint_are_both_found():
     res = calibrate(nominal, q, measured, terms="harmonics", accept=True)
     regs = {t.joint: t.regressors for t in res.state.model.terms if t.name == "harmonics"}
     assert {"sin11", "cos11", "sin29", "cos29"} <= set(regs.get(2, ())), regs
+
+
+def test_a_transmission_ratio_error_is_found_and_predicted_to_the_noise():
+    """Joints 2 and 3 turning 0.03 % less and 0.02 % more than they read (a pulley's
+    radius, a cable's stretch): ``auto`` accepts ``ratio`` alone, finds both within
+    their uncertainty, and predicts held-out poses to the noise; the geometric fit
+    cannot (the geometry has an offset per joint, not a scale)."""
+    truth = (Term("ratio", 2, ("q",), (-3e-4,)), Term("ratio", 3, ("q",), (2e-4,)))
+    nominal = load_model("ur5e").model
+    rng = np.random.default_rng(7)
+    cell = random_cell(nominal, rng)
+    true = replace(cell, model=cell.model.with_terms(truth))
+    q, q_val = random_joints(nominal, rng, 300), random_joints(nominal, rng, 100)
+    measured = measure(true, q, rng, SIGMA_MM)
+    geometric = calibrate(nominal, q, measured, terms="geometric", accept=True)
+    res = calibrate(nominal, q, measured, terms="auto", accept=True)
+    assert res.term_choice is not None and res.term_choice.accepted == ("ratio",)
+    found = {t.joint: t for t in res.calibrated.terms}
+    for j, k in ((2, -3e-4), (3, 2e-4)):
+        assert abs(found[j].coefficients[0] - k) < 4 * found[j].sigma[0] < 1e-4, found[j]
+
+    def held_out(r: CalibrationResult) -> float:
+        e = np.linalg.norm(true.positions(q_val) - r.predict(q_val), axis=1)
+        return float(np.sqrt(np.mean(e**2)))
+
+    assert held_out(res) < 2 * SIGMA_MM and held_out(geometric) > 5 * held_out(res)
+
+
+def test_a_ratio_term_is_written_in_percent_and_read_back():
+    model = load_model("ur5e").model.with_terms(
+        (Term("ratio", 2, ("q",), (-3e-4,), (2e-5,), centre=(-1.2,)),)
+    )
+    row = model_to_dict(model)["term"][0]
+    assert row["units"] == ["%"] and row["coefficients"] == [pytest.approx(-0.03)]
+    back = model_from_dict(model_to_dict(model)).terms[0]
+    assert back.coefficients == pytest.approx((-3e-4,)) and back.centre == (-1.2,)
+    bad = model_to_dict(model)
+    bad["term"][0]["units"] = ["deg"]
+    with pytest.raises(ModelError, match="units must be"):
+        model_from_dict(bad)
+
+
+def test_the_simulated_cell_takes_a_ratio_error_per_joint():
+    """``[simulation.terms] ratio_pct``: the simulated robot's transmissions, one value a
+    joint (%), as ratio terms of its model; another count is one line."""
+    from cellcal.mocks.robot_truth import truth_terms
+    from cellcal.simulation_config import SimulatedTerms
+
+    model = load_model("ur5e").model
+    terms = truth_terms(model, SimulatedTerms(ratio_pct=[0.0, -0.03, 0.02, 0.0, 0.0, 0.0]))
+    assert [(t.name, t.joint, t.regressors) for t in terms] == [
+        ("ratio", 2, ("q",)),
+        ("ratio", 3, ("q",)),
+    ]
+    assert [t.coefficients[0] for t in terms] == pytest.approx([-3e-4, 2e-4])
+    with pytest.raises(InputError, match=r"simulation.terms.ratio_pct: 2 values for a robot"):
+        truth_terms(model, SimulatedTerms(ratio_pct=[0.1, 0.2]))

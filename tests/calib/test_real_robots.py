@@ -99,9 +99,17 @@ def test_ur5_harmonics_pass_blocked_cross_validation_and_beat_geometry():
     assert cyclic[1][:2] == ["sin13", "cos13"] and {"sin26", "cos26"} <= set(cyclic[2])
 
 
-def test_wam_takes_gravity_and_predicts_better_than_geometry():
+def test_wam_takes_gravity_and_ratio_and_meets_its_goal():
+    """The issue's goal: the WAM's test-pose mean ≤ 2.9 mm (geometric 3.48), with only
+    terms blocked cross-validation accepts: gravity and the cable drives' ratio errors
+    (a few tenths of a percent on joints 1–3), not the harmonics."""
     res, v = _with_terms("barrett-wam")
     _, geometric = _calibrated("barrett-wam")
-    assert res.term_choice is not None and res.term_choice.accepted == ("gravity",)
-    assert v.after.mean < geometric.after.mean - 0.3
-    assert {t.name for t in res.calibrated.terms} == {"gravity"}
+    assert res.term_choice is not None and res.term_choice.accepted == ("gravity", "ratio")
+    assert "harmonics" not in res.term_choice.accepted
+    assert v.after.mean <= 2.9 < geometric.after.mean
+    assert {t.name for t in res.calibrated.terms} == {"gravity", "ratio"}
+    ratios = {t.joint: t for t in res.calibrated.terms if t.name == "ratio"}
+    assert set(ratios) == {1, 2, 3}
+    for t in ratios.values():  # each several σ from zero, each below half a percent
+        assert 2.5 * t.sigma[0] < -t.coefficients[0] < 0.005

@@ -51,7 +51,7 @@ def test_calibrate_accepts_drift_and_predict_reads_time(capsys, tmp_path):
     assert code == 0, err
     doc = json.loads(stdout)
     assert doc["terms"]["accepted"] == ["drift"]
-    assert set(doc["terms"]["rejected"]) == {"gravity", "compliance", "harmonics"}
+    assert set(doc["terms"]["rejected"]) == {"gravity", "compliance", "harmonics", "ratio"}
     assert doc["blocked_cv_mm"]["final"] < doc["blocked_cv_mm"]["geometric"]
     model = tomllib.loads(out.read_text())
     (term,) = model["term"]
