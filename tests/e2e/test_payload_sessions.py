@@ -126,3 +126,25 @@ def test_reference_poses_measure_a_warming_cells_drift(tmp_path: Path) -> None:
     with sqlite3.connect(tmp_path / "warm.db") as conn:
         model = tomllib.loads(conn.execute("SELECT model_toml FROM calibrations").fetchone()[0])
     assert "drift" in model["fit"]["terms"]["accepted"]
+
+
+def test_the_simulated_cells_ratio_errors_are_found_by_its_campaign(tmp_path: Path) -> None:
+    """``[simulation.terms] ratio_pct``: the simulated KR 5 arc's joints 2 and 3 turning
+    0.05 % less and 0.04 % more than they read. The mock campaign, through the real
+    twins, accepts the ratio term and finds both within their uncertainty."""
+    truth = [0.0, -0.05, 0.04, 0.0, 0.0, 0.0]
+    config = small_tracker_file(
+        tmp_path, "ratio", [4, 4, 4], 3, 6, simulation={"terms": {"ratio_pct": truth}}
+    )
+    db = tmp_path / "ratio.db"
+    done = cellcal("run", "--mock", "--config", config, "--db", db, "--json")
+    assert done.returncode == 0, done.stderr[-2000:]
+    with sqlite3.connect(db) as conn:
+        model = tomllib.loads(conn.execute("SELECT model_toml FROM calibrations").fetchone()[0])
+    assert model["fit"]["terms"]["accepted"] == ["ratio"]
+    found = {t["joint"]: t for t in model["term"] if t["name"] == "ratio"}
+    for joint in (2, 3):
+        t = found[joint]
+        assert t["units"] == ["%"]
+        error, sigma = abs(t["coefficients"][0] - truth[joint - 1]), t["sigma"][0]
+        assert error < 4 * sigma and sigma < 0.02, t
