@@ -64,23 +64,34 @@ def solve(
     done = np.zeros(N, dtype=bool)
     ep = np.full(N, np.inf)
     er = np.full(N, np.inf)
+    offsets = np.asarray(target_offset, dtype=np.float64)
+    active = np.arange(N)  # the poses not yet solved: a solved pose no longer moves
     for _ in range(max_iter):
-        k = target_kinematics(model, q, target_offset, conditions=conditions)
-        e_pos = p_target - k.p
-        e_rot = _rotvec(R_target @ np.swapaxes(k.R_flange, 1, 2))
-        ep = np.linalg.norm(e_pos, axis=1)
-        er = np.linalg.norm(e_rot, axis=1)
-        done = (ep < tol_mm) & (er * length_mm < tol_mm)
-        if done.all():
+        qa = q[active]
+        k = target_kinematics(
+            model,
+            qa,
+            offsets[active] if offsets.ndim == 2 else offsets,
+            conditions=None if conditions is None else conditions.subset(active),
+        )
+        e_pos = p_target[active] - k.p
+        e_rot = _rotvec(R_target[active] @ np.swapaxes(k.R_flange, 1, 2))
+        ep[active] = np.linalg.norm(e_pos, axis=1)
+        er[active] = np.linalg.norm(e_rot, axis=1)
+        now = (ep[active] < tol_mm) & (er[active] * length_mm < tol_mm)
+        done[active] = now
+        go = ~now
+        if not go.any():
             break
-        J = np.concatenate([k.J_rows[:, :, 0::5], k.axes * length_mm], axis=1)  # N×6×n
+        J = np.concatenate([k.J_rows[go][:, :, 0::5], k.axes[go] * length_mm], axis=1)  # N×6×n
         J = J @ model.reading_matrix  # ∂/∂angles → ∂/∂readings
-        e = np.concatenate([e_pos, e_rot * length_mm], axis=1)
+        e = np.concatenate([e_pos[go], e_rot[go] * length_mm], axis=1)
         A = J @ np.swapaxes(J, 1, 2) + (lam * length_mm) ** 2 * np.eye(6)
         step = np.einsum("nji,nj->ni", J, np.linalg.solve(A, e[:, :, None])[:, :, 0])
         # Limit a step to 0.3 rad per joint: far from the answer the model is not linear.
         scale = np.minimum(1.0, 0.3 / np.maximum(np.abs(step).max(axis=1), 1e-300))
-        q = q + np.where(done[:, None], 0.0, step * scale[:, None])
+        active = active[go]
+        q[active] = qa[go] + step * scale[:, None]
     q, within = within_limits(model, q)
     return IKSolution(q, done, within, ep, er)
 
