@@ -12,7 +12,8 @@ from __future__ import annotations
 import itertools
 import re
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 
 import numpy as np
 import pytest
@@ -50,6 +51,18 @@ def _pulse_error(q_deg: Sequence[float], target_deg: Sequence[float]) -> np.ndar
     return np.abs((np.asarray(q_deg, float) - np.asarray(target_deg, float)) * PPD)
 
 
+@contextmanager
+def _serving(fake: HsesFake, host: str) -> Iterator[tuple[str, int]]:
+    """The fake serving on ``host``; at the end, every datagram it was sent had been
+    well formed and known to it, and it is stopped in any case."""
+    address = fake.start(host, 0)
+    try:
+        yield address
+        assert fake.malformed == [] and fake.unknown == []
+    finally:
+        fake.stop()
+
+
 def _one_line(e: pytest.ExceptionInfo[DeviceError], host: str, port: int) -> str:
     text = str(e.value)
     assert "\n" not in text
@@ -59,8 +72,7 @@ def _one_line(e: pytest.ExceptionInfo[DeviceError], host: str, port: int) -> str
 
 def test_connect_turns_the_servo_on_and_moves_land_within_half_a_pulse():
     fake = HsesFake(PPD, time_scale=0.2)
-    host, port = fake.start("127.0.0.58", 0)
-    try:
+    with _serving(fake, "127.0.0.58") as (host, port):
         assert not fake.servo_on
         targets = ([10.5, -80.25, 85.0, 5.0, 30.0, 12.0], [-20.0, -60.0, 70.0, 0.0, 10.0, 0.0])
         with _robot(host, port) as r:
@@ -77,18 +89,14 @@ def test_connect_turns_the_servo_on_and_moves_land_within_half_a_pulse():
             assert np.abs(np.asarray(move.pulses[:6]) - np.multiply(target, PPD)).max() <= 0.5
             assert move.pulses[6:] == (0, 0) and not any(move.extra)
             assert move.refused == 0
-        assert fake.malformed == [] and fake.unknown == []
         ids = [q.request_id for q in fake.requests]
         assert all(1 <= i <= 255 for i in ids)
         assert all(a != b for a, b in itertools.pairwise(ids))  # each its own id
-    finally:
-        fake.stop()
 
 
 def test_refusals_are_one_line():
     fake = HsesFake(PPD)
-    host, port = fake.start("127.0.0.59", 0)
-    try:
+    with _serving(fake, "127.0.0.59") as (host, port):
         for switch, expected in (
             ("teach", "connect refused: the controller is in TEACH"),
             ("pendant_hold", "connect refused: held by the pendant's HOLD"),
@@ -128,15 +136,11 @@ def test_refusals_are_one_line():
             fake.refuse_moves = None
             r.move_joints(np.radians([1, -90, 90, 0, 0, 0]), 0.3)
         assert _pulse_error(fake.q_deg(), [1, -90, 90, 0, 0, 0]).max() <= 0.5
-        assert fake.malformed == [] and fake.unknown == []
-    finally:
-        fake.stop()
 
 
 def test_an_alarm_mid_move_is_one_line_and_the_next_connection_resets_it():
     fake = HsesFake(PPD, time_scale=0.5)
-    host, port = fake.start("127.0.0.58", 0)
-    try:
+    with _serving(fake, "127.0.0.58") as (host, port):
         # inside the model's limits (axis 1 ±155°), beyond the fake's (±120°)
         with _robot(host, port) as r, pytest.raises(DeviceError) as e:
             r.move_joints(np.radians([140.0, -90, 90, 0, 0, 0]), 0.5)
@@ -152,17 +156,13 @@ def test_an_alarm_mid_move_is_one_line_and_the_next_connection_resets_it():
             assert [q.u32() for q in fake.sent(0x82, 1)] == [1]
             r.move_joints(np.radians(HOME), 0.5)
             assert _pulse_error(np.degrees(r.actual_joints()), HOME).max() <= 0.5
-        assert fake.malformed == [] and fake.unknown == []
-    finally:
-        fake.stop()
 
 
 def test_lost_repeated_and_stale_datagrams_are_survived():
     fake = HsesFake(
         PPD, time_scale=0.2, lose_every=7, lose_every_move=2, duplicate_every=5, stale_every=4
     )
-    host, port = fake.start("127.0.0.59", 0)
-    try:
+    with _serving(fake, "127.0.0.59") as (host, port):
         targets = [[10.0 * i, -80.0, 85.0, 5.0, 30.0 - i, 12.0] for i in range(4)]
         with _robot(host, port) as r:
             for target in targets:
@@ -173,44 +173,31 @@ def test_lost_repeated_and_stale_datagrams_are_survived():
         assert fake.lost > 0 and fake.duplicated > 0 and fake.stale_sent > 0
         assert any(q.command == 0x8B and q.fate == "lost" for q in fake.requests)
         assert len([m for m in fake.moves if m.refused == 0]) == len(targets)
-        assert fake.malformed == [] and fake.unknown == []
-    finally:
-        fake.stop()
 
 
 def test_a_late_running_bit_and_a_jittering_position():
     # the running bit comes on 0.3 s after a move is accepted: these moves are over by then
     fake = HsesFake(PPD, time_scale=0.2, motion_delay_s=0.05, running_delay_s=0.3, jitter_pulses=1)
-    host, port = fake.start("127.0.0.58", 0)
-    try:
-        with _robot(host, port) as r:
-            for target in ([30.0, -70.0, 60.0, 20.0, -30.0, 45.0], HOME):
-                r.move_joints(np.radians(target), 0.5)
-                assert _pulse_error(fake.q_deg(), target).max() <= 2.5  # not left behind
-                # a reading of ±1 pulse around the target, rounded to a pulse
-                assert _pulse_error(np.degrees(r.actual_joints()), target).max() <= 1.5
-                _until(lambda: not fake.moving, "the fake's robot standing")
-                assert _pulse_error(fake.q_deg(), target).max() <= 0.5
-        assert fake.malformed == [] and fake.unknown == []
-    finally:
-        fake.stop()
+    with _serving(fake, "127.0.0.58") as (host, port), _robot(host, port) as r:
+        for target in ([30.0, -70.0, 60.0, 20.0, -30.0, 45.0], HOME):
+            r.move_joints(np.radians(target), 0.5)
+            assert _pulse_error(fake.q_deg(), target).max() <= 2.5  # not left behind
+            # a reading of ±1 pulse around the target, rounded to a pulse
+            assert _pulse_error(np.degrees(r.actual_joints()), target).max() <= 1.5
+            _until(lambda: not fake.moving, "the fake's robot standing")
+            assert _pulse_error(fake.q_deg(), target).max() <= 0.5
 
 
 def test_stop_holds_and_the_next_move_releases_the_hold():
     fake = HsesFake(PPD, time_scale=0.2)
-    host, port = fake.start("127.0.0.58", 0)
-    try:
-        with _robot(host, port) as r:
-            r.move_joints(np.radians([5, -85, 95, 0, 0, 0]), 0.5)
-            r.stop()
-            assert fake.command_hold
-            assert [q.u32() for q in fake.sent(0x83, 1)] == [1]
-            r.move_joints(np.radians(HOME), 0.5)
-            assert not fake.command_hold
-            holds = fake.sent(0x83, 1)
-            assert [q.u32() for q in holds] == [1, 2]
-            assert holds[-1].at <= fake.sent(0x8B)[-1].at  # released before the move
-            assert _pulse_error(np.degrees(r.actual_joints()), HOME).max() <= 0.5
-        assert fake.malformed == [] and fake.unknown == []
-    finally:
-        fake.stop()
+    with _serving(fake, "127.0.0.58") as (host, port), _robot(host, port) as r:
+        r.move_joints(np.radians([5, -85, 95, 0, 0, 0]), 0.5)
+        r.stop()
+        assert fake.command_hold
+        assert [q.u32() for q in fake.sent(0x83, 1)] == [1]
+        r.move_joints(np.radians(HOME), 0.5)
+        assert not fake.command_hold
+        holds = fake.sent(0x83, 1)
+        assert [q.u32() for q in holds] == [1, 2]
+        assert holds[-1].at <= fake.sent(0x8B)[-1].at  # released before the move
+        assert _pulse_error(np.degrees(r.actual_joints()), HOME).max() <= 0.5
