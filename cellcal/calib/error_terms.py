@@ -240,8 +240,8 @@ def _raw_regressors(
         for name in term.regressors:
             cols.append(tau[:, i if name == "tau" else int(name[3:]) - 1])
         return np.stack(cols, axis=1)
-    if term.name == "ratio":
-        return q[:, [i] * len(term.regressors)]
+    if term.name == "ratio":  # its one regressor, q
+        return q[:, i : i + 1]
     for name in term.regressors:
         if term.name == "harmonics":
             order = int(name[3:])

@@ -25,7 +25,6 @@ face. The scenes (rig, poses, target) are in :mod:`cellcal.mocks.rig.texture_sce
 
 from __future__ import annotations
 
-import threading
 from dataclasses import dataclass, field
 from functools import lru_cache
 
@@ -382,31 +381,25 @@ def _undistorted_samples(
     return out[0], out[1]
 
 
-_GRIDS: dict[tuple[int, int, bytes, bytes], tuple[Array, Array]] = {}
-_GRIDS_LOCK = threading.Lock()
-
-
 def _centre_grid(camera: Camera) -> tuple[Array, Array]:
     """Undistorted normalised coordinates (solved in float64, kept in float32) of every
     pixel centre of the camera and of a pixel around the image (row and column 0 are
     pixel −1): solved once per camera (a few MB; the last 8 cameras are kept)."""
     K = np.asarray(camera.K, dtype=np.float64)
     dist = np.asarray(camera.dist, dtype=np.float64)
-    key = (camera.width, camera.height, K.tobytes(), dist.tobytes())
-    with _GRIDS_LOCK:
-        grid = _GRIDS.get(key)
-    if grid is None:
-        cc = np.arange(-1, camera.width + 1, dtype=np.float64)
-        rr = np.arange(-1, camera.height + 1, dtype=np.float64)
-        X, Y = undistort(((cc - K[0, 2]) / K[0, 0])[None, :], ((rr - K[1, 2]) / K[1, 1])[:, None],
-                         dist)  # fmt: skip
-        # float32, as the sub-samples are: its rounding is 3e-8 of the focal length
-        grid = (X.astype(np.float32), Y.astype(np.float32))
-        with _GRIDS_LOCK:
-            if len(_GRIDS) >= 8:
-                _GRIDS.pop(next(iter(_GRIDS)))
-            _GRIDS[key] = grid
-    return grid
+    return _solved_grid(camera.width, camera.height, K.tobytes(), dist.tobytes())
+
+
+@lru_cache(maxsize=8)
+def _solved_grid(width: int, height: int, K_bytes: bytes, dist_bytes: bytes) -> tuple[Array, Array]:
+    K = np.frombuffer(K_bytes, dtype=np.float64).reshape(3, 3)
+    dist = np.frombuffer(dist_bytes, dtype=np.float64)
+    cc = np.arange(-1, width + 1, dtype=np.float64)
+    rr = np.arange(-1, height + 1, dtype=np.float64)
+    X, Y = undistort(((cc - K[0, 2]) / K[0, 0])[None, :], ((rr - K[1, 2]) / K[1, 1])[:, None],
+                     dist)  # fmt: skip
+    # float32, as the sub-samples are: its rounding is 3e-8 of the focal length
+    return X.astype(np.float32), Y.astype(np.float32)
 
 
 @lru_cache(maxsize=16)
