@@ -79,7 +79,9 @@ class EkiTwin:
             )
 
     def _handle(self, link: Link) -> None:
-        if not self._busy.acquire(blocking=False):
+        # a client that has just closed its link may still hold the channel for the
+        # instant its session takes to read the end: a new one waits that long
+        if not self._busy.acquire(timeout=2 * self.cycle_s):
             self.refused += 1
             log.info("kuka-eki twin: a second client while the channel is up: closed")
             return
