@@ -33,6 +33,11 @@ from tests.bundled_campaign import PRODUCER
 #: for the same results on two cores).
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 threadpool_limits(limits=int(os.environ["OPENBLAS_NUM_THREADS"]), user_api="blas")
+#: OpenCV's own threads (remap, filters, detection) likewise, unless
+#: OPENCV_FOR_THREADS_NUM says otherwise: its second thread costs a tenth more CPU time
+#: where every core is busy with a worker (set before cv2 is first imported, which reads
+#: it then, and passed on to the processes the tests start).
+os.environ.setdefault("OPENCV_FOR_THREADS_NUM", "1")
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT / "cellcal" / "data"

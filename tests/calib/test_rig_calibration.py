@@ -18,6 +18,7 @@ from scipy.spatial.transform import Rotation
 
 from cellcal.calib.geometry import Array, invert
 from cellcal.calib.photogrammetry import bundle as rig_bundle
+from cellcal.calib.photogrammetry.board_corners import CornerDetection, CornerMeter
 from cellcal.calib.photogrammetry.camera_rig import Board, Camera, Rig
 from cellcal.calib.photogrammetry.rig_calibration import (
     RigCalibration,
@@ -470,7 +471,6 @@ def test_a_camera_whose_edges_cannot_be_read_keeps_the_detectors_corners(
     """When a camera's board edges cannot be measured (white margins too narrow in its
     images), it is not refused: it keeps OpenCV's corners, and a warning says so."""
     from cellcal.calib.photogrammetry import views as rig_views
-    from cellcal.calib.photogrammetry.board_corners import CornerMeter
 
     made: list[CornerMeter] = []
 
@@ -479,8 +479,8 @@ def test_a_camera_whose_edges_cannot_be_read_keeps_the_detectors_corners(
             super().__init__(*args, **kw)  # type: ignore[arg-type]
             made.append(self)
 
-        def measure(self, image: Image) -> object:
-            return None if len(made) == 4 else super().measure(image)
+        def measure(self, image: Image, first: CornerDetection | None = None) -> object:
+            return None if len(made) == 4 else super().measure(image, first)
 
     monkeypatch.setattr(rig_views, "CornerMeter", Meter)
     rig, _, views = scene
@@ -489,3 +489,24 @@ def test_a_camera_whose_edges_cannot_be_read_keeps_the_detectors_corners(
     rep = {r.name: r for r in res.cameras}
     assert rep["cam3"].views == 16 and rep["cam3"].unmeasured == 0
     assert rep["cam0"].unmeasured > 0
+
+
+def test_the_second_measurement_of_a_view_starts_from_its_first_markers(scene: Scene) -> None:
+    """CornerMeter given a view's first detection takes its markers as they are: the
+    same corners, to the bit, as finding the markers again."""
+    rig, _, views = scene
+    cam = rig.cameras[0]
+    meter = CornerMeter(BOARD, cam.K, cam.dist)
+    compared = 0
+    for view in views[:4]:
+        image = view[cam.name]
+        first = detect_corners(BOARD, image)
+        if first is None:
+            continue
+        assert first.markers is not None and len(first.markers[1]) > 0
+        again, given = meter.measure(image), meter.measure(image, first)
+        assert again is not None and given is not None
+        assert np.array_equal(again.ids, given.ids)
+        assert np.array_equal(again.pixels, given.pixels)
+        compared += 1
+    assert compared >= 2

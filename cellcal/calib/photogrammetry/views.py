@@ -159,7 +159,9 @@ def remeasure(
         dets = [(v, det[v][n]) for v in fit if n in det[v]]
         K, dist, _, _ = intrinsics(n, cameras[n], dets, pts, opt)
         meter = CornerMeter(board, K, dist, opt.min_corners)
-        found = {v: meter.measure(view[n]) for v, view in enumerate(views) if n in det[v]}
+        found = {
+            v: meter.measure(view[n], det[v][n]) for v, view in enumerate(views) if n in det[v]
+        }
         measured = sum(1 for v in fit if found.get(v) is not None)
         if measured < opt.min_views:
             warnings.append(

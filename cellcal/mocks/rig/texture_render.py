@@ -344,12 +344,15 @@ def render_clean(camera: Camera, planes: list[TexturedPlane], params: RenderPara
             a, b = (p.box[0] - c0) * s, (p.box[2] - c0) * s
             xs, ys = x[:, a:b], y[:, a:b]
             m = p.M.astype(np.float32)
-            w = m[2, 0] * xs + m[2, 1] * ys + m[2, 2]
-            mx = (m[0, 0] * xs + m[0, 1] * ys + m[0, 2]) / w
-            my = (m[1, 0] * xs + m[1, 1] * ys + m[1, 2]) / w
+            w, mx, my = (_row_times(m[k], xs, ys) for k in (2, 0, 1))
+            mx /= w
+            my /= w
             th, tw = p.plane.texture.shape
-            seen = (w > nearest[:, a:b]) & (mx >= -0.5) & (mx <= tw - 0.5)
-            seen &= (my >= -0.5) & (my <= th - 0.5)
+            seen = w > nearest[:, a:b]
+            seen &= mx >= -0.5
+            seen &= mx <= tw - 0.5
+            seen &= my >= -0.5
+            seen &= my <= th - 0.5
             if not seen.any():
                 continue
             tex = _lookup(p.plane.texture, mx, my)
@@ -357,6 +360,14 @@ def render_clean(camera: Camera, planes: list[TexturedPlane], params: RenderPara
             np.copyto(nearest[:, a:b], w, where=seen)
         img[r0:r1, c0:c1] = cv2.resize(value, (c1 - c0, r1 - r0), interpolation=cv2.INTER_AREA)
     return img
+
+
+def _row_times(row: Array, x: Array, y: Array) -> Array:
+    """row · (x, y, 1) at every sample, in the samples' float type, computed in place."""
+    out: Array = x * row[0]
+    out += y * row[1]
+    out += row[2]
+    return out
 
 
 def _undistorted_samples(
@@ -429,9 +440,16 @@ def psf_kernel(psf: Psf | None) -> Array:
 
 def _prnu(camera: Camera, amount: float) -> Array:
     """The camera's fixed relative gain pattern (seeded from its name and size)."""
-    seed = [camera.width, camera.height, *camera.name.encode()]
-    g = np.random.default_rng(seed).standard_normal((camera.height, camera.width), np.float32)
+    return _gain_pattern(camera.width, camera.height, camera.name, amount)
+
+
+@lru_cache(maxsize=8)
+def _gain_pattern(width: int, height: int, name: str, amount: float) -> Array:
+    """:func:`_prnu`'s pattern, drawn once per camera (as a sensor's is made once)."""
+    seed = [width, height, *name.encode()]
+    g = np.random.default_rng(seed).standard_normal((height, width), np.float32)
     out: Array = 1.0 + np.float32(amount) * g
+    out.setflags(write=False)
     return out
 
 
@@ -453,8 +471,11 @@ def render(
         if sensor.noise_grey > 0:
             gen = rng if rng is not None else np.random.default_rng()
             noise = gen.standard_normal(img.shape, np.float32)
-            img += np.float32(sensor.noise_grey) * noise
-    out: Array = np.clip(np.rint(img), 0, 255).astype(np.uint8)
+            noise *= np.float32(sensor.noise_grey)
+            img += noise
+    np.rint(img, out=img)
+    np.clip(img, 0, 255, out=img)
+    out: Array = img.astype(np.uint8)
     return out
 
 
