@@ -37,9 +37,10 @@ def _run(args: list[str], capsys: pytest.CaptureFixture[str]) -> tuple[int, str]
 @pytest.fixture(autouse=True)
 def short_timeouts(monkeypatch: pytest.MonkeyPatch) -> None:
     """The client's timeouts, shortened so that a service that never answers costs the
-    test two seconds, not thirty."""
-    monkeypatch.setattr(service_client, "REQUEST_TIMEOUT_S", 2.0)
-    monkeypatch.setattr(service_client, "EVENT_SILENCE_S", 2.0, raising=False)
+    test under a second, not thirty: still longer than the slow drip's pause between
+    bytes (0.3 s), so the drip is ended by the request's deadline, not by a read."""
+    monkeypatch.setattr(service_client, "REQUEST_TIMEOUT_S", 0.8)
+    monkeypatch.setattr(service_client, "EVENT_SILENCE_S", 0.8, raising=False)
 
 
 @pytest.mark.parametrize("command", list(COMMANDS))
