@@ -40,6 +40,7 @@ EXIT_INTERRUPTED = 130
 INTERRUPTED = "cellcal: interrupted"
 _said = False  # the line was written
 _interrupted = False  # a KeyboardInterrupt is on its way
+_resent = False  # it was dropped where Python ignores exceptions, and SIGINT sent again
 
 
 def _say_interrupted() -> None:
@@ -69,10 +70,12 @@ def _is_the_program() -> bool:
 if _is_the_program():
     _signal.signal(_signal.SIGINT, _interrupted_now)
 
-import atexit  # noqa: E402 - after the handler: Ctrl-C while they load is one line
+import _thread  # noqa: E402 - after the handler: Ctrl-C while they load is one line
+import atexit  # noqa: E402
 import importlib  # noqa: E402
 import signal  # noqa: E402
 import threading  # noqa: E402
+import time  # noqa: E402
 from collections.abc import Callable  # noqa: E402
 from typing import Any  # noqa: E402
 
@@ -82,6 +85,7 @@ from cellcal import __version__  # noqa: E402
 from cellcal.errors import AcceptanceError, UserError  # noqa: E402
 from cellcal.extras import needs  # noqa: E402
 
+_sending = threading.Lock()  # SIGINT sent again (_send_again) or not
 EXIT_USER_ERROR = 2
 EXIT_REFUSED = 3
 
@@ -239,23 +243,64 @@ def cli(verbose: int) -> None:
 def _interrupt_once(signum: int, frame: object) -> None:
     """Ctrl-C while a command runs: ``KeyboardInterrupt`` (unwound to :func:`main`); a
     second one before that is done ends at once."""
-    global _interrupted
-    if _interrupted:
+    global _interrupted, _resent
+    if _said:  # sent again (below), but main has said the line meanwhile
+        return
+    if _interrupted and not _resent:
         _interrupted_now(signum, frame)
-    _interrupted = True
+    _interrupted, _resent = True, False
     raise KeyboardInterrupt
 
 
 def _unraisable_interrupt(hook: Callable[[Any], object]) -> Callable[[Any], object]:
     """``sys.unraisablehook`` that keeps quiet about the KeyboardInterrupt of
-    :func:`_interrupt_once` (``main`` says it) and passes anything else to ``hook``."""
+    :func:`_interrupt_once` and passes anything else to ``hook``. Python drops an
+    exception raised where it cannot propagate (a weakref callback of importlib's while
+    a command's modules load): that Ctrl-C is sent again, so that it reaches the command
+    at its next line instead of when it has done all its work (a whole campaign)."""
 
     def unraisable(args: Any) -> object:
-        if isinstance(args.exc_value, KeyboardInterrupt) and _interrupted:
+        try:
+            if isinstance(args.exc_value, KeyboardInterrupt) and _interrupted:
+                if not _said:
+                    _send_again()
+                return None
+            return hook(args)
+        except KeyboardInterrupt:  # the one sent again came before this returned
+            _send_again()
             return None
-        return hook(args)
 
     return unraisable
+
+
+def _send_again() -> None:
+    """SIGINT to the main thread again, from a thread of its own a millisecond later
+    (raised here, in the hook, it would be dropped again), unless :func:`main` has
+    ended meanwhile (:func:`_no_more_sent`)."""
+    global _resent
+    with _sending:
+        _resent = True
+
+    def later() -> None:
+        time.sleep(0.001)
+        with _sending:
+            if _resent:
+                _thread.interrupt_main()
+
+    _thread.start_new_thread(later, ())
+
+
+def _no_more_sent() -> None:
+    """No SIGINT is sent again from now on; one sent already is handled here, while
+    :func:`_interrupt_once` is still the handler (it returns: the line is said)."""
+    global _resent
+    with _sending:
+        _resent = False
+    _signals_run()
+
+
+def _signals_run() -> None:
+    """Nothing: calling it is where Python runs the handlers of signals received."""
 
 
 def _stop_interrupted(here: bool) -> int:
@@ -271,8 +316,8 @@ def _stop_interrupted(here: bool) -> int:
 def main(argv: list[str] | None = None) -> None:
     """Console-script entry point; turns user errors into one line and exit code 2, and
     Ctrl-C into one line and exit code 130."""
-    global _said, _interrupted
-    _said = _interrupted = False
+    global _said, _interrupted, _resent
+    _said = _interrupted = _resent = False
     program = argv is None
     here = threading.current_thread() is threading.main_thread()
     # Until the handler below is in place a Ctrl-C meets the one before it (the
@@ -300,6 +345,7 @@ def main(argv: list[str] | None = None) -> None:
     finally:
         sys.unraisablehook = hook
         if here:
+            _no_more_sent()
             # The program ends now: a Ctrl-C while it does is the line and exit 130.
             signal.signal(signal.SIGINT, _interrupted_now if program else previous)
     if program and _said:
