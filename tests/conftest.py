@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import os
 import tomllib
+import zlib
 from pathlib import Path
 from typing import Any
 
@@ -96,8 +97,18 @@ def pytest_xdist_auto_num_workers(config: pytest.Config) -> int:
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     """README's examples first (they run the bundled campaign that other tests read,
     tests/bundled_campaign.py), then the slow tests, so that the workers of the parallel
-    run finish together."""
-    items.sort(key=lambda item: (item.nodeid != PRODUCER, item.get_closest_marker("slow") is None))
+    run finish together; the files of each part in an order fixed by a checksum of
+    their paths, not by folder. By folder, the drivers' tests (most of their time spent
+    waiting out timeouts on purpose) came to every worker at once, and both cores
+    stood half idle for a minute; shuffled so among the tests that compute, a waiting
+    test's core is taken by another worker."""
+    items.sort(
+        key=lambda item: (
+            item.nodeid != PRODUCER,
+            item.get_closest_marker("slow") is None,
+            zlib.crc32(item.nodeid.split("::", 1)[0].encode()),
+        )
+    )
 
 
 def small_tracker_file(
