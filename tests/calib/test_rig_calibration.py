@@ -8,6 +8,7 @@ once per module at supersample 3 (corner errors 0.05 px per axis, unbiased)."""
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import replace
 from pathlib import Path
 
@@ -40,6 +41,7 @@ from cellcal.errors import (
 from cellcal.files.images import load_views, read_image
 from cellcal.mocks.rig.camera_render import Image, Optics, SceneRenderer, board_face
 from cellcal.mocks.rig.scene import board_poses, dome_target, four_camera_rig, volume_centre
+from tests.calib.detections import kept_detections
 
 pytestmark = pytest.mark.slow
 
@@ -48,6 +50,12 @@ OPTICS = Optics(supersample=3, blur_px=0.8, noise_grey=2.0)
 N_VIEWS = 20
 
 Scene = tuple[Rig, list[Array], list[dict[str, Image]]]
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _detections() -> Iterator[object]:
+    """Each image detected once however many calibrations take it (tests/calib/detections.py)."""
+    yield from kept_detections()
 
 
 def _sizes(rig: Rig) -> dict[str, tuple[int, int]]:

@@ -10,6 +10,8 @@ calibration must hold on them: no camera refused, the held-out board lengths wit
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+
 import numpy as np
 import pytest
 
@@ -22,12 +24,19 @@ from cellcal.calib.photogrammetry.rig_calibration import (
 from cellcal.mocks.rig.camera_render import Image
 from cellcal.mocks.rig.texture_render import RenderParams, render_board
 from cellcal.mocks.rig.texture_scenes import TEST_BOARD, board_views, oblique_rig
+from tests.calib.detections import kept_detections
 
 pytestmark = pytest.mark.slow
 
 N_VIEWS = 20
 
 Scene = tuple[Rig, list[dict[str, Image]], RigCalibration]
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _detections() -> Iterator[object]:
+    """Each image detected once however many calibrations take it (tests/calib/detections.py)."""
+    yield from kept_detections()
 
 
 @pytest.fixture(scope="module")
