@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -14,6 +15,7 @@ from cellcal.files.images import write_image
 from cellcal.files.photogrammetry import write_rig, write_target
 from cellcal.mocks.rig.camera_render import Optics, SceneRenderer
 from cellcal.mocks.rig.scene import board_poses, dome_target, four_camera_rig, volume_centre
+from tests.calib.detections import kept_detections
 
 pytestmark = pytest.mark.slow  # renders and calibrates a rig: the parallel run starts it early
 
@@ -27,6 +29,12 @@ def run(capsys: pytest.CaptureFixture[str], *args: object) -> tuple[int, str, st
         main([str(a) for a in args])
     out, err = capsys.readouterr()
     return int(exc.value.code or 0), out, err
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _detections() -> Iterator[object]:
+    """Views calibrated twice are detected once (tests/calib/detections.py)."""
+    yield from kept_detections()
 
 
 @pytest.fixture(scope="module")
