@@ -86,7 +86,9 @@ $(UR_CLIENT): | $(STAMP)
 # Two workers per core (tests/conftest.py: a third of the time the tests wait); a test
 # file's tests on one worker (they share module fixtures), except the files conftest names in
 # SPREAD, whose tests go out one by one; README's examples, then the slow tests (marker slow)
-# first. The 20 slowest are listed at the end.
+# first, the files of each part in an order fixed by a checksum of their paths (waiting
+# tests spread among computing ones). OpenCV and OpenBLAS on one thread per process. The
+# 20 slowest are listed at the end.
 PARALLEL := -n auto --dist loadfile --no-loadscope-reorder
 # Compiled modules (cellcal's, and the tests' rewritten asserts) are kept between processes
 # and runs, under .venv/pycache, never beside the sources: every cellcal process a test
