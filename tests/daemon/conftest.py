@@ -142,7 +142,10 @@ class Daemon:
             return conn.execute(sql).fetchall()
 
     def tail(self) -> str:
-        return (self.folder / "daemon.log").read_text()[-3000:]
+        """The log's end, for a failure's message: long enough to reach back over a
+        restart (a resumed rig campaign whose cameras gave no frame was seen once, with
+        only its last 3000 characters: the restart itself was cut off)."""
+        return (self.folder / "daemon.log").read_text()[-12000:]
 
     def stop(self, sig: int = signal.SIGTERM, timeout: float = 30) -> int:
         assert self.proc is not None
