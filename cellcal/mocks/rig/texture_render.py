@@ -348,11 +348,8 @@ def render_clean(camera: Camera, planes: list[TexturedPlane], params: RenderPara
             mx /= w
             my /= w
             th, tw = p.plane.texture.shape
-            seen = w > nearest[:, a:b]
-            seen &= mx >= -0.5
-            seen &= mx <= tw - 0.5
-            seen &= my >= -0.5
-            seen &= my <= th - 0.5
+            seen = (w > nearest[:, a:b]) & (mx >= -0.5) & (mx <= tw - 0.5)
+            seen &= (my >= -0.5) & (my <= th - 0.5)
             if not seen.any():
                 continue
             tex = _lookup(p.plane.texture, mx, my)
@@ -363,7 +360,7 @@ def render_clean(camera: Camera, planes: list[TexturedPlane], params: RenderPara
 
 
 def _row_times(row: Array, x: Array, y: Array) -> Array:
-    """row · (x, y, 1) at every sample, in the samples' float type, computed in place."""
+    """row · (x, y, 1) at every sample, in their float type, with one temporary."""
     out: Array = x * row[0]
     out += y * row[1]
     out += row[2]
@@ -438,14 +435,10 @@ def psf_kernel(psf: Psf | None) -> Array:
     return out
 
 
-def _prnu(camera: Camera, amount: float) -> Array:
-    """The camera's fixed relative gain pattern (seeded from its name and size)."""
-    return _gain_pattern(camera.width, camera.height, camera.name, amount)
-
-
 @lru_cache(maxsize=8)
-def _gain_pattern(width: int, height: int, name: str, amount: float) -> Array:
-    """:func:`_prnu`'s pattern, drawn once per camera (as a sensor's is made once)."""
+def _prnu(width: int, height: int, name: str, amount: float) -> Array:
+    """A camera's fixed relative gain pattern (seeded from its name and size), drawn once
+    per camera as a sensor's is made once."""
     seed = [width, height, *name.encode()]
     g = np.random.default_rng(seed).standard_normal((height, width), np.float32)
     out: Array = 1.0 + np.float32(amount) * g
@@ -467,7 +460,7 @@ def render(
     sensor = params.sensor
     if sensor is not None:
         if sensor.prnu > 0:
-            img *= _prnu(camera, sensor.prnu)
+            img *= _prnu(camera.width, camera.height, camera.name, sensor.prnu)
         if sensor.noise_grey > 0:
             gen = rng if rng is not None else np.random.default_rng()
             noise = gen.standard_normal(img.shape, np.float32)
