@@ -2,9 +2,9 @@
 intrinsics and poses against the truth, the reported 1σ against the actual errors, the
 held-out checks, a camera that moved during the capture, and the refusals.
 
-Rendering dominates the cost (about 0.35 s per image at supersample 3 on this machine;
-the renderer's default supersample 8 takes 2.5 s per image), so the views are rendered
-once per module at supersample 3 (corner errors 0.05 px per axis, unbiased)."""
+The views are rendered once per module at supersample 3 (corner errors 0.05 px per
+axis, unbiased; the renderer's default supersample 8 costs several times more), and each
+image is detected once (tests/calib/detections.py)."""
 
 from __future__ import annotations
 

@@ -45,6 +45,7 @@ from cellcal.mocks.rig.camera_faces import (
     target_faces,
     trace,
 )
+from cellcal.mocks.rig.sensor_noise import gaussian_noise
 
 __all__ = [
     "Face",
@@ -288,9 +289,7 @@ def render_region(
 
 def exposed(clean: Image, rng: np.random.Generator, noise_grey: float) -> Image:
     """One 8-bit frame: the clean image plus fresh Gaussian noise, rounded, saturated."""
-    noise = rng.standard_normal(clean.shape, dtype=np.float32)
-    if noise_grey != 1.0:
-        noise *= np.float32(noise_grey)
+    noise = gaussian_noise(clean.shape, rng, noise_grey)
     frame: Image = cv2.add(clean, noise, dtype=cv2.CV_8U)
     return frame
 

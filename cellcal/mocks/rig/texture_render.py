@@ -32,6 +32,7 @@ import cv2
 import numpy as np
 
 from cellcal.calib.photogrammetry.camera_rig import Board, Camera, Rig, Target
+from cellcal.mocks.rig.sensor_noise import gaussian_noise
 
 Array = np.ndarray
 #: Sub-samples rendered at a time (keeps the arrays in cache).
@@ -463,9 +464,7 @@ def render(
             img *= _prnu(camera.width, camera.height, camera.name, sensor.prnu)
         if sensor.noise_grey > 0:
             gen = rng if rng is not None else np.random.default_rng()
-            noise = gen.standard_normal(img.shape, np.float32)
-            noise *= np.float32(sensor.noise_grey)
-            img += noise
+            img += gaussian_noise(img.shape, gen, sensor.noise_grey)
     np.rint(img, out=img)
     np.clip(img, 0, 255, out=img)
     out: Array = img.astype(np.uint8)

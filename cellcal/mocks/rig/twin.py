@@ -57,6 +57,7 @@ from cellcal.mocks.rig.camera_render import (
     render_region,
 )
 from cellcal.mocks.rig.gige_cameras import fit
+from cellcal.mocks.rig.sensor_noise import gaussian_noise
 from cellcal.mocks.simulated_cell import SimulatedCell
 from cellcal.mocks.twins import RunningTwin
 
@@ -254,14 +255,13 @@ class RigScene:
         noise = None
         if rows.stop > rows.start and cols.stop > cols.start:
             shape = (rows.stop - rows.start, cols.stop - cols.start)
-            noise = rng.standard_normal(shape, dtype=np.float32)
+            noise = gaussian_noise(shape, rng, self.renderer.optics.noise_grey)
         if out.dtype == np.uint8 and out.shape == bank[k].shape:
             np.copyto(out, bank[k])  # the camera's own buffer: written in place
             frame = out
         else:
             frame = bank[k].copy()
         if noise is not None:
-            noise *= np.float32(self.renderer.optics.noise_grey)
             frame[rows, cols] = cv2.add(part, noise, dtype=cv2.CV_8U)
         if frame is not out:
             np.copyto(out, fit(frame, out.shape[0], out.shape[1], out.dtype))
