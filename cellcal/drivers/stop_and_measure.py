@@ -23,7 +23,10 @@ What the contract does with them: ``connect`` opens, refuses a controller that c
 take a move (one line saying why) and reads the joints once (implausible values — not
 finite, beyond ±10 000°, a nonzero magnitude below 1e-20°: a word-order or unit mistake
 — are refused). ``move_joints`` checks the target (6 finite angles) and speed (0, 1],
-reads the state and refuses as ``connect`` does, sends the move with a new sequence
+reads the state and refuses as ``connect`` does, waits (up to ``timeout_s``) for the
+controller to acknowledge the move this driver last stopped (where it reports the number
+requested: a program that has not acted on the stop yet could otherwise end the stopped
+move by acknowledging the next move's number), sends the move with a new sequence
 number (1..65535, never the controller's last acknowledgement nor the one sent last, so a
 restarted driver never repeats what the controller holds), then polls every ``poll_s``
 until the controller acknowledges that number and is not moving. A fault during the move
@@ -140,6 +143,8 @@ class HandshakeRobot(StopAndMeasureRobot):
         self.timeout_s = float(timeout_s)
         self.poll_s = float(poll_s)
         self._last_seq: int | None = None
+        #: the sequence number of the move last stopped here (see _settled)
+        self._stopped_seq: int | None = None
         self._before = ControllerState("not read yet", None, False, 0, "")
 
     # ------------------------------------------------------------------ the transport
@@ -186,8 +191,32 @@ class HandshakeRobot(StopAndMeasureRobot):
         log.info("%s: connected to %s (%s)", self.name, self.where, state.text)
 
     def _ready_to_move(self, target: Array) -> None:
-        self._before = self._state()
-        self._refuse_unless_ready(self._before, "move")
+        state = self._state()
+        self._refuse_unless_ready(state, "move")
+        self._before = self._settled(state)
+
+    def _settled(self, state: ControllerState) -> ControllerState:
+        """The state once the controller has acknowledged the move this driver stopped.
+
+        A stopped move stays unacknowledged until the controller's program acts on the
+        stop; a program that answers ``ack = seq`` with the number requested *then*
+        would acknowledge the next move's number instead, and that move would be taken
+        for done without moving. So the next move waits for it, polling, up to
+        ``timeout_s``; then it is refused. (A move refused by the controller, a stop
+        message, is left to be replaced: this driver sent no stop for it.)"""
+        stopped, self._stopped_seq = self._stopped_seq, None
+        deadline = time.monotonic() + self.timeout_s
+        while stopped is not None and state.seq == stopped and state.ack != stopped:
+            if time.monotonic() > deadline:
+                raise self._error(
+                    f"move refused: the controller has not acknowledged the stopped move "
+                    f"({state.seq_name} {stopped}) after {self.timeout_s:g} s ({state.text}); "
+                    "is its program running?"
+                )
+            time.sleep(self.poll_s)
+            state = self._state()
+            self._refuse_unless_ready(state, "move")
+        return state
 
     def _move_and_settle(self, target: Array, speed: float) -> None:
         before = self._before
@@ -225,6 +254,7 @@ class HandshakeRobot(StopAndMeasureRobot):
         return DeviceDescription(ROBOT_NAME, self.family, self.where)
 
     def stop(self) -> None:
+        self._stopped_seq = self._last_seq
         self._send_stop()
 
     def close(self) -> None:
@@ -277,6 +307,7 @@ class HandshakeRobot(StopAndMeasureRobot):
 
     def _stop_quietly(self) -> None:
         """A stop on the way out of a failed move; its own failure is only logged."""
+        self._stopped_seq = self._last_seq
         try:
             self._send_stop()
         except DeviceError as exc:
