@@ -16,6 +16,7 @@ The extras themselves are in ``pyproject.toml`` (``[project.optional-dependencie
 from __future__ import annotations
 
 import importlib
+import importlib.util
 from collections.abc import Iterator
 from contextlib import contextmanager
 
@@ -58,6 +59,22 @@ def needs(feature: str) -> Iterator[None]:
         if missing is None:
             raise
         raise missing from exc
+
+
+def installed(feature: str, *modules: str) -> None:
+    """Refuse now, as :func:`require` would, when an optional library of ``modules`` is
+    not installed, without importing it: for a library only a later step uses (the
+    service's reports need matplotlib, which takes longer to import than the rest of
+    the service's start)."""
+    for module in modules:
+        if module not in PROVIDERS:
+            raise ValueError(f"{module}: not an optional library of cellcal.extras")
+        try:
+            found = importlib.util.find_spec(module) is not None
+        except ImportError:
+            found = False
+        if not found:
+            raise MissingExtraError(feature, *PROVIDERS[module])
 
 
 def require(feature: str, *modules: str) -> None:

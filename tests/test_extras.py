@@ -226,6 +226,11 @@ def test_export_urdf_writes_without_pinocchio(blocker, tmp_path):
             'cellcal: error: cellcal daemon needs aiohttp: pip install "cellcal[service]"',
         ),
         (
+            ("matplotlib",),
+            ("daemon", "--mock", "--db", "{tmp}/d.db", "--socket", "{tmp}/s.sock"),
+            'cellcal: error: cellcal daemon needs matplotlib: pip install "cellcal[report]"',
+        ),
+        (
             ("aiohttp",),
             ("campaign", "list"),
             'cellcal: error: cellcal campaign needs aiohttp: pip install "cellcal[service]"',
@@ -254,7 +259,8 @@ def test_export_urdf_writes_without_pinocchio(blocker, tmp_path):
         ),
     ],
     ids=[
-        "ur", "modbus", "cameras", "run-report", "report", "urdf", "daemon", "campaign",
+        "ur", "modbus", "cameras", "run-report", "report", "urdf", "daemon", "daemon-report",
+        "campaign",
         "service-install", "rig", "mock-cameras", "fleet",
     ],
 )  # fmt: skip

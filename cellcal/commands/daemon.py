@@ -15,6 +15,7 @@ from cellcal.commands.run import bundled_mock_cell
 from cellcal.commands.service_client import socket_path
 from cellcal.config import load_config
 from cellcal.errors import InputError
+from cellcal.extras import installed
 from cellcal.service.daemon import DaemonOptions, serve
 from cellcal.service.page import parse_http
 from cellcal.store.connection import database_path
@@ -103,6 +104,8 @@ def daemon(
 ) -> int:
     """The cell service: holds the devices, runs queued campaigns, answers the
     ``cellcal campaign`` commands on its control socket. Run by systemd (Type=notify)."""
+    # the reports' figures: named now if missing, imported when a report is written
+    installed("cellcal daemon", "matplotlib")
     if config_path is None:
         if not mock:
             raise InputError("give --config FILE (or --mock for the bundled simulated cell)")

@@ -23,7 +23,6 @@ from cellcal.config import CellConfig
 from cellcal.errors import CellcalError, DeviceError, device_of
 from cellcal.files.models import load_model
 from cellcal.reports.folder import report_folder, write_report
-from cellcal.reports.html import report_html  # noqa: F401 - matplotlib: a missing extra is named at once
 from cellcal.service.control import CONNECTING, FAULT, READY, Control, Job
 from cellcal.store.database import Store, StoreError
 
