@@ -23,7 +23,6 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy.special import fdtrc
 
 from cellcal.calib.error_model import State
 from cellcal.calib.geometry import Array
@@ -77,6 +76,8 @@ def _orders(qi: Array, s: Array, sw: Array) -> tuple[int, ...]:
     """The significant orders of the turns ``s`` (rad) along the readings ``qi``, each
     searched with those found before it among the known regressors; ``sw``: the poses'
     weights (a pose where the turn moves the target more says more)."""
+    from scipy.special import fdtrc  # imported when a search runs: scipy.special is slow to load
+
     N = len(qi)
     span = float(np.ptp(qi))
     base = np.c_[np.ones(N), qi, np.sin(qi), np.cos(qi), np.sin(2 * qi), np.cos(2 * qi)]

@@ -5,7 +5,6 @@ solution, over the same parameters."""
 from __future__ import annotations
 
 import numpy as np
-from scipy.optimize import least_squares
 
 from cellcal.calib import levenberg
 from cellcal.calib.error_model import ParameterSpec, State, apply
@@ -26,6 +25,7 @@ def robust_fit(
 ) -> levenberg.Fit:
     """TRF with a robust loss over ``specs`` from ``state`` (scipy: the loss's
     reweighting is what it is made for)."""
+    from scipy.optimize import least_squares  # imported by a robust fit only: slow to load
 
     def fun(x: Array) -> Array:
         out: Array = (data.residuals(apply(state, specs, x)) * w).ravel()
