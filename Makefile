@@ -83,7 +83,7 @@ UR_CLIENT := $(VENV)/ur-rtde-client/rtde/rtde.py
 $(UR_CLIENT): | $(STAMP)
 	@$(BIN)/python tests/mocks/ur_official_client.py $(VENV)/ur-rtde-client
 
-# Two workers per core (tests/conftest.py: a third of the time the tests wait); a test
+# Three workers per core (tests/conftest.py: much of the time the tests wait); a test
 # file's tests on one worker (they share module fixtures), except the files conftest names in
 # SPREAD, whose tests go out one by one; README's examples, then the slow tests (marker slow)
 # first, the files of each part in an order fixed by a checksum of their paths (waiting

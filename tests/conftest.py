@@ -87,11 +87,12 @@ def pytest_xdist_make_scheduler(config: pytest.Config, log: Any) -> Any:
 
 
 def pytest_xdist_auto_num_workers(config: pytest.Config) -> int:
-    """``-n auto``: two workers per core. A third of the suite's time is spent waiting
-    (simulated dwell on a scaled clock, sockets, the service, Chromium), in which a second
-    worker on the core computes: on 2 cores 4 workers take 300 s where 2 took 360 s; 6
-    took as long as 4 from a fresh clone (299 s each), every test slower."""
-    return 2 * len(os.sched_getaffinity(0))
+    """``-n auto``: three workers per core. Much of the suite's time is spent waiting
+    (simulated dwell on a scaled clock, sockets, the service, Chromium), in which another
+    worker on the core computes. On 2 cores: 4 workers 329 s, 5 workers 318 s, 6 workers
+    298 s (that run also without the documents' examples compiling cellcal again), both
+    cores busy for more of the run; an earlier machine had found 6 no faster than 4."""
+    return 3 * len(os.sched_getaffinity(0))
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:

@@ -46,7 +46,7 @@ pytestmark = [pytest.mark.twin, pytest.mark.slow]
 
 ROOT = Path(__file__).parents[1]
 DOCUMENTS = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
-LINKED = ("cellcal", "tests")  # read only
+LINKED = ("cellcal", "tests")  # read only: the paths the examples name (cellcal/data, tests/data)
 COPIED = ("config", "examples")  # a relative database path in a config lands beside it
 #: README's main example, the bundled campaign: its database is handed to the tests that
 #: read such a campaign (tests/bundled_campaign.py)
@@ -136,7 +136,10 @@ def _scratch(tmp_path: Path) -> Path:
     shim = tmp_path / ".bin"
     shim.mkdir()
     exe = shim / "cellcal"
-    exe.write_text(f'#!/bin/sh\nexec "{sys.executable}" -m cellcal "$@"\n')
+    # -P: cellcal is imported from where it is installed (the checkout, as for a user
+    # there), not through the link beside the examples; through the link every document
+    # compiled it again into the cache of compiled modules, under a new path each run
+    exe.write_text(f'#!/bin/sh\nexec "{sys.executable}" -P -m cellcal "$@"\n')
     exe.chmod(0o755)
     return shim
 

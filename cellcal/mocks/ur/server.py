@@ -167,8 +167,9 @@ class URTwin:
         self._listening.clear()
         self._is_listening = False
         self._start_error = None
+        # -P: the cellcal of PYTHONPATH (the parent's), not one in the working directory
         self._proc = subprocess.Popen(
-            [sys.executable, "-c", code, json.dumps(cfg)],
+            [sys.executable, "-P", "-c", code, json.dumps(cfg)],
             stdin=subprocess.PIPE,
             stdout=subprocess.PIPE,
             env=env,
