@@ -6,7 +6,7 @@ of CPU where numpy's ``standard_normal`` takes 18 ms, and the test suite draws t
 of frames. OpenCV's generator is per thread (each thread seeds its own before it draws),
 so the cameras' threads may draw at once. Its values pass the same checks numpy's do:
 mean, σ, kurtosis 3, no correlation between neighbouring pixels
-(tests/mocks/test_camera_render.py).
+(tests/mocks/test_sensor_noise.py).
 """
 
 from __future__ import annotations
