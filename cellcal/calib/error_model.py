@@ -37,6 +37,7 @@ from cellcal.calib.error_terms import Conditions, drift_parts, drift_variable, j
 from cellcal.calib.geometry import Array, so3_exp
 from cellcal.calib.kinematics import ROW_PARAMS, TargetKinematics, chain_frames, target_kinematics
 from cellcal.calib.robot_model import Joint, RobotModel
+from cellcal.calib.rotations import rotvec_from_matrix
 
 KINEMATIC_KINDS = ("theta", "d", "a", "alpha", "beta")
 
@@ -286,9 +287,7 @@ def predict_orientation(state: State, q: Array, groups: Groups | None = None) ->
 
 def orientation_residuals(measured_R: Array, predicted_R: Array) -> Array:
     """Rotation vectors (N×3, rad, sensor frame) taking predicted onto measured."""
-    from scipy.spatial.transform import Rotation  # heavy: imported when a fit needs it
-
-    out: Array = Rotation.from_matrix(measured_R @ np.swapaxes(predicted_R, 1, 2)).as_rotvec()
+    out: Array = rotvec_from_matrix(measured_R @ np.swapaxes(predicted_R, 1, 2))
     return out
 
 

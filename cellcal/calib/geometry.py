@@ -9,6 +9,8 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
+from cellcal.calib.rotations import rotvec_from_matrix
+
 Array = NDArray[np.float64]
 
 
@@ -35,9 +37,7 @@ def so3_exp(w: Array) -> Array:
 
 def so3_log(R: Array) -> Array:
     """Rotation vector of the rotation matrix ``R`` (inverse of :func:`so3_exp`)."""
-    from scipy.spatial.transform import Rotation
-
-    return np.asarray(Rotation.from_matrix(R).as_rotvec(), dtype=np.float64)
+    return rotvec_from_matrix(R)
 
 
 def rotation_angle(R: Array) -> float:

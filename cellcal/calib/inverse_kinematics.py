@@ -12,12 +12,12 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.spatial.transform import Rotation
 
 from cellcal.calib.error_terms import Conditions
 from cellcal.calib.geometry import Array
 from cellcal.calib.kinematics import target_kinematics
 from cellcal.calib.robot_model import RobotModel
+from cellcal.calib.rotations import rotvec_from_matrix
 
 
 @dataclass(frozen=True)
@@ -38,7 +38,7 @@ class IKSolution:
 
 
 def _rotvec(R: Array) -> Array:
-    out: Array = np.asarray(Rotation.from_matrix(R).as_rotvec(), dtype=np.float64)
+    out: Array = rotvec_from_matrix(R)
     return out
 
 

@@ -13,8 +13,11 @@ parameters); linearised Helmert (small-angle) iterated on SO(3).
 
 from __future__ import annotations
 
+import functools
+from collections.abc import Callable
+from typing import Any
+
 import numpy as np
-from scipy.linalg.lapack import dgesvd as _dgesvd
 
 from cellcal.calib.geometry import Array, so3_exp
 from cellcal.errors import ConvergenceError
@@ -30,13 +33,22 @@ def cross_covariance(P: Array, Q: Array, w: Array) -> Array:
     return H
 
 
+@functools.cache
+def _dgesvd() -> Callable[..., Any]:
+    # loaded at the first registration: scipy.linalg takes 0.3 s of CPU to import, which
+    # a twin or a service that has not yet registered anything need not pay
+    from scipy.linalg.lapack import dgesvd
+
+    return dgesvd  # type: ignore[no-any-return]
+
+
 def svd3(H: Array) -> tuple[Array, Array, Array]:
     """SVD of a 3×3 matrix, ``H = U diag(S) Vt``, through LAPACK's dgesvd.
 
     scipy's public LAPACK wrapper costs about 4 µs here against 10 µs for
     ``numpy.linalg.svd``, whose Python-level checks dominate at this size; the
     registration of 80 points spends a quarter of its time in this one call."""
-    U, S, Vt, info = _dgesvd(H)
+    U, S, Vt, info = _dgesvd()(H)
     if info != 0:
         raise ConvergenceError(f"SVD did not converge (LAPACK info {info})")
     return U, S, Vt

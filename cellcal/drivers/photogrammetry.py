@@ -34,6 +34,7 @@ from pydantic_core import PydanticCustomError
 from cellcal.calib.photogrammetry.camera_rig import Rig, Target
 from cellcal.calib.photogrammetry.rig_measurement import TargetMeter, mean_of
 from cellcal.calib.photogrammetry.target_pose import TargetPose
+from cellcal.calib.rotations import quaternion_from_matrix
 from cellcal.clock import Clock
 from cellcal.device_options import SensorOptions
 from cellcal.drivers.base import DeviceContext, DeviceDescription, Series, naming_errors
@@ -141,13 +142,7 @@ def rig_and_target(options: CameraRigOptions) -> tuple[Rig, Target]:
 
 def quaternion(R: np.ndarray) -> np.ndarray:
     """A rotation matrix as a unit quaternion (w, x, y, z), w ≥ 0."""
-    # imported here: the rig's camera twin, a process of its own, imports this module
-    # for the options alone (scipy.spatial would add a quarter of a second to its start)
-    from scipy.spatial.transform import Rotation
-
-    x, y, z, w = Rotation.from_matrix(R).as_quat()
-    q = np.array([w, x, y, z])
-    return q if w >= 0 else -q
+    return quaternion_from_matrix(R)
 
 
 class CameraRigSensor:

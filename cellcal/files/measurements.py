@@ -17,11 +17,11 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from cellcal.calib.error_model import Groups
 from cellcal.calib.error_terms import Conditions
 from cellcal.calib.geometry import Array
+from cellcal.calib.rotations import matrix_from_quaternion
 from cellcal.errors import FileFormatError
 from cellcal.files.csvtable import Table, read_table
 
@@ -158,7 +158,7 @@ def read_orientations(t: Table) -> Array | None:
             f"{t.where(int(bad[0]))}: ori_w..ori_z has length {norm[bad[0]]:.6g}, "
             "not a unit quaternion (w first)"
         )
-    out: Array = Rotation.from_quat(wxyz[:, [1, 2, 3, 0]] / norm[:, None]).as_matrix()
+    out: Array = matrix_from_quaternion(wxyz)
     return out
 
 

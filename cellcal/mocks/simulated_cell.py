@@ -29,12 +29,12 @@ from collections.abc import Callable
 from dataclasses import dataclass, replace
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from cellcal.calib.error_terms import Conditions
 from cellcal.calib.geometry import Array, invert
 from cellcal.calib.kinematics import target_kinematics
 from cellcal.calib.robot_model import RobotModel
+from cellcal.calib.rotations import matrix_from_euler_xyz
 from cellcal.clock import Clock
 from cellcal.config import CellConfig
 from cellcal.device_options import SensorOptions
@@ -60,7 +60,7 @@ class SensorTruth:
 
 def _pose(position_mm: list[float], rotation_deg: list[float]) -> Array:
     T = np.eye(4)
-    T[:3, :3] = Rotation.from_euler("xyz", rotation_deg, degrees=True).as_matrix()
+    T[:3, :3] = matrix_from_euler_xyz(np.radians(rotation_deg))
     T[:3, 3] = position_mm
     return T
 

@@ -27,10 +27,10 @@ from typing import Any
 import cv2
 import numpy as np
 from numpy.typing import NDArray
-from scipy.spatial.transform import Rotation
 
 from cellcal.calib.geometry import Array, invert
 from cellcal.calib.photogrammetry.camera_rig import Camera, Rig
+from cellcal.calib.rotations import matrix_from_rotvec
 from cellcal.errors import ConvergenceError, DegenerateGeometryError, MeasurementError
 
 #: The intrinsic parameters, in the order of the parameter vector.
@@ -137,7 +137,7 @@ def project(state: RigState, obs: Observations) -> tuple[Array, Array, Array, Ar
 
 
 def _exp(w: Array) -> Array:
-    out: Array = Rotation.from_rotvec(w).as_matrix().reshape(-1, 3, 3)
+    out: Array = matrix_from_rotvec(w).reshape(-1, 3, 3)
     return out
 
 

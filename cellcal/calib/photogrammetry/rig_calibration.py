@@ -29,7 +29,6 @@ from typing import Any
 import cv2
 import numpy as np
 from numpy.typing import NDArray
-from scipy.spatial.transform import Rotation
 
 from cellcal.calib.geometry import Array
 from cellcal.calib.photogrammetry import bundle as rig_bundle
@@ -59,6 +58,7 @@ from cellcal.calib.photogrammetry.views import (
     remeasure,
     unseen_views,
 )
+from cellcal.calib.rotations import nearest_rotation
 
 __all__ = [
     "CameraReport",
@@ -302,7 +302,7 @@ def _results(
         if c == 0:
             T = np.eye(4)
         else:  # re-orthonormalise what the updates left
-            T[:3, :3] = Rotation.from_matrix(T[:3, :3]).as_matrix()
+            T[:3, :3] = nearest_rotation(T[:3, :3])
         w, h = sizes[n]
         cams.append(Camera(n, w, h, K, np.array(dist), T, rms))
         sd = np.sqrt(np.clip(np.diag(res.camera_cov[c]), 0.0, None))

@@ -36,8 +36,8 @@ import math
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
+from cellcal.calib.rotations import euler_zyx_from_matrix
 from cellcal.mocks.link_server import POLL_S, Link, TcpLinkServer
 from cellcal.mocks.modbus.mbap import (
     GATEWAY_TARGET_FAILED,
@@ -78,7 +78,7 @@ log = logging.getLogger("cellcal.mocks.modbus_robot")
 def xyzabc(T_base_flange: np.ndarray) -> np.ndarray:
     """A flange pose (4×4, mm) as the pose registers hold it: [x, y, z] mm and
     [A, B, C] deg, Z-Y-X Euler angles (KUKA's convention)."""
-    abc = Rotation.from_matrix(T_base_flange[:3, :3]).as_euler("ZYX", degrees=True)
+    abc = np.degrees(euler_zyx_from_matrix(T_base_flange[:3, :3]))
     out: np.ndarray = np.concatenate([T_base_flange[:3, 3], abc])
     return out
 

@@ -20,10 +20,10 @@ about 40° of incidence.
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from cellcal.calib.geometry import Array, invert
 from cellcal.calib.photogrammetry.camera_rig import Board, Camera, Marker, Rig, Target
+from cellcal.calib.rotations import matrix_from_euler_xyz
 
 #: Distance from each camera to the centre of the measuring volume, mm.
 STANDOFF_MM = 1250.0
@@ -121,7 +121,7 @@ def board_poses(rig: Rig, board: Board, n: int, seed: int, tilt_deg: float = 35.
     for i in range(n):
         phase = 6.0 * np.pi * i / n + 0.3
         a = np.radians(tilt_deg) * np.sqrt((i + 1) / n) * np.array([np.cos(phase), np.sin(phase)])
-        R = R0 @ Rotation.from_euler("xyz", [a[0], a[1], rng.uniform(-0.3, 0.3)]).as_matrix()
+        R = R0 @ matrix_from_euler_xyz(np.array([a[0], a[1], rng.uniform(-0.3, 0.3)]))
         T = np.eye(4)
         T[:3, :3] = R
         T[:3, 3] = centre - R @ half + rng.uniform([-150, -120, -150], [150, 120, 150])

@@ -39,8 +39,8 @@ from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.spatial.transform import Rotation
 
+from cellcal.calib.rotations import matrix_from_rotvec, rotvec_from_matrix
 from cellcal.mocks.twins import UR_HOSTS, RunningTwin
 from cellcal.mocks.ur.dashboard import POLYSCOPE_VERSION
 
@@ -78,14 +78,14 @@ class CellInURUnits:
 
     def fk(self, q: np.ndarray) -> np.ndarray:
         T = self.cell.flange_pose(q)
-        return np.concatenate([T[:3, 3] / 1000.0, Rotation.from_matrix(T[:3, :3]).as_rotvec()])
+        return np.concatenate([T[:3, 3] / 1000.0, rotvec_from_matrix(T[:3, :3])])
 
     def ik(self, pose: np.ndarray, q_seed: np.ndarray) -> np.ndarray | None:
         pose = np.asarray(pose, dtype=np.float64)
         if pose.shape != (6,) or not np.all(np.isfinite(pose)):
             return None
         T = np.eye(4)
-        T[:3, :3] = Rotation.from_rotvec(pose[3:6]).as_matrix()
+        T[:3, :3] = matrix_from_rotvec(pose[3:6])
         T[:3, 3] = pose[:3] * 1000.0
         return self.cell.joints_for(T, q_seed)
 
@@ -316,8 +316,8 @@ class URTwin:
             return np.zeros(6)
         h = 1e-4
         ahead = np.asarray(self.kinematics.fk(q + qd * h), dtype=np.float64)
-        turn = Rotation.from_rotvec(ahead[3:]) * Rotation.from_rotvec(pose[3:]).inv()
-        return np.concatenate([(ahead[:3] - pose[:3]) / h, turn.as_rotvec() / h])
+        turn = matrix_from_rotvec(ahead[3:]) @ matrix_from_rotvec(pose[3:]).T
+        return np.concatenate([(ahead[:3] - pose[:3]) / h, rotvec_from_matrix(turn) / h])
 
     def _on_ik(self, rid: int, pose: list[float], seed: list[float]) -> None:
         q: np.ndarray | None
