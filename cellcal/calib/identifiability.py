@@ -28,7 +28,6 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.linalg import qr
 
 from cellcal.calib.error_model import KINEMATIC_KINDS, ParameterSpec
 from cellcal.calib.geometry import Array
@@ -109,6 +108,8 @@ def analyse(
 ) -> Identifiability:
     """Identifiable subset of ``specs`` for the (M×P) weighted Jacobian ``J``; parameters
     named in ``fixed`` are never chosen."""
+    from scipy.linalg import qr  # 0.3 s to import: loaded by an analysis, not at start
+
     Js = _unit_columns(J)
     M = J.shape[0]
     basis = np.zeros((M, 0))
@@ -159,20 +160,21 @@ def _conditioned(
 ) -> Identifiability:
     """The Identifiability of the set ``chosen``: its condition number and correlations."""
     others = tuple(i for i in range(len(specs)) if i not in set(chosen))
-    S = np.linalg.svd(Js[:, chosen], compute_uv=False)
+    _, S, Vt = np.linalg.svd(Js[:, chosen], full_matrices=False)
     cond = float(S[0] / S[-1]) if S[-1] > 0 else float("inf")
     correlated: list[tuple[str, str, float]] = []
-    try:
-        C = np.linalg.inv(Js[:, chosen].T @ Js[:, chosen])
-        sd = np.sqrt(np.diag(C))
-        rho = C / np.outer(sd, sd)
+    if np.isfinite(cond):
+        # (JᵀJ)⁻¹ = V S⁻² Vᵀ: positive definite however ill-conditioned J is, where
+        # inverting JᵀJ can leave a negative variance and no correlation at all
+        with np.errstate(over="ignore", invalid="ignore"):  # S⁻² beyond float: no ρ
+            C = (Vt.T / S**2) @ Vt
+            sd = np.sqrt(np.diag(C))
+            rho = C / np.outer(sd, sd)
         ii, jj = np.nonzero(np.triu(np.abs(rho) > CORRELATION_WARN, k=1))
         for a, b in zip(ii, jj, strict=True):
             correlated.append(
                 (specs[chosen[a]].name, specs[chosen[b]].name, round(float(rho[a, b]), 4))
             )
-    except np.linalg.LinAlgError:
-        pass
     return Identifiability(
         specs=specs,
         identified=tuple(chosen),
