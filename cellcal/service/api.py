@@ -121,11 +121,13 @@ class Service:
 
 
 Handler = Callable[[web.Request], Awaitable[web.StreamResponse]]
+#: The application's service, as aiohttp keeps typed application state.
+SERVICE = web.AppKey("svc", Service)
 
 
 def make_app(svc: Service) -> web.Application:
     app = web.Application(middlewares=[_errors, _allowed(svc)], client_max_size=MAX_BODY)
-    app["svc"] = svc
+    app[SERVICE] = svc
     svc.hub.status_view = lambda snap: _with_kind(svc, snap)
     app.router.add_get("/v1/info", info)
     app.router.add_get("/v1/status", status)
@@ -175,7 +177,6 @@ def _allowed(svc: Service) -> Any:
         trusted = peer is None or peer.uid in (0, os.getuid())
         if peer is not None and not trusted and svc.group_id not in (peer.gid, *peer.groups):
             return _error(403, "forbidden", f"{peer} is not in the service's group")
-        request["peer"] = peer
         if request.method == "POST":
             check_deadline(request)  # a change its client gave up on is not made
         return await handler(request)
@@ -184,7 +185,7 @@ def _allowed(svc: Service) -> Any:
 
 
 def _svc(request: web.Request) -> Service:
-    svc: Service = request.app["svc"]
+    svc = request.app[SERVICE]
     return svc
 
 
@@ -289,7 +290,7 @@ async def one_campaign(request: web.Request) -> web.Response:
 
 def _note(svc: Service, request: web.Request, cid: int, what: str) -> None:
     """The caller of a change, in the campaign's events."""
-    peer: Peer | None = request.get("peer")
+    peer = peer_of(request)
     who = str(peer) if peer is not None else "unknown caller"
     svc.store.add_event(cid, "operator", f"{what} by {who}", None)
 

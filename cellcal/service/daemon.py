@@ -41,7 +41,7 @@ from cellcal.clock import Clock, SimulatedClock, WallClock
 from cellcal.config import CellConfig, default_database, load_config
 from cellcal.errors import CampaignError, CellcalError
 from cellcal.files.models import load_model
-from cellcal.service.api import EventHub, Service, make_app
+from cellcal.service.api import SERVICE, EventHub, Service, make_app
 from cellcal.service.connections import (
     IDLE_TIMEOUT_S,
     AcceptErrors,
@@ -299,7 +299,7 @@ async def serve(opts: DaemonOptions) -> int:
             app = make_app(_service(opts, control, store, hub))
             runner = _runner(app)
             await runner.setup()
-            svc: Service = runner.app["svc"]
+            svc = runner.app[SERVICE]
             page = await _page(svc, opts.http, budget) if opts.http is not None else None
             svc.group_id = await _listen(runner, opts.socket_path, budget.control)
             worker = Worker(

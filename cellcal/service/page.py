@@ -143,7 +143,7 @@ async def _no_icon(request: web.Request) -> web.StreamResponse:
 
 def make_page_app(svc: api.Service, bound: str) -> web.Application:
     app = web.Application(middlewares=[_guard(bound)])
-    app["svc"] = svc
+    app[api.SERVICE] = svc
     for path, (name, content_type) in FILES.items():
         app.router.add_get(path, _file(name, content_type))
     app.router.add_get("/favicon.ico", _no_icon)
