@@ -21,7 +21,6 @@ from typing import Any
 import numpy as np
 import pytest
 import tomli_w
-from scipy.spatial.transform import Rotation
 from threadpoolctl import threadpool_limits  # type: ignore[import-untyped]
 
 from cellcal.config import CellConfig, load_config
@@ -150,6 +149,9 @@ def rigid_problem(
     seed: int, n: int = 20, noise: float = 0.0, angle_deg: float | None = None
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Random src cloud (mm), true R, t and dst = R src + t + noise."""
+    # scipy.spatial is slow to load: here, not in every worker's collection
+    from scipy.spatial.transform import Rotation
+
     rng = np.random.default_rng(seed)
     P = rng.uniform(-100.0, 100.0, (n, 3)) + rng.uniform(-2000, 2000, 3)
     if angle_deg is None:
