@@ -90,7 +90,9 @@ def pytest_xdist_auto_num_workers(config: pytest.Config) -> int:
     (simulated dwell on a scaled clock, sockets, the service, Chromium), in which another
     worker on the core computes. On 2 cores: 4 workers 329 s, 5 workers 318 s, 6 workers
     298 s (that run also without the documents' examples compiling cellcal again), both
-    cores busy for more of the run; an earlier machine had found 6 no faster than 4."""
+    cores busy for more of the run; an earlier machine had found 6 no faster than 4. With
+    the suite's CPU cut to about 550 CPU-s: 5 workers 307 s, 6 workers 289–294 s, 8
+    workers 320 s (more CPU: each worker collects the whole suite, 3 s)."""
     return 3 * len(os.sched_getaffinity(0))
 
 
