@@ -160,7 +160,8 @@ def _conditioned(
 ) -> Identifiability:
     """The Identifiability of the set ``chosen``: its condition number and correlations."""
     others = tuple(i for i in range(len(specs)) if i not in set(chosen))
-    _, S, Vt = np.linalg.svd(Js[:, chosen], full_matrices=False)
+    # the singular values and right vectors of J are those of R in J = QR: no M×P factor
+    _, S, Vt = np.linalg.svd(np.linalg.qr(Js[:, chosen], mode="r"), full_matrices=False)
     cond = float(S[0] / S[-1]) if S[-1] > 0 else float("inf")
     correlated: list[tuple[str, str, float]] = []
     if np.isfinite(cond):
