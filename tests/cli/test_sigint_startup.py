@@ -10,6 +10,7 @@ with nothing said, which is what a shell reports as 130 too."""
 
 from __future__ import annotations
 
+import os
 import signal
 import subprocess
 import sys
@@ -44,8 +45,9 @@ def _check(done: subprocess.CompletedProcess[str], delay: float) -> str:
     where = f"SIGINT after {delay} s: exit {done.returncode}, stderr {err[-2000:]!r}"
     if "Traceback" in err or "KeyboardInterrupt" in err:
         # Python's own start (its site-packages, finding the package) runs before any
-        # line of cellcal: a traceback there names no file of the package
-        assert PACKAGE not in err, where
+        # line of cellcal: a traceback there has no frame in a file of the package (it
+        # may name the package's folder, as a key of the import system's caches)
+        assert f'File "{PACKAGE}{os.sep}' not in err, where
         return "before cellcal"
     if done.returncode == 0:
         return "completed"
