@@ -240,7 +240,10 @@ def test_protective_stop_fails_the_move_and_is_reported() -> None:
         wait_for(lambda: ur.r.isProtectiveStopped(), "the protective stop on the receive link")
         assert ur.r.getSafetyStatusBits() & (1 << 2)
         assert ur.r.getSafetyMode() == 3
-        q_stopped = sim.q
+        # where it halted: the receive link's joints come with the stop bits; the twin's
+        # own view (sim.q, from its controller process) may still be a cycle behind
+        q_stopped = np.array(ur.r.getActualQ())
+        wait_for(lambda: np.allclose(sim.q, q_stopped, rtol=0, atol=1e-9), "the halted joints")
         assert 0.01 < q_stopped[0] - Q0[0] < 0.99
         assert dashboard(host, ["safetystatus"])[1] == "Safetystatus: PROTECTIVE_STOP"
         assert not ur.c.moveJ(Q0.tolist(), 1.0, 1.4)  # refused while stopped
