@@ -37,11 +37,6 @@ class IKSolution:
         return out
 
 
-def _rotvec(R: Array) -> Array:
-    out: Array = rotvec_from_matrix(R)
-    return out
-
-
 def solve(
     model: RobotModel,
     target_offset: Array,
@@ -75,7 +70,7 @@ def solve(
             conditions=None if conditions is None else conditions.subset(active),
         )
         e_pos = p_target[active] - k.p
-        e_rot = _rotvec(R_target[active] @ np.swapaxes(k.R_flange, 1, 2))
+        e_rot = rotvec_from_matrix(R_target[active] @ np.swapaxes(k.R_flange, 1, 2))
         ep[active] = np.linalg.norm(e_pos, axis=1)
         er[active] = np.linalg.norm(e_rot, axis=1)
         now = (ep[active] < tol_mm) & (er[active] * length_mm < tol_mm)

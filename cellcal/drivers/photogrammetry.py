@@ -140,11 +140,6 @@ def rig_and_target(options: CameraRigOptions) -> tuple[Rig, Target]:
         raise DeviceError(f"sensor {options.name}: {exc}", device=options.name) from None
 
 
-def quaternion(R: np.ndarray) -> np.ndarray:
-    """A rotation matrix as a unit quaternion (w, x, y, z), w ≥ 0."""
-    return quaternion_from_matrix(R)
-
-
 class CameraRigSensor:
     """A :class:`~cellcal.drivers.base.PositionSensor` made of a camera rig, its
     calibration and the target it measures; ``address``: its cameras' (the configured
@@ -271,7 +266,7 @@ class CameraRigSensor:
             np.array([p.xyz_mm for p in poses]),
             retries=retries,
             cov=np.array([p.cov_mm2 for p in poses]),
-            orientation=np.array([quaternion(p.T_rig_target[:3, :3]) for p in poses]),
+            orientation=quaternion_from_matrix(np.array([p.T_rig_target[:3, :3] for p in poses])),
             mean_cov=mean.cov_mm2,
             note=_summary(len(poses), n, k, missed, lost),
         )
