@@ -88,6 +88,28 @@ def wait_for(cond: Callable[[], bool], what: str, limit: float = 10.0) -> None:
         time.sleep(0.002)
 
 
+def halted_joints(
+    sim: URTwin, ur: Clients, still_s: float = 0.1, limit: float = 10.0
+) -> np.ndarray:
+    """The joints once the twin's own view and the receive link agree and have not
+    changed for ``still_s``: a halted robot's position, not one a cycle before it."""
+    deadline = time.monotonic() + limit
+    last: np.ndarray | None = None
+    since = time.monotonic()
+    while True:
+        q = np.array(ur.r.getActualQ())
+        agreed = np.allclose(sim.q, q, rtol=0, atol=1e-9)
+        now = time.monotonic()
+        if not agreed or last is None or not np.array_equal(q, last):
+            since = now
+        elif now - since >= still_s:
+            return q
+        last = q if agreed else None
+        if now > deadline:
+            raise AssertionError("timed out waiting for the halted joints")
+        time.sleep(0.002)
+
+
 def eventually(check: Callable[[], None], limit: float = 5.0) -> None:
     """Run an assertion until it holds: the receive connection is independent of the
     control connection and may be a few cycles behind it on a loaded machine."""
@@ -240,10 +262,10 @@ def test_protective_stop_fails_the_move_and_is_reported() -> None:
         wait_for(lambda: ur.r.isProtectiveStopped(), "the protective stop on the receive link")
         assert ur.r.getSafetyStatusBits() & (1 << 2)
         assert ur.r.getSafetyMode() == 3
-        # where it halted: the receive link's joints come with the stop bits; the twin's
-        # own view (sim.q, from its controller process) may still be a cycle behind
-        q_stopped = np.array(ur.r.getActualQ())
-        wait_for(lambda: np.allclose(sim.q, q_stopped, rtol=0, atol=1e-9), "the halted joints")
+        # Where it halted: the stop bits go out at once, the joints a round trip later
+        # (the receive link publishes a position once the twin's parent has acknowledged
+        # it), so wait until both views agree and have stayed put for 0.1 s.
+        q_stopped = halted_joints(sim, ur)
         assert 0.01 < q_stopped[0] - Q0[0] < 0.99
         assert dashboard(host, ["safetystatus"])[1] == "Safetystatus: PROTECTIVE_STOP"
         assert not ur.c.moveJ(Q0.tolist(), 1.0, 1.4)  # refused while stopped
