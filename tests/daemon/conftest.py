@@ -5,6 +5,8 @@ in mock mode (the bundled cell's tracker alone), in a short folder under /tmp.""
 from __future__ import annotations
 
 import contextlib
+import http.client
+import json
 import os
 import signal
 import socket
@@ -20,7 +22,6 @@ from typing import Any
 
 import pytest
 
-from cellcal.commands.service_client import call
 from tests.browser import shared_chromium  # noqa: F401  (the page tests' one browser)
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -73,6 +74,42 @@ def fake() -> Iterator[tuple[FakeSystemd, str]]:
     os.rmdir(folder)
 
 
+class _UnixHTTP(http.client.HTTPConnection):
+    """HTTP/1.1 over the service's Unix socket."""
+
+    def __init__(self, path: str, timeout: float) -> None:
+        super().__init__("cellcal", timeout=timeout)
+        self._path = path
+
+    def connect(self) -> None:
+        sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        sock.settimeout(self.timeout)
+        try:
+            sock.connect(self._path)
+        except OSError:
+            sock.close()
+            raise
+        self.sock = sock
+
+
+def read_status(sock: str, timeout: float = 10.0) -> dict[str, Any]:
+    """``GET /v1/status`` with the standard library's HTTP client: the tests poll the
+    status every 50 ms while a service works, and cellcal's own client (aiohttp, an event
+    loop a call) costs about four times the CPU a call. The command-line client is
+    tested by the CLI's tests; this one only reads."""
+    conn = _UnixHTTP(sock, timeout)
+    try:
+        conn.request("GET", "/v1/status")
+        resp = conn.getresponse()
+        body = resp.read()
+    finally:
+        conn.close()
+    data = json.loads(body)
+    if resp.status != 200 or not isinstance(data, dict):
+        raise AssertionError(f"GET /v1/status answered {resp.status}: {body[:200]!r}")
+    return data
+
+
 class Daemon:
     def __init__(
         self,
@@ -119,12 +156,17 @@ class Daemon:
         self.until(lambda s: all(d["state"] == "ready" for d in s["devices"].values()), 90)
 
     def status(self) -> dict[str, Any]:
-        return call(self.sock, "GET", "/v1/status")  # type: ignore[no-any-return]
+        """The service's status, read by :func:`read_status` (the polls' cheap client)."""
+        return read_status(self.sock)
 
     def until(self, ok: Callable[[dict[str, Any]], bool], timeout: float = 60) -> dict[str, Any]:
-        """Poll the status until ``ok``; the listening socket is waited for the same way."""
+        """Poll the status until ``ok``; the listening socket is waited for the same way.
+        The polls come every 10 ms at first, then less often, every 100 ms at most: a
+        condition that holds soon is seen soon, and a long wait costs the service and
+        the test little CPU."""
         deadline = time.monotonic() + timeout
         last: dict[str, Any] = {}
+        pause = 0.01
         while time.monotonic() < deadline:
             assert self.proc is not None and self.proc.poll() is None, self.tail()
             if Path(self.sock).exists():
@@ -134,7 +176,8 @@ class Daemon:
                     last = {"error": repr(exc)}
                 if "error" not in last and ok(last):
                     return last
-            time.sleep(0.05)
+            time.sleep(pause)
+            pause = min(pause * 1.5, 0.1)
         raise AssertionError(f"status never as expected: {last}\n{self.tail()}")
 
     def rows(self, sql: str) -> list[tuple[Any, ...]]:
