@@ -10,7 +10,6 @@ import subprocess
 from pathlib import Path
 
 import numpy as np
-import pinocchio as pin
 import pytest
 
 from cellcal.calib.kinematics import target_kinematics
@@ -21,6 +20,7 @@ from cellcal.mocks.robot_truth import perturbed_model, random_joints
 from tests.calib.simulated import well_spread
 from tests.cli.test_calibrate_cli import write_measurements
 from tests.inprocess import cellcal
+from tests.lazy import pinocchio as pin
 
 ROOT = Path(__file__).parent
 UR5 = ROOT / "data" / "urdf" / "ur5_robot.urdf"

@@ -14,7 +14,6 @@ import tomllib
 from pathlib import Path
 
 import numpy as np
-import pinocchio as pin
 import pytest
 import tomli_w
 
@@ -27,6 +26,7 @@ from cellcal.mocks.robot_truth import perturbed_model, random_joints
 from tests.calib.simulated import well_spread
 from tests.cli.test_calibrate_cli import write_measurements
 from tests.inprocess import cellcal
+from tests.lazy import pinocchio as pin
 
 ROOT = Path(__file__).resolve().parents[1]
 UR5 = ROOT / "tests" / "data" / "urdf" / "ur5_robot.urdf"

@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from scipy.spatial.transform import Rotation
 
 from cellcal.calib.fusion import Estimate, carried, fuse, in_base
 from cellcal.errors import InputError
+from tests.lazy import Rotation
 
 
 def test_the_more_certain_sensor_dominates_axis_by_axis():

@@ -5,13 +5,13 @@ from __future__ import annotations
 from dataclasses import replace
 
 import numpy as np
-import pinocchio as pin
 import pytest
 
 from cellcal.calib.inverse_kinematics import solve
 from cellcal.calib.kinematics import ROW_PARAMS, flange_transforms, target_kinematics
 from cellcal.calib.robot_model import model_from_dict
 from cellcal.files.models import load_model
+from tests.lazy import pinocchio as pin
 
 TOOL = np.array([12.0, -34.0, 56.0])
 

@@ -6,7 +6,6 @@ from __future__ import annotations
 import tracemalloc
 
 import numpy as np
-from scipy.optimize import least_squares
 
 from cellcal.calib import levenberg
 from cellcal.calib.error_model import Groups, apply, parameter_specs
@@ -14,6 +13,7 @@ from cellcal.calib.identifiability import analyse
 from cellcal.calib.observations import Data, initial_state
 from cellcal.files.models import load_model
 from cellcal.mocks.robot_truth import measure, random_cell, random_joints
+from tests.lazy import least_squares
 
 KR5 = load_model("kuka-kr5-arc").model
 

@@ -7,7 +7,6 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import pytest
-from scipy.spatial.transform import Rotation
 
 from cellcal.calib.photogrammetry.camera_rig import Camera, Marker, Rig, Target
 from cellcal.calib.photogrammetry.marker_corners import MarkerFinder, Window, grey_levels
@@ -16,6 +15,7 @@ from cellcal.calib.photogrammetry.target_pose import measure_target
 from cellcal.errors import InputError, MeasurementError
 from cellcal.mocks.rig.camera_render import Optics, SceneRenderer
 from cellcal.mocks.rig.scene import dome_target, four_camera_rig, volume_centre
+from tests.lazy import Rotation
 
 K = [[1000.0, 0.0, 639.5], [0.0, 1000.0, 511.5], [0.0, 0.0, 1.0]]
 DIST = [-0.2, 0.1, 0.001, -0.001, 0.0]

@@ -6,8 +6,6 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from scipy.optimize import least_squares
-from scipy.spatial.transform import Rotation
 
 from cellcal.calib.registration import METHODS, apply_fit, fit_rigid
 from cellcal.calib.registration_batch import fit_rigid_batch, leave_one_out
@@ -19,6 +17,7 @@ from cellcal.errors import (
     UserError,
 )
 from tests.conftest import rigid_problem
+from tests.lazy import Rotation, least_squares
 
 LS = ("svd", "quaternion", "rodrigues", "small-angle")
 

@@ -15,7 +15,6 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from scipy.spatial.transform import Rotation
 
 from cellcal.calib.geometry import Array, invert
 from cellcal.calib.photogrammetry import bundle as rig_bundle
@@ -42,6 +41,7 @@ from cellcal.files.images import load_views, read_image
 from cellcal.mocks.rig.camera_render import Image, Optics, SceneRenderer, board_face
 from cellcal.mocks.rig.scene import board_poses, dome_target, four_camera_rig, volume_centre
 from tests.calib.detections import kept_detections
+from tests.lazy import Rotation
 
 pytestmark = pytest.mark.slow
 

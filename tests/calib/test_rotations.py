@@ -4,24 +4,31 @@ rotations and at the edges: identity, tiny angles, half turns, gimbal lock."""
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 import pytest
-from scipy.spatial.transform import Rotation
 
 from cellcal.calib import rotations as rot
-
-RNG = np.random.default_rng(20261129)
-RANDOM = Rotation.random(500, random_state=7)
+from tests.lazy import Rotation
 
 
-def _edges() -> Rotation:
-    axes = np.vstack([np.eye(3), RNG.normal(size=(6, 3))])
+@functools.cache
+def _rotations(kind: str) -> Rotation:
+    """500 random rotations, or the edges: each axis at angles from 0 to a half turn."""
+    if kind == "random":
+        return Rotation.random(500, random_state=7)
+    axes = np.vstack([np.eye(3), np.random.default_rng(20261129).normal(size=(6, 3))])
     axes /= np.linalg.norm(axes, axis=1)[:, None]
     angles = [0.0, 1e-12, 1e-7, 9.99e-4, 1.001e-3, 0.5, np.pi / 2, np.pi - 1e-7, np.pi]
     return Rotation.from_rotvec(np.array([a * angle for a in axes for angle in angles]))
 
 
-@pytest.mark.parametrize("r", [RANDOM, _edges()], ids=["random", "edges"])
+@pytest.fixture(params=["random", "edges"])
+def r(request: pytest.FixtureRequest) -> Rotation:
+    return _rotations(request.param)
+
+
 def test_rotation_vectors_match_scipy_both_ways(r: Rotation):
     R = r.as_matrix()
     np.testing.assert_allclose(rot.matrix_from_rotvec(r.as_rotvec()), R, atol=2e-15)
@@ -33,7 +40,6 @@ def test_rotation_vectors_match_scipy_both_ways(r: Rotation):
     assert (np.linalg.norm(w, axis=1) <= np.pi + 1e-15).all()
 
 
-@pytest.mark.parametrize("r", [RANDOM, _edges()], ids=["random", "edges"])
 def test_quaternions_match_scipy_w_first_and_w_not_negative(r: Rotation):
     R = r.as_matrix()
     q = rot.quaternion_from_matrix(R)
@@ -47,8 +53,8 @@ def test_quaternions_match_scipy_w_first_and_w_not_negative(r: Rotation):
 
 
 def test_a_matrix_a_little_off_orthonormal_gives_the_nearby_rotation():
-    R = RANDOM.as_matrix()[:50]
-    off = R + RNG.normal(scale=1e-9, size=R.shape)
+    R = _rotations("random").as_matrix()[:50]
+    off = R + np.random.default_rng(1).normal(scale=1e-9, size=R.shape)
     q = rot.quaternion_from_matrix(off)
     np.testing.assert_allclose(np.linalg.norm(q, axis=1), 1.0, atol=1e-15)
     np.testing.assert_allclose(rot.matrix_from_quaternion(q), R, atol=1e-8)
@@ -62,7 +68,9 @@ def test_a_matrix_a_little_off_orthonormal_gives_the_nearby_rotation():
 
 
 def test_euler_angles_match_scipy_and_survive_gimbal_lock():
-    abc = RNG.uniform([-np.pi, -np.pi / 2, -np.pi], [np.pi, np.pi / 2, np.pi], size=(300, 3))
+    abc = np.random.default_rng(2).uniform(
+        [-np.pi, -np.pi / 2, -np.pi], [np.pi, np.pi / 2, np.pi], size=(300, 3)
+    )
     R = rot.matrix_from_euler_xyz(abc)
     np.testing.assert_allclose(R, Rotation.from_euler("xyz", abc).as_matrix(), atol=2e-15)
     zyx = rot.euler_zyx_from_matrix(R)

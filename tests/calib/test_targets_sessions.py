@@ -8,7 +8,6 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from scipy.spatial.transform import Rotation
 
 from cellcal.calib.error_model import Groups, State, predict, predict_orientation
 from cellcal.calib.geometry import so3_exp
@@ -20,6 +19,7 @@ from cellcal.calib.validation import cross_validate
 from cellcal.errors import AcceptanceError, DegenerateGeometryError
 from cellcal.files.models import load_model
 from cellcal.mocks.robot_truth import random_cell, random_joints
+from tests.lazy import Rotation
 
 NOISE = 0.01  # mm
 SMRS = np.array([[25.0, -40.0, 130.0], [-60.0, 35.0, 110.0], [40.0, 70.0, 95.0]])

@@ -8,7 +8,6 @@ import math
 
 import numpy as np
 import pytest
-from scipy.spatial.transform import Rotation
 
 from cellcal.calib.error_model import Groups, State, predict
 from cellcal.calib.geometry import so3_exp
@@ -16,6 +15,7 @@ from cellcal.calib.kinematics import target_kinematics
 from cellcal.files.models import load_model
 from cellcal.mocks.robot_truth import random_cell, random_joints
 from tests.cli.test_calibrate_cli import run
+from tests.lazy import Rotation
 
 SMRS = np.array([[25.0, -40.0, 130.0], [-60.0, 35.0, 110.0]])
 

@@ -8,7 +8,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from scipy.spatial.transform import Rotation
 
 from cellcal.cli import main
 from cellcal.files.images import write_image
@@ -16,6 +15,7 @@ from cellcal.files.photogrammetry import write_rig, write_target
 from cellcal.mocks.rig.camera_render import Optics, SceneRenderer
 from cellcal.mocks.rig.scene import board_poses, dome_target, four_camera_rig, volume_centre
 from tests.calib.detections import kept_detections
+from tests.lazy import Rotation
 
 pytestmark = pytest.mark.slow  # renders and calibrates a rig: the parallel run starts it early
 

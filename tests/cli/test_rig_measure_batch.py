@@ -10,13 +10,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from scipy.spatial.transform import Rotation
 
 from cellcal.files.images import ImageFileError, read_image, write_image
 from cellcal.files.photogrammetry import write_rig, write_target
 from cellcal.mocks.rig.camera_render import Optics, SceneRenderer
 from cellcal.mocks.rig.scene import dome_target, four_camera_rig, volume_centre
 from tests.cli.test_rig_cli import measure_args, run
+from tests.lazy import Rotation
 
 #: set → pose (index into the poses rendered): two poses, each in several sets
 SETS = {"set00": 0, "set01": 0, "set02": 1, "set03": 1, "set04": 0}

@@ -10,7 +10,6 @@ import json
 import sqlite3
 from pathlib import Path
 
-import psycopg
 import pytest
 
 from cellcal.store.database import Store
@@ -19,6 +18,7 @@ from tests.fleet.conftest import make_cell
 from tests.fleet.pg_server import HOST, PROXY_HOST, PgServer
 from tests.fleet.proxy import CuttingProxy
 from tests.inprocess import cellcal
+from tests.lazy import psycopg
 
 pytestmark = [pytest.mark.twin, pytest.mark.slow, pytest.mark.timeout(240)]
 

@@ -10,7 +10,6 @@ import sqlite3
 from pathlib import Path
 from typing import Any
 
-import psycopg
 import pytest
 
 from cellcal.store.outbox import FLEET_TABLES
@@ -18,6 +17,7 @@ from tests.daemon.conftest import daemon, folder  # noqa: F401 - the service's f
 from tests.fleet.conftest import cell_config
 from tests.fleet.pg_server import PgServer
 from tests.inprocess import cellcal
+from tests.lazy import psycopg
 
 pytestmark = [pytest.mark.twin, pytest.mark.slow, pytest.mark.timeout(240)]
 

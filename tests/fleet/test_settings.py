@@ -10,12 +10,12 @@ import json
 import re
 from pathlib import Path
 
-import psycopg
 import pytest
 
 from tests.fleet.conftest import cell_config, make_cell
 from tests.fleet.pg_server import HOST, PgServer, free_port
 from tests.inprocess import cellcal
+from tests.lazy import psycopg
 
 pytestmark = [pytest.mark.twin, pytest.mark.slow, pytest.mark.timeout(120)]
 

@@ -11,12 +11,15 @@ import time
 
 import numpy as np
 import pytest
-from CESAPI import packet as es
-from CESAPI.command import CommandSync
-from CESAPI.connection import Connection
 
 from cellcal.mocks.tracker.emscon_server import EmsconTwin
 from cellcal.mocks.tracker.emscon_state import SERIAL, EmsconState
+from tests.lazy import Lazy
+
+# CESAPI (and the requests and websocket it imports) loaded by the tests that use it
+es = Lazy("CESAPI.packet")
+CommandSync = Lazy("CESAPI.command", "CommandSync")
+Connection = Lazy("CESAPI.connection", "Connection")
 
 pytestmark = pytest.mark.timeout(90)
 

@@ -16,7 +16,6 @@ from typing import Any
 
 import numpy as np
 import pytest
-from scipy.spatial.transform import Rotation
 
 from cellcal.config import load_config
 from cellcal.drivers.ur import URRobot
@@ -24,6 +23,7 @@ from cellcal.errors import DeviceError
 from cellcal.files.models import load_model
 from cellcal.mocks.simulated_cell import SimulatedCell
 from cellcal.mocks.ur.server import POLYSCOPE_VERSION, CellInURUnits, URTwin
+from tests.lazy import Rotation
 from tests.mocks.test_ur_twin_wire import Rtde as RawRTDE
 from tests.mocks.test_ur_twin_wire import dashboard
 
