@@ -92,8 +92,15 @@ def pytest_xdist_auto_num_workers(config: pytest.Config) -> int:
     298 s (that run also without the documents' examples compiling cellcal again), both
     cores busy for more of the run; an earlier machine had found 6 no faster than 4. With
     the suite's CPU cut to about 550 CPU-s: 5 workers 307 s, 6 workers 289–294 s, 8
-    workers 320 s (more CPU: each worker collects the whole suite, 3 s)."""
-    return 3 * len(os.sched_getaffinity(0))
+    workers 320 s (more CPU: each worker collects the whole suite, 3 s).
+
+    Two workers per core for a run without the twins' tests (``-m "not twin …"``, as
+    ``make check``): those tests compute and seldom wait, and a third worker per core
+    only adds its collection and the workers' contention for the caches. ``make check``'s
+    tests on 2 cores: 6 workers 89 s (172 CPU-s), 4 workers 86 s (156 CPU-s), 3 workers
+    93 s (the longest files end last)."""
+    per_core = 2 if "not twin" in (config.getoption("markexpr", "") or "") else 3
+    return per_core * len(os.sched_getaffinity(0))
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
