@@ -107,7 +107,7 @@ unit: $(STAMP) $(UR_CLIENT) $(ARAVIS) $(TOOLS) $(PG) $(WARM)
 
 test: lint types unit
 
-# The quick check while changing code (about 90 s on 2 cores): lint, types and the tests that
+# The quick check while changing code (about 85 s on 2 cores): lint, types and the tests that
 # need no device twin, service or browser.
 check: lint types $(WARM)
 	$(PYCACHE) $(BIN)/pytest -q $(PARALLEL) -m "not twin and not browser" --durations=10
