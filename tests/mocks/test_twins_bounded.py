@@ -253,8 +253,8 @@ def test_an_rtde_client_asking_for_endless_recipes_is_refused_not_fatal(
 def test_the_ur_twin_closes_a_dashboard_client_that_never_reads() -> None:
     """Requests sent and no reply read: past a MiB of replies waiting the UR twin closes
     the connection (a reset on the client's next send) and keeps serving others."""
-    from tests.mocks.test_ur_server import ur_twin
     from tests.mocks.test_ur_twin_wire import dashboard
+    from tests.mocks.ur_clients import ur_twin
 
     host = "127.0.0.146"
     with ur_twin(host):

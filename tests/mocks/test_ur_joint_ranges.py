@@ -9,10 +9,12 @@ import pytest
 
 from cellcal.drivers.ur import URRobot
 from cellcal.errors import DeviceError
-from tests.mocks.test_ur_server import Q0, Q1, clients, ur_twin, wait_for
 from tests.mocks.test_ur_twin_wire import dashboard
+from tests.mocks.ur_clients import Q0, Q1, clients, ur_twin, wait_for
 
 pytestmark = pytest.mark.twin
+
+pytest.importorskip("rtde_control")  # UR's own client (make fetches it): skipped without it
 
 
 @pytest.mark.timeout(60, method="thread")
