@@ -18,6 +18,7 @@ import pytest
 from cellcal.calib.identification import calibrate
 from cellcal.calib.observations import on_a_line
 from cellcal.calib.validation import ErrorStats, validate_on
+from tests.lazy import Lazy
 
 BENCHMARKS = Path(__file__).parents[2] / "benchmarks"
 
@@ -34,20 +35,19 @@ def _load(name: str) -> ModuleType:
     return module
 
 
-class _Benchmark:
-    """A benchmark module, loaded by the first test that reads it: they import scipy,
-    which the parallel run's workers would otherwise each load as they collect."""
+class _Benchmark(Lazy):
+    """A benchmark module (after the benchmark modules it imports, ``first``), loaded by
+    the first test that reads it: they import scipy, which the parallel run's workers
+    would otherwise each load as they collect."""
 
     def __init__(self, name: str, *first: str) -> None:
-        self._name = name
-        self._first = first  # the benchmark modules it imports, loaded before it
+        super().__init__(name)
+        self._first = first
 
-    def __getattr__(self, attr: str) -> object:
-        if attr.startswith("_") or attr.startswith("pytest"):  # pytest's look at the module
-            raise AttributeError(attr)
+    def _load(self) -> Any:
         for name in self._first:
             _load(name)
-        return getattr(_load(self._name), attr)
+        return _load(self._module)
 
 
 plain_fit: Any = _Benchmark("plain_fit")
