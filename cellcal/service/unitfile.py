@@ -11,6 +11,7 @@ import re
 import shutil
 import subprocess
 import tempfile
+import textwrap
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
@@ -77,7 +78,7 @@ def _filled(text: str, values: dict[str, str], fields: tuple[str, ...]) -> str:
 
 def render(venv: Path, config: Path, user: str) -> str:
     """The unit for this installation."""
-    text = _rendered_header(template(), venv, config, user)
+    text = _rendered_header(UNIT_NAME, template(), venv, config, user)
     return _filled(text, _values(venv, config, user), FIELDS)
 
 
@@ -91,18 +92,35 @@ def render_check(venv: Path, config: Path, user: str, every: str) -> dict[str, s
         )
     values = {**_values(venv, config, user), "every": span}
     return {
-        name: _filled(template(name), values, CHECK_FIELDS) for name in (CHECK_SERVICE, CHECK_TIMER)
+        name: _filled(
+            _rendered_header(name, template(name), venv, config, user), values, CHECK_FIELDS
+        )
+        for name in (CHECK_SERVICE, CHECK_TIMER)
     }
 
 
-def _rendered_header(text: str, venv: Path, config: Path, user: str) -> str:
+def _rendered_header(name: str, text: str, venv: Path, config: Path, user: str) -> str:
     """The template's opening comment (about the template and its fields) replaced by
-    one about this rendered copy."""
+    one about this rendered copy of unit ``name``."""
     body = text[text.index("[Unit]") :]
+    what = {
+        UNIT_NAME: "The cell service's systemd unit",
+        CHECK_SERVICE: "The check between calibrations (docs/checks.md): started by"
+        " cellcal-check.timer, it queues a check in the cell service, which runs it after"
+        " the campaign under way",
+        CHECK_TIMER: "The timer that starts cellcal-check.service (a check between calibrations)",
+    }[name]
+    comment = (
+        f"{what}. Rendered by `cellcal service install` from the bundled template for venv"
+        f" {venv}, configuration {config}, user {user} (see docs/service.md). After editing"
+        " it: sudo systemctl daemon-reload."
+    )
     return (
-        "# The cell service's systemd unit, rendered by `cellcal service install` from the\n"
-        f"# bundled template for venv {venv}, configuration {config}, user {user}\n"
-        "# (see docs/service.md). After editing it: sudo systemctl daemon-reload.\n" + body
+        "".join(
+            f"# {line}\n"
+            for line in textwrap.wrap(comment, 86, break_long_words=False, break_on_hyphens=False)
+        )
+        + body
     )
 
 

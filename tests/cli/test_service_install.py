@@ -17,7 +17,7 @@ from pathlib import Path
 import pytest
 
 from cellcal.commands.service import _blocked
-from cellcal.service.unitfile import render, template, verify
+from cellcal.service.unitfile import render, render_check, template, verify
 from tests.cli.test_calibrate_cli import run
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -119,14 +119,18 @@ def test_install_refuses_what_it_cannot_use(
     assert not list(p for p in tmp_path.iterdir() if p.suffix == ".service")
 
 
-def test_the_rendered_header_is_about_the_rendered_unit() -> None:
-    text = render(Path("/opt/cellcal"), Path("/etc/cellcal/cell.toml"), "cellcal")
-    header = text[: text.index("[Unit]")]
-    assert "are filled in" not in header and "${" not in header
-    assert "rendered by `cellcal service install`" in header
-    assert "/opt/cellcal" in header and "/etc/cellcal/cell.toml" in header
-    assert "user cellcal" in header
-    assert all(line.startswith("# ") for line in header.splitlines())
+def test_the_rendered_headers_are_about_the_rendered_units() -> None:
+    venv, config = Path("/opt/cellcal-with-a-long-name/venv"), Path("/etc/cellcal/cell.toml")
+    units = {"cellcal.service": render(venv, config, "cellcal")}
+    units.update(render_check(venv, config, "cellcal", "7d"))
+    for name, text in units.items():
+        header = text[: text.index("[Unit]")]
+        assert "are filled in" not in header and "${" not in header, name
+        flat = " ".join(line.removeprefix("# ") for line in header.splitlines())
+        assert "Rendered by `cellcal service install`" in flat, name
+        assert f"venv {venv}," in flat and f"configuration {config}," in flat, name
+        assert "user cellcal" in flat, name
+        assert all(line.startswith("# ") for line in header.splitlines()), name
 
 
 def _other_user() -> pwd.struct_passwd:
