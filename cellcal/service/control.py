@@ -196,8 +196,9 @@ class Control:
                 self.state, self.reason = "idle", f"campaign {campaign_id} {status}: {message}"
             if self.shutting_down:
                 self.state = "stopping"
-            if self.campaign is not None:
+            if self.campaign is not None:  # no ETA once it stops (docs/service.md)
                 self.campaign.update(phase=status, status=status)
+                self.campaign.pop("eta_s", None)
             self._changed()
 
     def set_device(self, name: str, state: str, message: str = "") -> None:
@@ -430,6 +431,7 @@ class Control:
                 self._lock.notify_all()
             if self.campaign is not None and self.campaign["id"] == target:
                 self.campaign.update(status="aborted", phase="aborted")
+                self.campaign.pop("eta_s", None)
             self._changed()
             log.info("campaign %d aborted (it was %s)", target, status)
             return "aborted", target

@@ -1,5 +1,6 @@
 """An abort is logged by the service: one line naming the campaign, whether it was
-running (the robot stopped at once) or paused, interrupted or queued."""
+running (the robot stopped at once) or paused, interrupted or queued. A campaign that
+stops, or is aborted, has no ETA in the status any more."""
 
 from __future__ import annotations
 
@@ -36,3 +37,16 @@ def test_aborting_a_paused_campaign_is_one_log_line(caplog: pytest.LogCaptureFix
     (line,) = _lines(caplog)
     assert line == "campaign 4 aborted (it was paused)"
     assert c.state == "idle"
+
+
+@pytest.mark.parametrize("status", ["paused", "interrupted", "complete"])
+def test_a_stopped_campaign_has_no_eta(status: str) -> None:
+    c = _control()
+    c.state = "running"
+    c.campaign = {"id": 5, "stored": 6, "planned": 128, "status": "running", "eta_s": 108.7}
+    c.finished(5, status, "operator")
+    snap = c.snapshot()["campaign"]
+    assert snap["status"] == status and "eta_s" not in snap
+    if status == "paused":
+        c.abort(5, lambda cid: "paused")
+        assert "eta_s" not in c.snapshot()["campaign"]
