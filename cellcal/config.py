@@ -314,7 +314,16 @@ class _Earlier:
         self.note(path, f"read as {new_path}; write {new} = {_toml(dst[new])}")
 
     def robot(self, robot: dict[str, Any]) -> dict[str, Any]:
+        url_note = len(self.lines) if "url" in robot else None
         self.move(robot, "robot.url", robot, "robot.address")
+        robot = self._robot(robot)
+        if url_note is not None and url_note < len(self.lines):  # the address written last
+            self.lines[url_note] = f"{self.source}: robot.url is deprecated, read as " + (
+                f"robot.address; write address = {_toml(robot.get('address'))}"
+            )
+        return robot
+
+    def _robot(self, robot: dict[str, Any]) -> dict[str, Any]:
         driver = robot.get("driver", default_driver("robot", ROBOT))
         if not isinstance(driver, str):
             return robot  # refused by validation

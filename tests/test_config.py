@@ -247,8 +247,19 @@ def test_an_old_file_is_read_as_its_new_twin_with_one_warning_a_key(tmp_path, ca
                 'robot.modbus.port is deprecated, read as robot.address; write address = "[fd00',
             ],
         ),
+        # url with the old table's port: both lines name the address that is read
+        (
+            '[robot]\ndriver = "modbus"\nurl = "10.0.0.9"\n[robot.modbus]\nport = 1502\n',
+            '[robot]\ndriver = "modbus"\naddress = "10.0.0.9:1502"\n',
+            [
+                'robot.url is deprecated, read as robot.address; write address = "10.0.0.9:1502"',
+                "[robot.modbus] is deprecated, read as [robot.map]",
+                "robot.modbus.port is deprecated, read as robot.address; write address = "
+                '"10.0.0.9:1502"',
+            ],
+        ),
     ],
-    ids=["robot-url", "ur-settle", "port-named", "ipv6"],
+    ids=["robot-url", "ur-settle", "port-named", "ipv6", "url-and-port"],
 )
 def test_each_earlier_key_is_read_as_todays(tmp_path, capsys, old, new, expected):
     tracker = '[[sensor]]\nname = "t"\nkind = "laser-tracker"\nreference = true\n'
