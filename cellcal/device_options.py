@@ -49,6 +49,11 @@ class RobotOptions(Strict):
         (the configuration file's); a driver with files overrides it."""
         return self
 
+    def named_files(self) -> dict[str, str]:
+        """The files the driver reads, by key (after :meth:`relative_to`); a driver with
+        files overrides it."""
+        return {}
+
 
 class SensorOptions(Strict):
     """A ``[[sensor]]`` table every sensor driver shares: the sensor's name, kind and
@@ -70,6 +75,11 @@ class SensorOptions(Strict):
         """The options with relative file paths taken relative to ``folder`` (the
         configuration file's); a driver with files overrides it."""
         return self
+
+    def named_files(self) -> dict[str, str]:
+        """The files the driver reads, by key (after :meth:`relative_to`); a driver with
+        files overrides it."""
+        return {}
 
 
 class SimulatedRobotOptions(RobotOptions):

@@ -14,6 +14,7 @@ from cellcal.commands.output import TIME_SCALE
 from cellcal.commands.run import bundled_mock_cell
 from cellcal.commands.service_client import socket_path
 from cellcal.config import load_config
+from cellcal.config_files import check_named_files
 from cellcal.errors import InputError
 from cellcal.extras import installed
 from cellcal.service.daemon import DaemonOptions, serve
@@ -112,6 +113,7 @@ def daemon(
         config, _ = bundled_mock_cell()
     else:
         config = load_config(config_path)
+        check_named_files(config, config_path)
     if time_scale and not mock:
         raise InputError("--time-scale is for mock mode")
     if http_allow_remote and http is None:

@@ -15,6 +15,7 @@ from pathlib import Path
 import click
 
 from cellcal.config import load_config
+from cellcal.config_files import check_named_files
 from cellcal.errors import CampaignError, InputError
 from cellcal.extras import require
 from cellcal.files.outputs import check_output_file
@@ -80,7 +81,9 @@ def install(
     config = Path(config_path).resolve()
     if not config.is_file():
         raise InputError(f"--config {config}: no such file (write the cell's configuration first)")
-    load_config(str(config))  # a configuration the service would refuse is refused now
+    # a configuration the service would refuse is refused now, and so are the files it
+    # names (a rig's calibration…): the service would retry a missing one for ever
+    check_named_files(load_config(str(config)), str(config))
     prefix = Path(venv).resolve() if venv else Path(sys.prefix)
     if not (prefix / "bin" / "cellcal").is_file():
         raise InputError(f"--venv {prefix}: no bin/cellcal there (give cellcal's venv)")

@@ -96,6 +96,10 @@ class AbbRwsOptions(RobotOptions):
             update={"credentials": at(self.credentials), "tls_ca": at(self.tls_ca)}
         )
 
+    def named_files(self) -> dict[str, str]:
+        files = {"credentials": self.credentials, "tls_ca": self.tls_ca}
+        return {key: path for key, path in files.items() if path is not None}
+
     def version(self) -> int:
         return self.rws or (2 if self.address.startswith("https://") else 1)
 

@@ -131,6 +131,9 @@ class CameraRigOptions(SensorOptions):
             }
         )
 
+    def named_files(self) -> dict[str, str]:
+        return {"rig_file": self.rig_file, "target_file": self.target_file}
+
 
 def rig_and_target(options: CameraRigOptions) -> tuple[Rig, Target]:
     """The configured rig and target files, read; one line naming the sensor if not."""

@@ -39,6 +39,7 @@ from aiohttp import web
 from cellcal.campaign.locks import RunLock, claimed_address, robot_claim
 from cellcal.clock import Clock, SimulatedClock, WallClock
 from cellcal.config import CellConfig, default_database, load_config
+from cellcal.config_files import check_named_files
 from cellcal.errors import CampaignError, CellcalError
 from cellcal.files.models import load_model
 from cellcal.service.api import SERVICE, EventHub, Service, make_app
@@ -464,6 +465,7 @@ def _on_hup(opts: DaemonOptions, svc: Service, worker: Worker, notifier: Notifie
     notifier.reloading()
     try:
         config = load_config(opts.config_path)
+        check_named_files(config, opts.config_path)
     except CellcalError as exc:
         log.error("SIGHUP: %s; the configuration in use is kept", exc)
     else:
