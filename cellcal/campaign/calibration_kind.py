@@ -67,6 +67,7 @@ def calibration_plan(config: CellConfig) -> tuple[Plan, RobotModel]:
 class CalibrationKind:
     name: str = "calibration"
     title: str = "campaign"
+    analysing: str = "every pose stored: registering, calibrating and validating…"
     command_options: tuple[KindOption, ...] = ()
     reads_database: bool = False
 

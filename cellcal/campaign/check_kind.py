@@ -189,6 +189,7 @@ class CheckKind:
 
     name: str = CHECK
     title: str = "check"
+    analysing: str = "every pose stored: comparing the errors with the model's limits…"
     command_options: tuple[KindOption, ...] = (MODEL, POSES)
     reads_database: bool = True
 

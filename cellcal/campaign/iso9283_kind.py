@@ -173,6 +173,7 @@ class Iso9283Kind:
 
     name: str = "iso9283"
     title: str = "ISO 9283 test"
+    analysing: str = "every visit stored: computing AP and RP, before and after…"
     command_options: tuple[KindOption, ...] = (MODEL, CYCLE_COUNT)
     reads_database: bool = False
 

@@ -101,6 +101,11 @@ class CampaignKind(Protocol):
     def title(self) -> str: ...
 
     @property
+    def analysing(self) -> str:
+        """What follows the last pose, said as it begins (a command's progress)."""
+        ...
+
+    @property
     def command_options(self) -> tuple[KindOption, ...]:
         """Its options on the command line (none: it takes none)."""
         ...

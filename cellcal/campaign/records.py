@@ -33,7 +33,8 @@ log = logging.getLogger("cellcal.records")
 
 @dataclass(frozen=True)
 class CampaignStarted:
-    """A campaign starts, or resumes with ``done`` poses already stored."""
+    """A campaign (of ``kind``, ``kinds.py``) starts, or resumes with ``done`` poses
+    already stored."""
 
     campaign_id: int
     plan: Plan
@@ -41,6 +42,7 @@ class CampaignStarted:
     done: int
     resumed: bool
     t: float
+    kind: str = "calibration"
 
     @property
     def total(self) -> int:

@@ -14,7 +14,7 @@ from __future__ import annotations
 import contextlib
 import json
 import threading
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -140,10 +140,9 @@ def _run(
     total = len(plan.poses)
     try:
         done = store.completed_indices(campaign_id)
+        digest, now = config_digest(config), clock.now()
         stream.emit(
-            CampaignStarted(
-                campaign_id, plan, config_digest(config), len(done), resumed, clock.now()
-            )
+            CampaignStarted(campaign_id, plan, digest, len(done), resumed, now, c.kind.name)
         )
         mounted, confirmed = mounted_payload(plan, done, store.events(campaign_id))
         if mounted is not None:
@@ -275,15 +274,19 @@ def start_campaign(
     accept: bool = False,
     devices: Devices | None = None,
     clock: Clock | None = None,
+    planning: Callable[[], None] | None = None,
 ) -> CampaignOutcome:
     """Plan, connect the devices, create a new campaign of ``kind`` in ``db_path``,
     acquire and analyse it. Nothing is written before the plan and the devices are ready.
 
     ``devices`` (with the ``clock`` they take time on): devices the caller holds, which
-    the campaign runs on and leaves open; by default it builds and closes its own."""
+    the campaign runs on and leaves open; by default it builds and closes its own.
+    ``planning``: called as the planning begins, once the kind's options are settled."""
     config = with_seed(config, seed)
     k = kind_named(kind)
     checked = k.options(_completed(k, options or {}, db_path))
+    if planning is not None:
+        planning()
     plan, nominal = k.plan(config, checked)
     c = StoredCampaign(k, checked, config, plan, nominal)
     if clock is None:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import replace
 from typing import Any
 
@@ -102,6 +103,9 @@ def _report(
     if chosen is not None:
         click.echo(chosen)
     line = f"condition number {res.condition_number:.3g}"
+    equal = res.condition_number_equal_weights
+    if res.weighted and math.isfinite(equal):
+        line += f" weighted by sx,sy,sz ({equal:.4g} with equal weights, `plan`'s measure)"
     if res.identifiability.correlated:
         pairs = ", ".join(f"{a}–{b} (ρ {r:+.3f})" for a, b, r in res.identifiability.correlated)
         line += f"; strongly correlated: {pairs}"
@@ -334,6 +338,9 @@ def calibrate(
             "rms_after_mm": res.rms_after,
             "max_after_mm": res.max_after,
             "condition_number": res.condition_number,
+            "condition_number_equal_weights": (
+                equal if math.isfinite(equal := res.condition_number_equal_weights) else None
+            ),
             "identified": list(res.identified),
             "unidentifiable": list(res.unidentifiable),
             "correlated": [list(c) for c in res.identifiability.correlated],

@@ -1,7 +1,7 @@
 """``cellcal check``: is the calibration still good? A check campaign — ``cellcal run
---kind check`` under its own name: the same runner, the same stored campaign, only its
-verdict printed. Exit 4 when the robot is out of its limits (recalibrate); a warning
-exits 0."""
+--kind check`` under its own name: the same runner, the same stored campaign and
+progress on stderr, its verdict printed. Exit 4 when the robot is out of its limits
+(recalibrate); a warning exits 0."""
 
 from __future__ import annotations
 
@@ -60,7 +60,6 @@ def check(
             seed=seed,
             time_scale=time_scale,
             as_json=as_json,
-            quiet=True,
         )
     )
 

@@ -1,6 +1,6 @@
 """``cellcal iso9283``: the ISO 9283 pose accuracy and repeatability test, before and
 after calibration — ``cellcal run --kind iso9283`` under its own name: the same runner,
-the same campaign, only its result printed."""
+the same campaign and progress on stderr, its result printed as the test's."""
 
 from __future__ import annotations
 
@@ -54,7 +54,6 @@ def iso9283(
             db_path=db_path,
             time_scale=time_scale if mock else None,
             as_json=as_json,
-            quiet=True,
         )
     )
 

@@ -1,10 +1,7 @@
 """``cellcal run``: a whole campaign, or ``--resume ID`` of an interrupted one.
 
 Its first line comes within a second: the campaign's modules (the analysis, scipy, the
-report's matplotlib) are loaded after it.
-
-Size (about 500 lines): the command, its options and its summary lines; the summary
-would move to a module of its own first if it grows."""
+report's matplotlib) are loaded after it. Its progress lines: ``progress.py``."""
 
 from __future__ import annotations
 
@@ -22,6 +19,7 @@ import click
 from cellcal.campaign.kinds import DEFAULT_KIND, CampaignKind, KindOption, all_kinds, kind_named
 from cellcal.campaign.stop_request import StopRequest
 from cellcal.commands.output import SEED, TIME_SCALE, print_json
+from cellcal.commands.progress import BarProgress, LineProgress
 from cellcal.commands.terms_output import repeats_text
 from cellcal.config import CellConfig, default_database, load_config
 from cellcal.errors import InputError
@@ -30,79 +28,10 @@ from cellcal.store.connection import database_path
 
 if TYPE_CHECKING:
     from cellcal.calib.calibration_result import CalibrationResult
-    from cellcal.campaign.records import Record, Subscriber
+    from cellcal.campaign.records import Subscriber
     from cellcal.campaign.runner import CampaignOutcome
 
 EXIT_INTERRUPTED = 130
-
-
-#: what follows the last pose, said as it begins (the analysis takes seconds)
-ANALYSING = "every pose stored: registering, calibrating and validating…"
-
-
-class LineProgress:
-    """Plain log lines on stderr (no terminal): every 10th pose and the last; a
-    subscriber of the campaign's record stream."""
-
-    def __call__(self, record: Record) -> None:
-        from cellcal.campaign.records import CampaignStarted, PoseStored
-
-        if isinstance(record, CampaignStarted):
-            click.echo(f"acquiring {record.total - record.done} of {record.total} poses", err=True)
-        elif isinstance(record, PoseStored) and (
-            record.done % 10 == 0 or record.done == record.total
-        ):
-            p = record.pose
-            click.echo(f"pose {record.done}/{record.total} stored ({p.role}, {p.region})", err=True)
-            if record.done == record.total:
-                click.echo(ANALYSING, err=True)
-
-
-class BarProgress:
-    """A rich progress bar on a terminal; a subscriber of the campaign's record stream."""
-
-    def __init__(self) -> None:
-        from rich.console import Console
-        from rich.progress import (
-            BarColumn,
-            MofNCompleteColumn,
-            Progress,
-            TextColumn,
-            TimeRemainingColumn,
-        )
-
-        self._bar = Progress(
-            TextColumn("[bold]acquiring"),
-            BarColumn(),
-            MofNCompleteColumn(),
-            TextColumn("{task.description}"),
-            TimeRemainingColumn(),
-            console=Console(stderr=True),
-            transient=True,
-        )
-        self._task = self._bar.add_task("", total=1)
-
-    def __call__(self, record: Record) -> None:
-        from cellcal.campaign.records import CampaignEnded, CampaignStarted, PoseStored
-
-        if isinstance(record, CampaignStarted):
-            self._bar.update(self._task, total=record.total, completed=record.done)
-            self._bar.start()
-        elif isinstance(record, PoseStored):
-            p = record.pose
-            self._bar.update(self._task, completed=record.done, description=f"{p.role} {p.region}")
-            if record.done == record.total:
-                self.close()
-                click.echo(ANALYSING, err=True)
-        elif isinstance(record, CampaignEnded):
-            self.close()
-
-    def close(self) -> None:
-        self._bar.stop()
-
-
-def _silent(record: Record) -> None:
-    """No progress (``cellcal iso9283`` prints only its result)."""
 
 
 def bundled_mock_cell() -> tuple[CellConfig, str]:
@@ -189,7 +118,8 @@ def _print_summary(out: CampaignOutcome, folder: str | None, residuals: bool) ->
         f"calibration from {s.reference}: {len(c.identified)} of {len(c.parameters)} "
         f"parameters of the robot and target offset identified (the sensor frame besides), "
         f"σ0 {c.sigma0:.2f}, condition number {c.condition_number:.3g} "
-        f"({c.condition_number_equal_weights:.4g} with equal weights, as `plan` computes it)"
+        f"({c.condition_number_equal_weights:.4g} with equal weights, `plan`'s measure, at the "
+        "poses as measured)"
     )
     click.echo(f"  corrections: {_corrections(c)}")
     click.echo(f"  target offset {_xyz(c.target_offset, 3)} ± {_xyz(c.target_offset_std, 3)} mm")
@@ -305,8 +235,8 @@ def other_kind_asked(kind: str, given: Mapping[str, Any]) -> bool:
 class CampaignRun:
     """What ``cellcal run`` (and ``cellcal iso9283``) asks for: a campaign of ``kind``
     started (``given``: its options as the command line has them, None where not given)
-    or resumed (``resume_id``), with its outcome printed as its kind's (``quiet``: no
-    progress, only the result)."""
+    or resumed (``resume_id``), its progress on stderr and its outcome printed as its
+    kind's."""
 
     kind: str = DEFAULT_KIND
     given: Mapping[str, Any] = field(default_factory=dict)
@@ -320,7 +250,6 @@ class CampaignRun:
     report_dir: str | None = None
     residuals: bool = False
     as_json: bool = False
-    quiet: bool = False
 
 
 @click.command()
@@ -394,8 +323,6 @@ def run_kind(a: CampaignRun) -> None:
     progress: Subscriber = (
         BarProgress() if sys.stderr.isatty() and not a.as_json else LineProgress()
     )
-    if a.quiet:
-        progress = _silent
     devices = "starting the devices' twins" if a.mock else "connecting the devices"
     try:
         if a.resume_id is not None:
@@ -405,7 +332,7 @@ def run_kind(a: CampaignRun) -> None:
                     "and --json"
                 )
             db = a.db_path if a.db_path is not None else default_database()
-            if Path(db).is_file() and not a.quiet:  # else one line says so
+            if Path(db).is_file():  # else one line says so
                 click.echo(f"resuming campaign {a.resume_id}: connecting the devices…", err=True)
             from cellcal.campaign.runner import resume_campaign
 
@@ -425,9 +352,10 @@ def run_kind(a: CampaignRun) -> None:
             if not a.mock and (a.seed is not None or a.time_scale is not None):
                 raise InputError("--seed and --time-scale apply to mock mode (--mock)")
             db = a.db_path if a.db_path is not None else database_path(config.storage.database)
-            if not a.quiet:
-                click.echo(f"{config.name}: planning the poses and {devices}…", err=True)
             from cellcal.campaign.runner import start_campaign
+
+            def planning() -> None:
+                click.echo(f"{config.name}: planning the poses and {devices}…", err=True)
 
             outcome = start_campaign(
                 config,
@@ -441,6 +369,7 @@ def run_kind(a: CampaignRun) -> None:
                 stop=stop,
                 subscribers=[progress],
                 accept=a.accept,
+                planning=planning,
             )
     finally:
         if isinstance(progress, BarProgress):

@@ -55,8 +55,8 @@ def _equal_weights(fit: dict[str, Any]) -> str:
     if c is None or not math.isfinite(float(c)):
         return ""
     return (
-        f" weighted by each coordinate's σ ({float(c):.4g} with equal weights, as "
-        "<code>cellcal plan</code> computes it)"
+        f" weighted by each coordinate's σ ({float(c):.4g} with equal weights, the measure "
+        "<code>cellcal plan</code> gives, at the poses as measured)"
     )
 
 

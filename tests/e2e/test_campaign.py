@@ -126,7 +126,7 @@ def test_run_prints_a_summary_and_each_residual_on_request(tmp_path):
         "registration to the robot base",
         "21 of 27 parameters of the robot and target offset identified (the sensor frame "
         "besides), σ0 ",
-        "with equal weights, as `plan` computes it)",
+        "with equal weights, `plan`'s measure, at the poses as measured)",
         "another campaign would give 0.0",
         "target offset (25.0",
         "left at nominal: theta1, d1, theta6, d6, a6, alpha6 (not identifiable)",

@@ -39,6 +39,9 @@ def _copy(calibrated: tuple[Path, Path], folder: Path) -> tuple[Path, Path]:
 def _check(config: Path, db: Path, *more: object) -> tuple[int, dict[str, Any]]:
     done = cellcal("check", "--mock", "--config", config, "--db", db, "--json", *more)
     assert done.returncode in (0, 4), done.stderr[-2000:]
+    said = done.stderr.splitlines()  # its progress, in the check's words
+    assert said[0].endswith(": planning the poses and starting the devices' twins…"), said
+    assert said[-1] == "every pose stored: comparing the errors with the model's limits…", said
     return done.returncode, json.loads(done.stdout)
 
 

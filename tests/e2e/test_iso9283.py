@@ -46,6 +46,10 @@ def iso_test(tmp_path_factory):
         "--json",
     )
     assert run.returncode == 0, run.stderr
+    said = run.stderr.splitlines()  # its progress on stderr, in the test's words
+    assert said[0].endswith(": planning the poses and starting the devices' twins…"), said
+    assert f"acquiring {2 * 5 * CYCLES} of {2 * 5 * CYCLES} poses" in said
+    assert said[-1] == "every visit stored: computing AP and RP, before and after…", said
     return config, outcome, json.loads(run.stdout), iso_db, tmp_path
 
 
