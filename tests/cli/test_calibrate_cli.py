@@ -195,3 +195,31 @@ def test_validation_from_another_set_up_says_to_re_register(tmp_path, capsys):
     doc = json.loads(out)
     assert doc["identified"] == ["target_offset_x", "target_offset_y", "target_offset_z"]
     assert doc["rms_after_mm"] < 0.03
+
+
+def test_a_weighted_fit_gives_plans_equal_weights_condition_number_too(capsys, tmp_path):
+    """With sx,sy,sz the fit weighs each coordinate, which moves its condition number;
+    the line and the JSON also give the one `cellcal plan` computes, every coordinate
+    weighted alike: without sx,sy,sz the two are the same number."""
+    d = well_spread("kuka-kr5-arc")
+    sigma = np.tile([0.002, 0.002, 0.02], (len(d.q), 1))  # one axis ten times worse
+    weighted = write_measurements(tmp_path / "w.csv", d.q, d.m, sigma=sigma)
+    plain = write_measurements(tmp_path / "p.csv", d.q, d.m)
+    docs = {}
+    for name, path in (("weighted", weighted), ("plain", plain)):
+        code, out, err = run(capsys, "calibrate", "--model", "kuka-kr5-arc", "--data", path)
+        assert code == 0, err
+        (line,) = [x for x in out.splitlines() if x.startswith("condition number")]
+        code, out, err = run(
+            capsys, "calibrate", "--model", "kuka-kr5-arc", "--data", path, "--json"
+        )
+        docs[name] = (line, json.loads(out))
+    line, doc = docs["weighted"]
+    equal = doc["condition_number_equal_weights"]
+    assert abs(doc["condition_number"] / equal - 1) > 0.05  # the weights move it
+    assert f"weighted by sx,sy,sz ({equal:.4g} with equal weights, `plan`'s measure)" in line
+    line, doc = docs["plain"]
+    assert doc["condition_number_equal_weights"] == pytest.approx(doc["condition_number"])
+    assert "equal weights" not in line
+    # the same poses weighted alike (each fit linearised at its own start): within 1 %
+    assert equal == pytest.approx(doc["condition_number"], rel=0.01)
