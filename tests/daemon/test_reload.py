@@ -36,9 +36,11 @@ def _logged(d: Daemon, text: str, timeout: float = 60) -> None:
 def _planned(d: Daemon) -> int:
     """The poses a campaign of the service's own configuration plans (it is aborted)."""
     cid = call(d.sock, "POST", "/v1/campaigns", {})["campaign_id"]
-    d.until(lambda s: (s.get("campaign") or {}).get("planned", 0) > 0, 60)
+    # this campaign under way (the status shows the last one until it starts)
+    d.until(lambda s: s["state"] == "running" and (s.get("campaign") or {}).get("id") == cid)
     call(d.sock, "POST", "/v1/campaigns/current/abort", {})
     d.until(lambda s: s["state"] == "idle", 60)
+    assert d.rows(f"SELECT status FROM campaigns WHERE id = {cid}") == [("aborted",)]
     ((planned,),) = d.rows(f"SELECT n_poses FROM campaigns WHERE id = {cid}")
     return int(planned)
 
