@@ -44,6 +44,7 @@ from cellcal.files.text import read_text
 
 if TYPE_CHECKING:
     from cellcal.calib.drift import Diagnosis, Limits
+    from cellcal.calib.geometry import Array
     from cellcal.calib.robot_model import RobotModel
     from cellcal.campaign.plan import Plan
     from cellcal.files.models import LoadedModel
@@ -164,6 +165,7 @@ def check_plan(config: CellConfig, calibrated: LoadedModel, n: int) -> Plan:
             f"{n} poses asked for; check the cube (campaign.cube_centre_mm, cube_edge_mm)"
         )
     q, points = q[ok], points[ok]
+    _same_robot(config, nominal, calibrated, q, offset)
     # what drifts: every joint's offset and the sensor frame (the robot's base)
     T = np.asarray(calibrated.T_sensor_base, dtype=np.float64)
     state = State(calibrated.model, calibrated.target_offset, T[:3, :3], T[:3, 3], np.zeros(3))
@@ -181,6 +183,27 @@ def check_plan(config: CellConfig, calibrated: LoadedModel, n: int) -> Plan:
     )
     refuse_moves_outside(cfg, nominal, home, [(p.idx, p.q) for p in poses], offset)
     return Plan(poses, ())
+
+
+def _same_robot(
+    config: CellConfig, nominal: RobotModel, calibrated: LoadedModel, q: Array, offset: Array
+) -> None:
+    """Refused before any motion: a model that is not a calibration of the cell's robot
+    (a database or a file of another cell), whose target would be more than a
+    calibration's largest correction away from the nominal one's at the check's poses."""
+    from cellcal.calib.compensation import MAX_CORRECTION_MM
+    from cellcal.calib.kinematics import target_kinematics
+
+    at = target_kinematics(nominal, q, offset, jacobian=False).p
+    apart = target_kinematics(calibrated.model, q, offset, jacobian=False).p - at
+    far = float(np.max(np.linalg.norm(apart, axis=1)))
+    if far > MAX_CORRECTION_MM:
+        raise InputError(
+            f"the model is not a calibration of this cell's robot ({config.robot.model}): "
+            f"its target is up to {far:.0f} mm from the nominal model's at the check's "
+            f"poses, a calibration moves it at most {MAX_CORRECTION_MM:g} mm; give this "
+            "cell's database (--db) or its model (--model)"
+        )
 
 
 @dataclass(frozen=True)
@@ -226,12 +249,16 @@ class CheckKind:
         out: dict[str, Any] = {"poses": given.get(POSES.name)}
         spec = given.get(MODEL.name)
         if spec is not None:
+            if not str(spec).strip():
+                raise InputError("--model: give the calibrated model's file (model.toml)")
             text = read_text(str(spec), "a model")
+            if not text.strip():
+                raise InputError(f"--model {spec}: an empty file, not a calibrated model")
             out |= {"model": model_label(str(spec)), "model_toml": text}
         return out
 
     def from_database(self, options: Mapping[str, Any], store: Store | None) -> dict[str, Any]:
-        if options.get("model_toml"):  # a file: the database's model of the same text, if any
+        if options.get("model_toml") is not None:  # a file: the database's model of its text
             from cellcal.store.schema import model_digest
 
             digest = model_digest(str(options["model_toml"]))

@@ -193,3 +193,40 @@ def test_run_kind_check_exits_4_and_a_model_without_covariance_is_refused(
     refused = cellcal("check", "--mock", "--config", config, "--db", db, "--model", old)
     assert refused.returncode == 2
     assert refused.stderr.count("\n") == 1 and "no covariance of its parameters" in refused.stderr
+
+
+def test_a_model_of_another_robot_and_an_empty_file_are_refused_before_any_motion(
+    calibrated: tuple[Path, Path], tmp_path: Path
+) -> None:
+    """A database or a model file of another cell (here the cell's model with its upper
+    arm 100 mm longer, as another robot's would be) is refused at planning, and the
+    database's model stays current; an empty --model file is refused, not read as "no
+    file" (which checked the current model instead)."""
+    config, db = _copy(calibrated, tmp_path)
+    conn = sqlite3.connect(db)
+    (text,) = conn.execute("SELECT model_toml FROM models WHERE id = 1").fetchone()
+    conn.close()
+    doc = tomllib.loads(text)
+    doc["joint"][1]["a"] += 100.0
+    other = tmp_path / "other.toml"
+    other.write_text(tomli_w.dumps(doc))
+    refused = cellcal("check", "--mock", "--config", config, "--db", db, "--model", other)
+    assert refused.returncode == 2, refused.stderr
+    line = refused.stderr.splitlines()[-1]
+    assert line.startswith("cellcal: error: the model is not a calibration of this cell's robot")
+    assert "a calibration moves it at most 10 mm" in line
+    empty = tmp_path / "empty.toml"
+    empty.write_text("\n")
+    refused = cellcal("check", "--mock", "--config", config, "--db", db, "--model", empty)
+    assert refused.returncode == 2 and refused.stderr.count("\n") == 1, refused.stderr
+    assert (
+        refused.stderr
+        == f"cellcal: error: --model {empty}: an empty file, not a calibrated model\n"
+    )
+    refused = cellcal("check", "--mock", "--config", config, "--db", db, "--model", "")
+    assert refused.returncode == 2 and "give the calibrated model's file" in refused.stderr
+    conn = sqlite3.connect(db)
+    rows = conn.execute("SELECT COUNT(*) FROM campaigns WHERE kind = 'check'").fetchone()
+    ended = conn.execute("SELECT ended_by FROM models WHERE id = 1").fetchone()
+    conn.close()
+    assert rows == (0,) and ended == (None,)  # nothing moved, nothing recorded
