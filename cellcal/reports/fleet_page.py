@@ -3,9 +3,10 @@ and its age, its checks — the last verdict, the drift of its RMS error against
 and its trend, when the next check is due —, and its calibrations' accuracy before and
 after, grouped by line; one self-contained ``index.html`` and ``fleet.json``.
 
-A row's small chart (a cell's checks of its current model, RMS over its recalibration
-limit) is an SVG polyline written here: two hundred matplotlib figures would take
-seconds, one polyline takes microseconds. The overview figure is matplotlib's."""
+A row's small chart (a cell's checks of its current model — without one, of the model
+the last check ended —, RMS over its recalibration limit) is an SVG polyline written
+here: two hundred matplotlib figures would take seconds, one polyline takes
+microseconds. The overview figure is matplotlib's."""
 
 from __future__ import annotations
 
@@ -48,7 +49,9 @@ class CellRow:
     last_seen: datetime
     model: FleetModel | None
     model_age_days: float | None
-    checks: tuple[FleetCheck, ...]  # of the current model, oldest first
+    # of the current model, oldest first; without one, those of the model the last check
+    # compared with (the check that ended it: the page's most urgent news)
+    checks: tuple[FleetCheck, ...]
     due: str  # ok, due, overdue, no model
     next_due: datetime | None
     trend_mm_per_30d: float | None
@@ -96,11 +99,9 @@ def cell_rows(data: FleetData, every: timedelta) -> list[CellRow]:
     out = []
     for c in data.cells:
         model = models.get(c.cell)
-        checks = tuple(
-            k
-            for k in data.checks
-            if k.cell == c.cell and model is not None and k.model_id == model.id
-        )
+        mine = [k for k in data.checks if k.cell == c.cell]
+        of = model.id if model is not None else mine[-1].model_id if mine else None
+        checks = tuple(k for k in mine if k.model_id == of)
         calibrations = tuple(
             (k.campaign_id, k.finished, k.before_mm, k.after_mm)
             for k in data.calibrations

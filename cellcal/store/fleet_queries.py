@@ -12,7 +12,7 @@ from typing import Any
 
 import psycopg
 
-from cellcal.store.fleet_server import FleetError, connected, ensure_schema
+from cellcal.store.fleet_server import FleetError, connected, require_schema
 
 
 @dataclass(frozen=True)
@@ -84,7 +84,7 @@ def _where(lines: Sequence[str], cells: Sequence[str], alias: str = "") -> tuple
 def read_fleet(url: str, lines: Sequence[str] = (), cells: Sequence[str] = ()) -> FleetData:
     """Everything the fleet's page shows, of the cells asked for (every cell: none)."""
     with connected(url, "cellcal fleet report") as conn:
-        ensure_schema(conn, url)
+        require_schema(conn, url)
         return _read(conn, lines, cells)
 
 

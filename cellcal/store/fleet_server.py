@@ -102,22 +102,35 @@ def _ddl() -> list[sql.Composed]:
     return out
 
 
+def _tables(conn: psycopg.Connection[Any]) -> list[str]:
+    """The tables in the connection's schema (``current_schema()``, where cellcal's go)."""
+    return [
+        r[0]
+        for r in conn.execute(
+            "SELECT table_name FROM information_schema.tables "
+            "WHERE table_schema = current_schema() ORDER BY table_name"
+        ).fetchall()
+    ]
+
+
+def _another_programs(url: str, tables: list[str]) -> FleetError:
+    named = ", ".join(tables[:3]) + (f" and {len(tables) - 3} more" if len(tables) > 3 else "")
+    return FleetError(
+        f"fleet server {redacted(url)}: the database has tables of another program "
+        f"({named}; no cellcal_fleet table); give cellcal a database of its own"
+    )
+
+
 def ensure_schema(conn: psycopg.Connection[Any], url: str) -> None:
     """Create the fleet's schema on an empty database, or check the one there is of
-    this cellcal's version; anything else is refused in one line."""
+    this cellcal's version; anything else — a database with any table of another
+    program — is refused in one line, before anything is written."""
     with conn.transaction():
         conn.execute("SELECT pg_advisory_xact_lock(20181122)")  # one creator at a time
-        found = conn.execute(
-            "SELECT to_regclass('cellcal_fleet') IS NOT NULL, to_regclass('campaigns') IS NOT NULL"
-        ).fetchone()
-        assert found is not None
-        ours, theirs = found
-        if not ours:
-            if theirs:
-                raise FleetError(
-                    f"fleet server {redacted(url)}: the database has tables of another "
-                    "program (no cellcal_fleet table); give cellcal a database of its own"
-                )
+        tables = _tables(conn)
+        if "cellcal_fleet" not in tables:
+            if tables:
+                raise _another_programs(url, tables)
             conn.execute("CREATE TABLE cellcal_fleet (key text PRIMARY KEY, value text NOT NULL)")
             for statement in _ddl():
                 conn.execute(statement)
@@ -126,16 +139,33 @@ def ensure_schema(conn: psycopg.Connection[Any], url: str) -> None:
                 (str(FLEET_SCHEMA_VERSION),),
             )
             return
-        row = conn.execute(
-            "SELECT value FROM cellcal_fleet WHERE key = 'schema_version'"
-        ).fetchone()
-        version = row[0] if row else "none"
-        if version != str(FLEET_SCHEMA_VERSION):
-            raise FleetError(
-                f"fleet server {redacted(url)}: its fleet schema is version {version}, this "
-                f"cellcal writes version {FLEET_SCHEMA_VERSION}; upgrade the cellcal of "
-                "every cell together with the server's schema"
-            )
+        _same_version(conn, url)
+
+
+def require_schema(conn: psycopg.Connection[Any], url: str) -> None:
+    """For a reader (``cellcal fleet report``), which writes nothing: the fleet's schema
+    of this cellcal's version must be there; a database without it is refused in one
+    line (a mistyped name would otherwise give an empty report)."""
+    tables = _tables(conn)
+    if "cellcal_fleet" not in tables:
+        if tables:
+            raise _another_programs(url, tables)
+        raise FleetError(
+            f"fleet server {redacted(url)}: no fleet in this database (no cellcal_fleet "
+            "table): check its name; the cells' `cellcal fleet sync` makes the fleet"
+        )
+    _same_version(conn, url)
+
+
+def _same_version(conn: psycopg.Connection[Any], url: str) -> None:
+    row = conn.execute("SELECT value FROM cellcal_fleet WHERE key = 'schema_version'").fetchone()
+    version = row[0] if row else "none"
+    if version != str(FLEET_SCHEMA_VERSION):
+        raise FleetError(
+            f"fleet server {redacted(url)}: its fleet schema is version {version}, this "
+            f"cellcal writes version {FLEET_SCHEMA_VERSION}; upgrade the cellcal of "
+            "every cell together with the server's schema"
+        )
 
 
 def merged(batches: Sequence[Rows]) -> list[Rows]:

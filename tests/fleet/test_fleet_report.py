@@ -41,6 +41,9 @@ def test_the_fleet_page_across_lines_and_cells(
     assert a["checks"] == 1 and a["last_check"]["verdict"] == "ok"
     assert a["calibrations"][0]["after_mm"] < a["calibrations"][0]["before_mm"] / 5
     assert b["line"] == "line2" and b["model"] is None and b["due"] == "no model"
+    # the check that ended the model is shown (the checks of the model it compared with)
+    assert b["checks"] == 2 and b["last_check"]["verdict"] == "recalibrate"
+    assert b["last_check"]["rms_mm"] > b["last_check"]["limit_mm"]
     page = (out / "index.html").read_text()
     assert "<h2>line2</h2>" in page and "<h2>line3</h2>" in page and "<script" not in page
     assert page.count("<svg") >= 2  # the overview and a cell's drift

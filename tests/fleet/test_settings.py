@@ -1,7 +1,8 @@
 """Bad fleet settings are one line each, naming the server and what is wrong — a port
 nobody listens on, a wrong password, a database that does not exist, a server whose
-fleet schema is of another version, a database of another program, a password in the
-configuration, no ``[fleet]`` at all — and nothing is written to such a server. A
+fleet schema is of another version, a database with any table of another program, a
+password in the configuration, no ``[fleet]`` at all — and nothing is written to such a
+server; ``fleet report`` refuses a database without the fleet and creates nothing. A
 campaign never waits for the fleet: it runs to its end with the server unreachable."""
 
 from __future__ import annotations
@@ -60,7 +61,26 @@ def test_bad_settings_are_one_line(
     pg.create_database("someone_elses")
     pg.psql("CREATE TABLE campaigns (x int)", "someone_elses")
     other = make_cell(tmp_path, campaigns, "o", pg.url("someone_elses"))
-    _refused(other, "tables of another program")
+    _refused(other, "tables of another program (campaigns; no cellcal_fleet table)")
+    # any table of another program, whatever its name, and nothing is created beside it
+    pg.create_database("invoicing")
+    pg.psql("CREATE TABLE invoices (x int)", "invoicing")
+    billing = make_cell(tmp_path, campaigns, "i", pg.url("invoicing"))
+    _refused(billing, "tables of another program (invoices; no cellcal_fleet table)")
+    tables = "SELECT table_name FROM information_schema.tables WHERE table_schema = 'public'"
+    assert pg.psql(tables, "invoicing").split() == ["invoices"]
+    # the report reads: a database without the fleet (a mistyped name) is refused, and
+    # nothing is created in it
+    pg.create_database("empty_one")
+    for name, said in (
+        ("empty_one", "no fleet in this database (no cellcal_fleet table): check its name"),
+        ("invoicing", "tables of another program (invoices; no cellcal_fleet table)"),
+    ):
+        done = cellcal("fleet", "report", "--database", pg.url(name), "--out", tmp_path / "r")
+        assert done.returncode == 2 and done.stderr.count("\n") == 1, done.stderr
+        assert said in done.stderr
+    assert pg.psql(tables, "empty_one").split() == []
+    assert pg.psql(tables, "invoicing").split() == ["invoices"]
 
 
 def test_a_password_in_the_configuration_and_no_fleet_are_one_line(tmp_path: Path) -> None:
