@@ -120,9 +120,11 @@ def sync_command(config_path: str, db_path: str | None, as_json: bool) -> None:
             }
         )
         return
+    entries = "entry" if result.sent == 1 else "entries"
+    rows = "row" if result.rows == 1 else "rows"
     click.echo(
-        f"cell {f.cell}: {result.sent} entries ({result.rows} rows) sent to {result.server}; "
-        f"{result.waiting} waiting"
+        f"cell {f.cell}: {result.sent} {entries} ({result.rows} {rows}) sent to "
+        f"{result.server}; {result.waiting} waiting"
     )
 
 
@@ -195,5 +197,6 @@ def report(
         return
     due = sum(r.due in ("due", "overdue", "no model") for r in rows)
     needs_ = "needs" if due == 1 else "need"
-    click.echo(f"fleet of {len(rows)} cells: {due} {needs_} a check or a calibration now")
+    noun = "cell" if len(rows) == 1 else "cells"
+    click.echo(f"fleet of {len(rows)} {noun}: {due} {needs_} a check or a calibration now")
     click.echo(f"report: {folder / 'index.html'}")

@@ -27,7 +27,10 @@ def test_the_fleet_page_across_lines_and_cells(
     bad.write_text(bad.read_text() + "\n[simulation.change]\nbase_shift_mm = [0.3, 0.0, 0.0]\n")
     assert cellcal("check", "--mock", "--config", bad).returncode == 4
     for config in (good, bad):
-        assert cellcal("fleet", "sync", "--config", config).returncode == 0
+        sent = cellcal("fleet", "sync", "--config", config)
+        assert sent.returncode == 0 and " entries (" in sent.stdout and " rows) sent" in sent.stdout
+    again = cellcal("fleet", "sync", "--config", good)
+    assert again.stdout.startswith("cell l1-a: 0 entries (0 rows) sent to ")
 
     out = tmp_path / "fleet"
     done = cellcal("fleet", "report", "--database", fleet_db, "--out", out, "--json")
@@ -57,6 +60,8 @@ def test_the_fleet_page_across_lines_and_cells(
     done = cellcal("fleet", "report", "--database", fleet_db, "--out", out, "--line", "line2",
                    "--json")  # fmt: skip
     assert [c["cell"] for c in json.loads(done.stdout)["cells"]] == ["l2-b"]
+    done = cellcal("fleet", "report", "--database", fleet_db, "--out", out, "--cell", "l2-b")
+    assert done.stdout.startswith("fleet of 1 cell: 1 needs a check or a calibration now")
     # the fleet's tables read by another program: docs/fleet.md's query through psql
     doc_text = (Path(__file__).resolve().parents[2] / "docs" / "fleet.md").read_text()
     query = doc_text[doc_text.index("SELECT m.cell") : doc_text.index("m.valid_from;") + 13]
