@@ -16,7 +16,10 @@ the others left as they are. An entry of the outbox is one transaction."""
 from __future__ import annotations
 
 import contextlib
+import os
+import stat
 from collections.abc import Iterator, Sequence
+from pathlib import Path
 from typing import Any
 
 import psycopg
@@ -52,10 +55,26 @@ def _first_line(exc: BaseException) -> str:
     return line
 
 
+def _passfile_readable_by_others(url: str) -> None:
+    """libpq ignores a password file that others may read, with a warning line of its
+    own on stderr before the failure: said here instead, in one line."""
+    path = Path(os.environ.get("PGPASSFILE") or Path.home() / ".pgpass")
+    try:
+        mode = path.stat().st_mode
+    except OSError:
+        return  # none: libpq says what is missing
+    if stat.S_ISREG(mode) and mode & 0o077:
+        raise FleetError(
+            f"fleet server {redacted(url)}: the password file {path} may be read by others "
+            f"(mode {stat.S_IMODE(mode):04o}), so libpq ignores it: chmod 600 {path}"
+        )
+
+
 @contextlib.contextmanager
 def connected(url: str, application: str = "cellcal") -> Iterator[psycopg.Connection[Any]]:
     """A connection to the fleet's server; any failure to reach or use it is one line
     naming the server (its password, if libpq found one, never shown)."""
+    _passfile_readable_by_others(url)
     try:
         conn = psycopg.connect(url, connect_timeout=CONNECT_TIMEOUT_S, application_name=application)
     except psycopg.Error as exc:

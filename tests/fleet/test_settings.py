@@ -48,6 +48,12 @@ def test_bad_settings_are_one_line(
     monkeypatch.undo()
     status = json.loads(cellcal("fleet", "status", "--config", ok, "--json").stdout)
     assert "no password supplied" in status["last_error"] and status["waiting"] == 3
+    (tmp_path / "open").mkdir()
+    shared = pg.passfile(tmp_path / "open")
+    shared.chmod(0o644)  # libpq ignores it, with a warning line of its own: said in one
+    monkeypatch.setenv("PGPASSFILE", str(shared))
+    _refused(ok, f"the password file {shared} may be read by others (mode 0644)", "chmod 600")
+    monkeypatch.undo()
 
     # a server of another fleet schema version, and a database of another program
     assert cellcal("fleet", "sync", "--config", ok).returncode == 0
