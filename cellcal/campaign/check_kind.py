@@ -263,7 +263,11 @@ class CheckKind:
 
             digest = model_digest(str(options["model_toml"]))
             same = [m for m in (store.models() if store else []) if m.digest == digest]
-            return {**options, "model_id": same[-1].id if same else None}
+            if not same:
+                return {**options, "model_id": None}
+            known = same[-1]  # that model, named as the database names it
+            label = f"model {known.id} (campaign {known.campaign_id})"
+            return {**options, "model": label, "model_id": known.id}
         current = None if store is None else store.current_model()
         if current is None:
             where = "the database" if store is None else store.path

@@ -166,7 +166,8 @@ def test_each_change_is_named(
     model.write_text(text)
     code, out = _check(_cell(tmp_path, "changed", change), db, "--model", model)
     assert code == 4 and out["verdict"] == "recalibrate"
-    assert out["model_id"] == 1  # the file is the database's model 1: it is ended
+    assert out["model_id"] == 1  # the file is the database's model 1: it is ended,
+    assert out["model"] == "model 1 (campaign 1)"  # and named so
     cause = out["causes"][0]
     assert cause["name"] == name, out["cause"]
     for key, value in values.items():
