@@ -47,10 +47,10 @@ def models(cell: bool, config_path: str | None, db_path: str | None, as_json: bo
     if as_json:
         print_json({"models": rows})
         return
-    click.echo(f"{'name':<16}{'convention':<12}{'joints':<8}{'β rows (parallel axes)':<24}")
+    click.echo(f"{'name':<16}{'convention':<12}{'joints':<8}β rows (parallel axes)")
     for r in rows:
         beta = ", ".join(str(i) for i in r["beta_rows"]) or "—"
-        click.echo(f"{r['name']:<16}{r['convention']:<12}{r['joints']:<8}{beta:<24}")
+        click.echo(f"{r['name']:<16}{r['convention']:<12}{r['joints']:<8}{beta}")
 
 
 def _cell_models(config_path: str | None, db_path: str | None, as_json: bool) -> None:
