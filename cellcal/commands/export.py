@@ -113,8 +113,12 @@ def export_robot_program(driver: str, out_dir: str, as_json: bool) -> None:
     EthernetKRL channel's XML for kuka-eki; the RAPID module for abb-rws),
     to install as docs/robots.md says. Files already there are replaced."""
     folder = Path(out_dir)
-    if not folder.is_dir():
-        raise InputError(f"--out {out_dir}: not a folder (create it first)")
+    if folder.exists() and not folder.is_dir():
+        raise InputError(f"--out {out_dir}: exists and is not a folder")
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise InputError(f"--out {out_dir}: cannot make the folder ({exc.strerror})") from None
     source = resources.files("cellcal") / "data" / "robot_programs" / driver
     written = []
     for item in sorted(source.iterdir(), key=lambda f: f.name):

@@ -266,7 +266,8 @@ class AbbRwsRobot(HandshakeRobot):
         elif code == REFUSED and method == "POST":
             why = "the controller refused the write (manual mode, or no mastership)"
         elif status == 404:
-            why = "no such resource: is the CellCal module loaded in the task?"
+            o = self.options
+            why = f"no such resource: is the {o.module} module loaded in task {o.task}?"
         else:
             why = "refused"
         detail = f"; {code}: {msg}" if code is not None else ""

@@ -97,8 +97,14 @@ def test_export_the_krl_loop(tmp_path: Path):
     o = KukaKvpOptions()
     for name in (o.target_var, o.seq_var, o.ack_var, o.speed_var, o.stop_var):
         assert f" {name}" in declared
-    bad = cellcal("export", "robot-program", "--driver", "kuka-kvp", "--out", tmp_path / "no")
-    assert bad.returncode == 2 and bad.stderr.strip().endswith("not a folder (create it first)")
+    # a folder that is not there yet is made (as docs/robots.md's steps assume); a file
+    # where the folder should be is refused
+    made = cellcal("export", "robot-program", "--driver", "kuka-kvp", "--out", tmp_path / "a/b")
+    assert made.returncode == 0 and (tmp_path / "a" / "b" / "CellCal.src").read_text() == src
+    bad = cellcal(
+        "export", "robot-program", "--driver", "kuka-kvp", "--out", tmp_path / "a/b/CellCal.src"
+    )
+    assert bad.returncode == 2 and bad.stderr.strip().endswith("exists and is not a folder")
 
 
 def test_export_the_ethernetkrl_program(tmp_path: Path):

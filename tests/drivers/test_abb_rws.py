@@ -136,6 +136,12 @@ def test_faults_end_in_one_line_naming_the_robot():
         ):
             robot(address).connect()
         f.opmode = "AUTO"
+        # a module of another name than the one loaded: the hint names the configured one
+        with pytest.raises(
+            DeviceError,
+            match=r"HTTP 404: no such resource: is the Other module loaded in task T_ROB1\?",
+        ):
+            robot(address, module="Other").connect()
         with robot(address) as r:
             f.motors_on = False
             with pytest.raises(
