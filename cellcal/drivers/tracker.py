@@ -1,4 +1,4 @@
-"""(Size: about 520 lines — one module per device family holds the family's options, driver
+"""(Size: about 540 lines — one module per device family holds the family's options, driver
 and describe(); its protocol and framing are apart in tracker_protocol.py and
 line_framing.py.)
 
@@ -65,6 +65,7 @@ from cellcal.drivers.tracker_protocol import (
     TrackerProtocolError,
     TrackerSilentError,
     TrackerStatus,
+    TrackerTimeoutError,
     error_for,
     parse_line,
 )
@@ -179,11 +180,33 @@ class LineTracker:
         try:
             try:
                 self._handshake()
-            except (TransportError, TrackerSilentError) as exc:
+            except TrackerSilentError as exc:
+                self._silent_at_connect(exc)
+            except TransportError as exc:
                 self._reconnect(exc)
         except BaseException:
             self.transport.close()
             raise
+
+    def _silent_at_connect(self, why: TrackerSilentError) -> None:
+        """The link opened but nothing answered the handshake: open it again and ask once
+        more (docs/tracker.md: retry once); silent again, it is not "unreachable" (the
+        link is up) but one line saying that nothing there speaks the protocol."""
+        self.reconnections += 1
+        log.warning("%s: %s; opening the link again", self.label, why)
+        self.transport.close()
+        time.sleep(self.backoff_s)
+        try:
+            self.transport.open()
+            self.lines.reset()
+            self._handshake()
+        except TrackerSilentError as exc:
+            raise TrackerTimeoutError(
+                f"{exc}, twice, with the link open: is it a tracker or bridge that speaks "
+                "the line protocol? (`cellcal tracker --conformance` tells more)"
+            ) from None
+        except TransportError as exc:
+            self._reconnect(exc)
 
     def close(self) -> None:
         self.transport.close()

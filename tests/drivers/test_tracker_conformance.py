@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 
+from cellcal.drivers.tracker import LineTracker
 from cellcal.drivers.tracker_conformance import Conformance, check_conformance
 from cellcal.drivers.tracker_protocol import TrackerTimeoutError
 from cellcal.drivers.transport import TransportError
@@ -107,6 +108,23 @@ def test_nothing_listening_or_nothing_answering_is_one_line():
 
 
 # ---------------------------------------------------------------- a bridge, broken
+
+
+@pytest.mark.timeout(30)
+def test_the_driver_says_a_silent_link_is_open_not_unreachable():
+    """The driver on a link that opens but never answers: the handshake is asked once
+    more on a link opened again (docs/tracker.md), then one line — a timeout, not
+    "unreachable after 5 reconnection attempts" after half a minute."""
+    with Bridge("127.0.0.37", "mute") as bridge:
+        tracker = LineTracker("t", bridge.address, timeout=0.3, backoff_s=0.01, reconnects=5)
+        with pytest.raises(TrackerTimeoutError) as info:
+            tracker.connect()
+    assert str(info.value) == (
+        f"tracker t at {bridge.address}: no answer to '*IDN?' within 0.3 s, twice, with the "
+        "link open: is it a tracker or bridge that speaks the line protocol? (`cellcal "
+        "tracker --conformance` tells more)"
+    )
+    assert tracker.reconnections == 1
 
 
 COV = (1e-4, 2e-6, -1e-6, 1.2e-4, 0.0, 9e-5)
