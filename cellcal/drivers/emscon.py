@@ -98,8 +98,10 @@ class EmsconTracker:
         self.name = options.name
         self.address = options.address
         self.label = self.name if "tracker" in self.name.lower() else f"tracker {self.name}"
-        self.where = label(self.label, self.address)
         host, port = split_address(self.address, DEFAULT_PORT)
+        # the port named even when it is the default (TPI's 700), in every message
+        shown = f"[{host}]:{port}" if ":" in host else f"{host}:{port}"
+        self.where = label(self.label, shown if self.address else "")
         self.link = EmsconLink(self.where, host, port, options.timeout_s)
         self.clock = clock or WallClock()
         self.serial: str | None = None

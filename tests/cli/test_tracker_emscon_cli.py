@@ -63,6 +63,10 @@ def test_measure_once_from_the_emscon_twin(tmp_path: Path):
             ["tracker", "--address", "127.0.0.253:9", "--dialect", "emscon", "--timeout", "2"],
             "tracker at 127.0.0.253:9: cannot connect",
         ),
+        (  # TPI's default port, named in the line
+            ["tracker", "--address", "127.0.0.253", "--dialect", "emscon", "--timeout", "2"],
+            "tracker at 127.0.0.253:700: cannot connect",
+        ),
     ],
 )
 def test_refusals_are_one_line(args, says):
