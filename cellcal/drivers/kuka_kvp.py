@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import logging
 import socket
+import time
 from typing import Annotated, Literal
 
 import numpy as np
@@ -84,20 +85,26 @@ class KukaKvpOptions(RobotOptions):
     move_timeout_s: Positive = 60.0
     poll_s: Annotated[float, Field(gt=0, le=1)] = 0.05
     request_timeout_s: Annotated[float, Field(gt=0, le=60)] = 2.0
+    idle_reopen_s: Annotated[float, Field(gt=0, le=3600)] = 30.0
 
 
 class KvpLink:
-    """One TCP connection to KUKAVARPROXY: a request, its reply (same msg id)."""
+    """One TCP connection to KUKAVARPROXY: a request, its reply (same msg id). A link
+    unused for ``idle_s`` is opened afresh before the next request: the proxy drops a
+    client idle for 60 s (its source, ``src/frmMain.frm``: ``tmrHost``), and a request
+    sent into such a socket would fail between campaigns."""
 
-    def __init__(self, host: str, port: int, timeout_s: float) -> None:
-        self.host, self.port, self.timeout_s = host, port, timeout_s
+    def __init__(self, host: str, port: int, timeout_s: float, idle_s: float = 30.0) -> None:
+        self.host, self.port, self.timeout_s, self.idle_s = host, port, timeout_s, idle_s
         self._sock: socket.socket | None = None
         self._msg_id = 0
+        self._used = 0.0
 
     def open(self) -> None:
         self.close()
         self._sock = socket.create_connection((self.host, self.port), timeout=self.timeout_s)
         self._sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        self._used = time.monotonic()
 
     def close(self) -> None:
         if self._sock is not None:
@@ -107,6 +114,9 @@ class KvpLink:
     def request(self, function: int, name: str, value: str | None = None) -> tuple[bool, str]:
         """(ok, value text) of one read or write; OSError or KvpFrameError on a link fault
         (the socket is then closed)."""
+        if self._sock is not None and time.monotonic() - self._used > self.idle_s:
+            log.info("%s:%d: the link was idle: opened afresh", self.host, self.port)
+            self.close()
         if self._sock is None:
             self.open()
         assert self._sock is not None
@@ -126,6 +136,7 @@ class KvpLink:
         except (OSError, KvpFrameError):
             self.close()
             raise
+        self._used = time.monotonic()
         return reply.ok, reply.value.decode("ascii", "replace")
 
     def _exactly(self, n: int) -> bytes:
@@ -156,7 +167,7 @@ class KukaKvpRobot(HandshakeRobot):
         o = options or KukaKvpOptions()
         super().__init__(name, f"{host}:{port}", timeout_s=o.move_timeout_s, poll_s=o.poll_s)
         self.options = o
-        self.link = KvpLink(host, port, o.request_timeout_s)
+        self.link = KvpLink(host, port, o.request_timeout_s, o.idle_reopen_s)
         self.robot_name: str | None = None
         self.serial: str | None = None
 

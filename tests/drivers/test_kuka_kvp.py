@@ -8,6 +8,7 @@ from __future__ import annotations
 import math
 import socket
 import threading
+import time
 
 import numpy as np
 import pytest
@@ -196,6 +197,37 @@ def test_a_dropped_link_and_nothing_listening():
     r.close()
     with pytest.raises(DeviceError, match="connection refused: is KUKAVARPROXY running"):
         robot(host, port).connect()
+
+
+def _dropped(server: KvpTwin, n: int) -> None:
+    """Wait until the twin has dropped ``n`` idle clients."""
+    deadline = time.monotonic() + 10.0
+    while server.dropped_idle < n:
+        assert time.monotonic() < deadline, "the twin never dropped the idle client"
+        time.sleep(0.02)
+
+
+def test_an_idle_link_is_opened_afresh_before_the_proxy_drops_it():
+    """KUKAVARPROXY drops a client that has sent nothing for its idle timeout (60 s; the
+    twin here 0.3 s): a driver whose link stood idle longer than ``idle_reopen_s`` opens it
+    afresh before its next request. One that does not sends into the dropped socket."""
+    server = KvpTwin(krc(HOME, time_scale=0.02), idle_timeout_s=0.3)  # type: ignore[arg-type]
+    host, port = server.start("127.0.0.174", 0)
+    try:
+        r = robot(host, port, idle_reopen_s=0.1)
+        r.connect()
+        r.move_joints(np.radians(HOME), 0.2)
+        _dropped(server, 1)  # the proxy has let the silent client go
+        r.move_joints(np.radians([1.0, -90.0, 90.0, 0.0, 0.0, 0.0]), 0.2)
+        r.close()
+        stale = robot(host, port, idle_reopen_s=3600.0)
+        stale.connect()
+        _dropped(server, 2)
+        with pytest.raises(DeviceError, match=f"robot at {host}:{port}: link lost"):
+            stale.move_joints(np.radians(HOME), 0.2)
+        stale.close()
+    finally:
+        server.stop()
 
 
 def test_bytes_that_are_not_kukavarproxy_are_one_line():

@@ -7,12 +7,16 @@ own, one request at a time across all of them. Requests are framed by their leng
 field, whether they arrive split or several in one segment; a reply is written with one
 send (a public client, py-openshowvar, reads it with one ``recv``). A request that is not
 the protocol (a length beyond 64 KiB or shorter than its own header, a function other
-than read and write) closes that connection, as the proxy's socket does.
+than read and write) closes that connection, as the proxy's socket does. A client that
+sends nothing for ``idle_timeout_s`` (60 s) is dropped, as KUKAVARPROXY drops an idle
+client (its source, github.com/ImtsSrl/KUKAVARPROXY ``src/frmMain.frm``: the
+``tmrHost`` timer and its "IDLE Timeout").
 """
 
 from __future__ import annotations
 
 import logging
+import time
 from typing import TYPE_CHECKING
 
 from cellcal.drivers.kuka_kvp_wire import (
@@ -33,13 +37,17 @@ if TYPE_CHECKING:
 log = logging.getLogger("cellcal.mocks.kuka")
 
 MAX_REQUEST = 65536
+#: KUKAVARPROXY drops a client idle this long (s)
+IDLE_TIMEOUT_S = 60.0
 
 
 class KvpTwin:
     """KUKAVARPROXY in front of a :class:`KrcController`."""
 
-    def __init__(self, controller: KrcController) -> None:
+    def __init__(self, controller: KrcController, idle_timeout_s: float = IDLE_TIMEOUT_S) -> None:
         self.controller = controller
+        self.idle_timeout_s = idle_timeout_s
+        self.dropped_idle = 0
         self.server = TcpLinkServer(self._handle, name="kuka-kvp-twin", log=log)
 
     @property
@@ -54,9 +62,15 @@ class KvpTwin:
 
     def _handle(self, link: Link) -> None:
         buffer = b""
+        heard = time.monotonic()
         while not link.stop.is_set():
             if not link.wait(POLL_S):
+                if time.monotonic() - heard > self.idle_timeout_s:
+                    log.info("kuka-kvp twin: a client idle for %g s: dropped", self.idle_timeout_s)
+                    self.dropped_idle += 1
+                    return
                 continue
+            heard = time.monotonic()
             data = link.read()
             if data is None:
                 return
