@@ -149,6 +149,7 @@ def test_models_and_predict_nominal(capsys, tmp_path):
     assert names == ["kuka-kr5-arc", "ur10e", "ur5e"]
     code, out, _ = run(capsys, "models")
     assert "ur10e" in out and "2, 3" in out
+    assert all(line == line.rstrip() for line in out.splitlines())  # no trailing spaces
     joints = tmp_path / "j.csv"
     joints.write_text("q1,q2,q3,q4,q5,q6\n0,0,0,0,0,0\n")
     code, out, _ = run(capsys, "predict", "--model", "kuka-kr5-arc", "--joints", joints)
