@@ -9,7 +9,8 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from cellcal.config import CellConfig, ConfigError
+from cellcal.config import CellConfig
+from cellcal.errors import ConfigError
 
 
 def check_named_files(config: CellConfig, source: str) -> None:

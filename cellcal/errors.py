@@ -24,6 +24,10 @@ class InputError(UserError):
     """Values that cannot be used: wrong shape, NaN/inf, unknown option."""
 
 
+class ConfigError(UserError):
+    """A configuration file that cannot be used; the message names the key."""
+
+
 class FileFormatError(InputError):
     """A file that cannot be read: missing columns, non-numeric values, bad names."""
 

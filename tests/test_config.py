@@ -11,7 +11,8 @@ from pathlib import Path
 
 import pytest
 
-from cellcal.config import ConfigError, config_from_dict, load_config
+from cellcal.config import config_from_dict, load_config
+from cellcal.errors import ConfigError
 
 ROOT = Path(__file__).resolve().parents[1]
 

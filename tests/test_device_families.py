@@ -18,10 +18,11 @@ import pytest
 import cellcal.families as registry
 from cellcal.campaign.devices import build_devices
 from cellcal.clock import Clock, SimulatedClock
-from cellcal.config import ConfigError, config_from_dict, upgrade_stored
+from cellcal.config import config_from_dict
+from cellcal.config_earlier import upgrade_stored
 from cellcal.device_options import SensorOptions
 from cellcal.drivers.base import DeviceContext, Series, host_port, label
-from cellcal.errors import DeviceError, InputError
+from cellcal.errors import ConfigError, DeviceError, InputError
 from cellcal.families import Family
 from cellcal.files.models import load_model
 from cellcal.mocks.twins import RunningTwin

@@ -7,7 +7,11 @@ step on the record stream (the store first), and hands the complete campaign to 
 kind's analysis; a pause, an abort, a stop or a fault ends it the same way for all.
 
 A new kind is one module (its plan, options and analysis), listed in
-``kinds.all_kinds``."""
+``kinds.all_kinds``.
+
+Size (about 500 lines): the four ways a campaign runs (start, queue, run queued, resume)
+share one private ``_run`` and its ending; split apart, each would import the others'
+helpers. The stored campaign's reading (``stored_campaign``) moves out first if it grows."""
 
 from __future__ import annotations
 
@@ -55,7 +59,8 @@ from cellcal.campaign.run_parts import (
 from cellcal.campaign.stop_request import StopRequest
 from cellcal.campaign.warm_up import warm_up
 from cellcal.clock import Clock, SimulatedClock, WallClock
-from cellcal.config import CellConfig, config_from_dict, upgrade_stored
+from cellcal.config import CellConfig, config_from_dict
+from cellcal.config_earlier import upgrade_stored
 from cellcal.errors import AcceptanceError, CampaignError, UserError
 from cellcal.store.database import Store
 

@@ -35,7 +35,7 @@ import numpy as np
 from cellcal.calib.geometry import Array, invert, so3_log
 from cellcal.calib.kinematics import target_kinematics
 from cellcal.calib.robot_model import PARALLEL_AXES_DEG, Joint, RobotModel
-from cellcal.config import Warn, warn_on_stderr
+from cellcal.config_earlier import Warn, warn_on_stderr
 from cellcal.errors import FileFormatError, InputError
 from cellcal.files.text import read_text
 from cellcal.files.urdf_inertials import with_inertials

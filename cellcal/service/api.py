@@ -26,7 +26,8 @@ from aiohttp import web
 from cellcal import __version__
 from cellcal.campaign.kinds import DEFAULT_KIND, kind_named, shown_kinds
 from cellcal.campaign.runner import plan_campaign, queue_campaign
-from cellcal.config import CellConfig, config_from_dict, relative_to, upgrade_stored
+from cellcal.config import CellConfig, config_from_dict, relative_to
+from cellcal.config_earlier import upgrade_stored
 from cellcal.errors import CellcalError
 from cellcal.reports.folder import list_campaigns
 from cellcal.service.api_requests import (

@@ -12,8 +12,9 @@ from pathlib import Path
 
 import pytest
 
-from cellcal.config import ConfigError, load_config
+from cellcal.config import load_config
 from cellcal.config_files import check_named_files
+from cellcal.errors import ConfigError
 from tests.cli.test_calibrate_cli import run
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -15,10 +15,10 @@ import time
 import numpy as np
 import pytest
 
-from cellcal.config import ConfigError, config_from_dict
+from cellcal.config import config_from_dict
 from cellcal.drivers import yaskawa_hses_wire as wire
 from cellcal.drivers.yaskawa_hses import YaskawaHsesOptions, YaskawaHsesRobot
-from cellcal.errors import DeviceError
+from cellcal.errors import ConfigError, DeviceError
 from cellcal.mocks.yaskawa.hses_server import HsesTwin
 from tests.drivers.families import bundled_cells
 from tests.robot_controllers import krc

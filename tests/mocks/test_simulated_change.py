@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from cellcal.clock import SimulatedClock
-from cellcal.config import ConfigError, config_from_dict
-from cellcal.errors import InputError
+from cellcal.config import config_from_dict
+from cellcal.errors import ConfigError, InputError
 from cellcal.files.models import load_model
 from cellcal.mocks.simulated_cell import SimulatedCell
 from tests.drivers.families import bundled_cells
