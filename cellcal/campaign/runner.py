@@ -9,9 +9,9 @@ kind's analysis; a pause, an abort, a stop or a fault ends it the same way for a
 A new kind is one module (its plan, options and analysis), listed in
 ``kinds.all_kinds``.
 
-Size (about 500 lines): the four ways a campaign runs (start, queue, run queued, resume)
-share one private ``_run`` and its ending; split apart, each would import the others'
-helpers. The stored campaign's reading (``stored_campaign``) moves out first if it grows."""
+Size (about 500 lines): starting, running a queued or held campaign and resuming share
+one private ``_run`` and its ending, and queueing shares ``_create`` with starting; split
+apart, each would import the others' private helpers. The stored campaign's reading (``stored_campaign``) moves out first if it grows."""
 
 from __future__ import annotations
 
