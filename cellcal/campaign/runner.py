@@ -11,7 +11,8 @@ A new kind is one module (its plan, options and analysis), listed in
 
 Size (about 500 lines): starting, running a queued or held campaign and resuming share
 one private ``_run`` and its ending, and queueing shares ``_create`` with starting; split
-apart, each would import the others' private helpers. The stored campaign's reading (``stored_campaign``) moves out first if it grows."""
+apart, each would import the others' private helpers. The stored campaign's reading
+(``stored_campaign``) moves out first if it grows."""
 
 from __future__ import annotations
 

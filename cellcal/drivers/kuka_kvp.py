@@ -63,6 +63,9 @@ from cellcal.errors import DeviceError
 
 log = logging.getLogger("cellcal.drivers.kuka")
 
+#: a link unused this long (s) is opened afresh: KUKAVARPROXY drops a client idle for 60 s
+IDLE_REOPEN_S = 30.0
+
 DEFAULT_PORT = 7000
 UNATTENDED = ("#AUT", "#EX")
 _VAR = r"^\$?[A-Za-z_][A-Za-z0-9_]*(\[\])?$"
@@ -85,7 +88,7 @@ class KukaKvpOptions(RobotOptions):
     move_timeout_s: Positive = 60.0
     poll_s: Annotated[float, Field(gt=0, le=1)] = 0.05
     request_timeout_s: Annotated[float, Field(gt=0, le=60)] = 2.0
-    idle_reopen_s: Annotated[float, Field(gt=0, le=3600)] = 30.0
+    idle_reopen_s: Annotated[float, Field(gt=0, le=3600)] = IDLE_REOPEN_S
 
 
 class KvpLink:
@@ -94,7 +97,9 @@ class KvpLink:
     client idle for 60 s (its source, ``src/frmMain.frm``: ``tmrHost``), and a request
     sent into such a socket would fail between campaigns."""
 
-    def __init__(self, host: str, port: int, timeout_s: float, idle_s: float = 30.0) -> None:
+    def __init__(
+        self, host: str, port: int, timeout_s: float, idle_s: float = IDLE_REOPEN_S
+    ) -> None:
         self.host, self.port, self.timeout_s, self.idle_s = host, port, timeout_s, idle_s
         self._sock: socket.socket | None = None
         self._msg_id = 0
